@@ -1,0 +1,154 @@
+"""The SVM on the grid basis as quadratic programs solved with piqp.
+
+Variables are v = (x, gamma) with x = K_G^{1/2} c (see kernel.py); soft margins add one slack
+per data point. Hard margin (the paper):     min 1/2 |x|^2          s.t. theta_i (phi_i' x + gamma) >= 1
+Soft margin (penalty C):                     min 1/2 |x|^2 + C sum xi  s.t. theta_i (phi_i' x + gamma) + xi_i >= 1, xi >= 0
+
+piqp >= 0.7 writes inequalities as h_l <= G z <= h_u (older versions had G z <= h); every
+constraint here is a lower bound with h_u = +inf.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import piqp
+
+from agents.kernel import GridBasis
+
+INFEASIBLE_ADVICE = (
+    "the hard-margin problem is infeasible: no function on this grid separates the data "
+    "(the paper's Fig. 5). Use a finer grid (--grid), bounds that cover the data "
+    "(--grid-bounds), a smaller --sigma, or a soft margin (--C 100)"
+)
+
+
+class InfeasibleError(ValueError):
+    """The hard-margin problem has no solution on this grid."""
+
+
+class SolverError(RuntimeError):
+    """piqp failed for a reason other than infeasibility."""
+
+
+def _settings(solver: piqp.DenseSolver) -> None:
+    solver.settings.verbose = False
+    solver.settings.eps_abs = 1e-10
+    solver.settings.eps_rel = 1e-10
+    solver.settings.max_iter = 500
+
+
+def margin_rows(features: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Rows of theta_i [phi_i', 1]: the margin constraints are rows @ v >= 1."""
+    labels = np.asarray(labels, dtype=float)
+    return labels[:, None] * np.hstack([features, np.ones((len(features), 1))])
+
+
+@dataclass(frozen=True)
+class QPSolution:
+    """(x, gamma) and, for soft margins, the slacks."""
+
+    x: np.ndarray
+    gamma: float
+    slack: np.ndarray
+    status: str
+
+
+class MarginQP:
+    """One quadratic program over v = (x, gamma[, xi]) with the margin constraints of some data.
+
+    P is fixed at construction (it does not change between ADMM rounds), q changes every round:
+    piqp's `update` reuses the factorisation set-up, which keeps a round well under a millisecond.
+    """
+
+    def __init__(
+        self,
+        features: np.ndarray,
+        labels: np.ndarray,
+        *,
+        x_weight: float,
+        prox_weight: float,
+        C: float | None,
+        prox_weight_gamma: float | None = None,
+    ) -> None:
+        self.dim = features.shape[1] + 1
+        rows = margin_rows(features, labels)
+        n = len(rows)
+        self.soft = C is not None
+        self.n_slack = n if self.soft else 0
+        size = self.dim + self.n_slack
+        self._x_weight = x_weight
+        self._size = size
+        self._P = self._p_matrix(prox_weight, prox_weight if prox_weight_gamma is None else prox_weight_gamma)
+        self._q_slack = np.full(self.n_slack, float(C) if self.soft else 0.0)
+        G = np.hstack([rows, np.eye(n)]) if self.soft else rows
+        self._G = np.asfortranarray(G)
+        h_l = np.ones(n)
+        h_u = np.full(n, np.inf)
+        x_l = x_u = None
+        if self.soft:
+            x_l = np.concatenate([np.full(self.dim, -np.inf), np.zeros(n)])
+            x_u = np.full(size, np.inf)
+        self._solver = piqp.DenseSolver()
+        _settings(self._solver)
+        self._solver.setup(self._P, np.zeros(size), None, None, self._G, h_l, h_u, x_l, x_u)
+
+    def _p_matrix(self, prox_x: float, prox_gamma: float) -> np.ndarray:
+        p_diag = np.zeros(self._size)
+        p_diag[: self.dim - 1] = self._x_weight + prox_x
+        p_diag[self.dim - 1] = prox_gamma
+        return np.asfortranarray(np.diag(p_diag))
+
+    def set_prox(self, prox_x: float, prox_gamma: float) -> None:
+        """Change the proximal weights (an ADMM penalty changed); the constraints stay."""
+        self._P = self._p_matrix(prox_x, prox_gamma)
+        self._solver.update(P=self._P)
+
+    def solve(self, q: np.ndarray) -> QPSolution:
+        """Minimise 1/2 v' P v + q' v over the margin constraints; q has length dim."""
+        full_q = np.concatenate([np.asarray(q, dtype=float), self._q_slack])
+        self._solver.update(c=full_q)
+        status = self._solver.solve()
+        if status == piqp.PIQP_PRIMAL_INFEASIBLE:
+            raise InfeasibleError(INFEASIBLE_ADVICE)
+        if status != piqp.PIQP_SOLVED:
+            raise SolverError(f"piqp returned {status}")
+        z = np.array(self._solver.result.x, dtype=float)
+        return QPSolution(
+            x=z[: self.dim - 1].copy(),
+            gamma=float(z[self.dim - 1]),
+            slack=z[self.dim :].copy(),
+            status="solved",
+        )
+
+
+@dataclass(frozen=True)
+class CentralSolution:
+    """The reference every robot is measured against."""
+
+    c: np.ndarray
+    x: np.ndarray
+    gamma: float
+    status: str  # "solved" | "infeasible"
+    message: str = ""
+
+    @property
+    def solved(self) -> bool:
+        return self.status == "solved"
+
+
+def solve_central(
+    basis: GridBasis, points: np.ndarray, labels: np.ndarray, C: float | None = None
+) -> CentralSolution:
+    """All data in one QP: the solution the decentralized fleet must reach."""
+    features = basis.features(points)
+    # P is only positive semi-definite (gamma is free of cost); piqp's proximal interior
+    # point handles that directly.
+    qp = MarginQP(features, labels, x_weight=1.0, prox_weight=0.0, C=C)
+    try:
+        sol = qp.solve(np.zeros(qp.dim))
+    except InfeasibleError as exc:
+        m = basis.size
+        return CentralSolution(np.full(m, np.nan), np.full(m, np.nan), float("nan"), "infeasible", str(exc))
+    return CentralSolution(basis.c_from_x(sol.x), sol.x, sol.gamma, "solved")

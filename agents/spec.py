@@ -1,0 +1,181 @@
+"""What one robot is told at start: the shared problem, its own data and its neighbours.
+
+A `FleetSpec` is the single hand-over between the launcher and the robots (in-process or as
+processes). It is plain JSON on disk, so a robot on another host needs only this file.
+`build_core` turns it into the robot's algorithm state machine; shells never see the maths.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.admm import ADMMParams, ConsensusADMM
+from agents.kernel import GridBasis
+from protocol.frames import config_tag as make_config_tag
+from protocol.keys import validate_fleet_id
+from protocol.links import LinkFaults
+
+ALGORITHMS = ("admm",)
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Shell time-outs (seconds): never part of the mathematics."""
+
+    retransmit_s: float = 0.02
+    dead_after_s: float = 6.0
+    max_wall_s: float = 600.0
+    linger_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """One robot's data and neighbour list."""
+
+    id: int
+    neighbours: tuple[int, ...]
+    points: np.ndarray
+    labels: np.ndarray
+
+
+@dataclass
+class FleetSpec:
+    """Everything every robot must agree on, plus each robot's own part."""
+
+    fleet: str
+    algorithm: str
+    sigma: float
+    C: float | None
+    grid: np.ndarray
+    robots: dict[int, RobotSpec]
+    params: dict[str, Any] = field(default_factory=dict)
+    faults: LinkFaults = field(default_factory=LinkFaults.none)
+    seed: int = 0
+    timing: Timing = field(default_factory=Timing)
+
+    def __post_init__(self) -> None:
+        validate_fleet_id(self.fleet)
+        if self.algorithm not in ALGORITHMS:
+            raise ValueError(f"unknown algorithm {self.algorithm!r}; choose from {', '.join(ALGORITHMS)}")
+        self.grid = np.asarray(self.grid, dtype=float)
+
+    @property
+    def robot_ids(self) -> tuple[int, ...]:
+        return tuple(sorted(self.robots))
+
+    @property
+    def n_robots(self) -> int:
+        return len(self.robots)
+
+    @cached_property
+    def basis(self) -> GridBasis:
+        return GridBasis(self.grid, self.sigma)
+
+    @property
+    def dim(self) -> int:
+        """Length of the vector robots exchange: (x, gamma)."""
+        return len(self.grid) + 1
+
+    @cached_property
+    def config_tag(self) -> bytes:
+        """Fingerprint of the shared problem: robots configured differently reject each other."""
+        return make_config_tag(
+            self.algorithm,
+            self.sigma,
+            -1.0 if self.C is None else self.C,
+            self.grid,
+            json.dumps(self.params, sort_keys=True),
+            np.asarray(self.robot_ids, dtype=float),
+        )
+
+    # -- JSON --------------------------------------------------------------------------------
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "fleet": self.fleet,
+            "algorithm": self.algorithm,
+            "sigma": self.sigma,
+            "C": self.C,
+            "grid": self.grid.tolist(),
+            "params": self.params,
+            "faults": asdict(self.faults),
+            "seed": self.seed,
+            "timing": asdict(self.timing),
+            "robots": [
+                {
+                    "id": r.id,
+                    "neighbours": list(r.neighbours),
+                    "points": r.points.tolist(),
+                    "labels": [int(v) for v in r.labels],
+                }
+                for r in self.robots.values()
+            ],
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> FleetSpec:
+        robots = {
+            int(r["id"]): RobotSpec(
+                int(r["id"]),
+                tuple(int(j) for j in r["neighbours"]),
+                np.asarray(r["points"], dtype=float).reshape(-1, 2),
+                np.asarray(r["labels"], dtype=int),
+            )
+            for r in data["robots"]
+        }
+        return cls(
+            fleet=data["fleet"],
+            algorithm=data["algorithm"],
+            sigma=float(data["sigma"]),
+            C=None if data["C"] is None else float(data["C"]),
+            grid=np.asarray(data["grid"], dtype=float),
+            robots=robots,
+            params=dict(data.get("params", {})),
+            faults=LinkFaults(**data.get("faults", {})),
+            seed=int(data.get("seed", 0)),
+            timing=Timing(**data.get("timing", {})),
+        )
+
+    def save(self, path: Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json()))
+
+    @classmethod
+    def load(cls, path: Path) -> FleetSpec:
+        """Read a fleet file; errors name the file (the CLI turns them into exit code 2)."""
+        try:
+            data = json.loads(Path(path).read_text())
+            return cls.from_json(data)
+        except OSError as exc:
+            raise ValueError(f"{path}: cannot read fleet file ({exc.strerror})") from None
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: not a valid fleet file ({exc})") from None
+
+
+def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> ConsensusADMM:
+    """The algorithm state machine of one robot, from the fleet file."""
+    if robot_id not in spec.robots:
+        raise ValueError(f"robot {robot_id} is not in fleet {spec.fleet} (robots {list(spec.robot_ids)})")
+    me = spec.robots[robot_id]
+    features = spec.basis.features(me.points)
+    return ConsensusADMM(
+        robot_id,
+        me.neighbours,
+        features,
+        me.labels,
+        n_robots=spec.n_robots,
+        params=ADMMParams(**spec.params),
+        C=spec.C,
+        keep_trace=keep_trace,
+    )
+
+
+def restore_core(spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]) -> ConsensusADMM:
+    """A robot restarted after a crash resumes exactly where its checkpoint left it."""
+    core = build_core(spec, robot_id)
+    core.restore(checkpoint)
+    return core

@@ -1,0 +1,278 @@
+"""`shapefleet simulate | launch | central | robot | router` -- what a person runs.
+
+Bad input ends with exit code 2 and one line naming the flag or file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+
+from agents.spec import ALGORITHMS, Timing
+from launcher import scenario, topology
+from launcher.world import Options, World, build_world
+from protocol.links import LinkFaults, parse_duration, parse_probability
+
+EXIT_BAD_INPUT = 2
+
+
+class UsageError(ValueError):
+    """Bad input found after parsing; the message names the flag or file."""
+
+
+def _fail(message: str) -> NoReturn:
+    print(f"shapefleet: error: {message}", file=sys.stderr)
+    raise SystemExit(EXIT_BAD_INPUT)
+
+
+# -- argument parsing -------------------------------------------------------------------------
+def _positive_int(flag: str) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"{text!r} must be at least 1")
+        return value
+
+    parse.__name__ = flag
+    return parse
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def _add_scenario_args(p: argparse.ArgumentParser) -> None:
+    d = Options()
+    world = p.add_argument_group("world and data")
+    src = world.add_mutually_exclusive_group()
+    src.add_argument("--shape", default=d.shape, help=f"built-in shape: {', '.join(scenario.shape_names())} (default {d.shape})")
+    src.add_argument("--shape-file", metavar="CSV", help="object outline from a CSV file with header x,y")
+    src.add_argument("--data", metavar="CSV", help="labelled data from a CSV file with header robot,x,y,label")
+    world.add_argument("--robots", type=_positive_int("--robots"), default=d.robots, help=f"number of robots (default {d.robots})")
+    world.add_argument("--points", type=_positive_int("--points"), default=d.points, help=f"labelled points per robot (default {d.points})")
+    world.add_argument("--seed", type=int, default=d.seed, help="seed of LiDAR noise and network faults (default 0)")
+    world.add_argument("--standoff", type=_finite_float, default=d.standoff, help=f"robot distance from the object (default {d.standoff})")
+    world.add_argument("--range", dest="lidar_range", type=_finite_float, default=d.lidar_range, help=f"LiDAR range (default {d.lidar_range})")
+    world.add_argument("--offset", type=_finite_float, default=d.offset, help=f"distance of labelled points from a LiDAR hit (default {d.offset})")
+    world.add_argument("--noise", type=_finite_float, default=d.noise, help=f"LiDAR range noise std (default {d.noise})")
+    model = p.add_argument_group("model")
+    model.add_argument("--grid", default=d.grid, help=f"grid points NXxNY (default {d.grid}, the paper's)")
+    model.add_argument("--grid-bounds", metavar="X0,X1,Y0,Y1", help="grid region (default: the data's bounding box, padded)")
+    model.add_argument("--sigma", type=_finite_float, default=d.sigma, help=f"Gaussian kernel width (default {d.sigma}, the paper's)")
+    model.add_argument("--C", type=_finite_float, default=None, help="soft margin with this penalty (default: hard margin, the paper's)")
+    algo = p.add_argument_group("fleet and algorithm")
+    algo.add_argument("--topology", default=d.topology, help=f"{' | '.join(topology.TOPOLOGIES)} (default {d.topology})")
+    algo.add_argument("--comm-range", type=_finite_float, help="link robots within this distance (geometric topology)")
+    algo.add_argument("--algorithm", default=d.algorithm, choices=ALGORITHMS, help=f"(default {d.algorithm})")
+    algo.add_argument("--rho", type=_finite_float, default=d.rho, help=f"ADMM penalty (default {d.rho})")
+    algo.add_argument("--relax", type=_finite_float, default=d.relax, help=f"ADMM over-relaxation in (0, 2) (default {d.relax})")
+    algo.add_argument("--tol", type=_finite_float, default=d.tol, help=f"stop when every robot's relative residual is below (default {d.tol:g})")
+    algo.add_argument("--max-rounds", type=_positive_int("--max-rounds"), default=d.max_rounds, help=f"round cap (default {d.max_rounds})")
+    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/)")
+
+
+def _add_fault_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("network faults (netem vocabulary, injected per directed link)")
+    g.add_argument("--delay", default="0ms", help="one-way delay, e.g. 20ms or 0.5s")
+    g.add_argument("--jitter", default="0ms", help="uniform jitter around the delay")
+    g.add_argument("--loss", default="0", help="drop probability (the dropout), 0.3 or 30%%")
+    g.add_argument("--duplicate", default="0", help="duplicate probability")
+    g.add_argument("--reorder", default="0", help="probability that a frame is held back and overtaken")
+    g.add_argument("--retransmit", default="20ms", help="resend the latest frame after this long without progress")
+
+
+def _faults(args: argparse.Namespace) -> LinkFaults:
+    return LinkFaults(
+        delay=parse_duration(args.delay, flag="--delay"),
+        jitter=parse_duration(args.jitter, flag="--jitter"),
+        loss=parse_probability(args.loss, flag="--loss"),
+        duplicate=parse_probability(args.duplicate, flag="--duplicate"),
+        reorder=parse_probability(args.reorder, flag="--reorder"),
+    )
+
+
+def _options(args: argparse.Namespace, **extra: Any) -> Options:
+    faults = _faults(args) if hasattr(args, "delay") else LinkFaults.none()
+    timing = Timing(retransmit_s=parse_duration(args.retransmit, flag="--retransmit")) if hasattr(args, "retransmit") else Timing()
+    if timing.retransmit_s <= 0:
+        raise UsageError("--retransmit: must be a positive duration")
+    return Options(
+        shape=args.shape,
+        shape_file=args.shape_file,
+        data=args.data,
+        robots=args.robots,
+        points=args.points,
+        seed=args.seed,
+        standoff=args.standoff,
+        lidar_range=args.lidar_range,
+        offset=args.offset,
+        noise=args.noise,
+        grid=args.grid,
+        grid_bounds=args.grid_bounds,
+        sigma=args.sigma,
+        C=args.C,
+        topology=args.topology,
+        comm_range=args.comm_range,
+        algorithm=args.algorithm,
+        rho=args.rho,
+        relax=args.relax,
+        tol=args.tol,
+        max_rounds=args.max_rounds,
+        faults=faults,
+        timing=timing,
+        **extra,
+    )
+
+
+def _out_dir(args: argparse.Namespace, mode: str) -> Path:
+    if args.out:
+        out = Path(args.out)
+    else:
+        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+        out = Path("runs") / f"{stamp}-{mode}"
+        n = 1
+        while out.exists():
+            n += 1
+            out = Path("runs") / f"{stamp}-{mode}-{n}"
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out: {out} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"--out: cannot create {out} ({exc.strerror})") from None
+    return out
+
+
+# -- jobs -------------------------------------------------------------------------------------
+def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[str, Any]], *, wall_s: float, extra: dict[str, Any]) -> dict[str, Any]:
+    from rich.console import Console
+
+    from launcher import report
+
+    result = report.build_result(world, spec.basis, central, robots, algorithm=spec.algorithm, C=spec.C, wall_s=wall_s, extra=extra)
+    report.write_json(out / "result.json", result)
+    report.plot_shapes(out / "shapes.png", world, spec.basis, result)
+    if result["history"]:
+        report.plot_convergence(out / "convergence.png", result["history"])
+    console = Console()
+    console.print(report.summary_table(result))
+    console.print(f"wrote {out}/result.json, data.csv, shapes.png" + (", convergence.png" if result["history"] else ""))
+    return result
+
+
+def _prepare(args: argparse.Namespace, mode: str, **extra: Any) -> tuple[Path, World, Any, Any]:
+    from agents.problem import solve_central
+
+    world, spec = build_world(_options(args, **extra))
+    out = _out_dir(args, mode)
+    scenario.write_data_csv(out / "data.csv", world.robots)
+    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    return out, world, spec, central
+
+
+def _infeasible(out: Path, world: World, spec: Any, central: Any) -> NoReturn:
+    """Say it in words (the paper's Fig. 5) and show the data and grid, not a wrong curve."""
+    from launcher import report
+
+    result = report.build_result(world, spec.basis, central, [], algorithm=spec.algorithm, C=spec.C, wall_s=0.0, extra={})
+    report.write_json(out / "result.json", result)
+    report.plot_shapes(out / "shapes.png", world, spec.basis, result, title="no separating function on this grid")
+    _fail(f"--grid {args_grid(spec)}: {central.message}. Wrote {out}/shapes.png")
+
+
+def args_grid(spec: Any) -> str:
+    xs = np.unique(np.round(spec.grid[:, 0], 9))
+    ys = np.unique(np.round(spec.grid[:, 1], 9))
+    return f"{len(xs)}x{len(ys)}"
+
+
+def cmd_central(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    out, world, spec, central = _prepare(args, "central")
+    if not central.solved:
+        _infeasible(out, world, spec, central)
+    robot = {"id": 0, "x": central.x.tolist(), "gamma": central.gamma, "rounds": 0, "converged": True}
+    _finish(out, world, spec, central, [robot], wall_s=time.perf_counter() - t0, extra={"algorithm": "central"})
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from launcher.simulate import simulate_fleet
+
+    t0 = time.perf_counter()
+    out, world, spec, central = _prepare(args, "simulate")
+    if not central.solved:
+        _infeasible(out, world, spec, central)
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("residual {task.fields[residual]}"),
+        TimeElapsedColumn(),
+        transient=True,
+    ) as bar:
+        task = bar.add_task(f"{spec.n_robots} robots, {spec.algorithm}", total=spec.params["max_rounds"], residual="-")
+
+        def progress(rnd: int, residual: float) -> None:
+            bar.update(task, completed=rnd, residual=f"{residual:.2e}")
+
+        outcome = simulate_fleet(spec, progress=progress)
+    extra = {"fleet": spec.fleet, "topology": args.topology, "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
+    _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
+    return 0
+
+
+def _fault_dict(faults: LinkFaults) -> dict[str, float]:
+    from dataclasses import asdict
+
+    return asdict(faults)
+
+
+# -- entry point ------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="shapefleet", description="A robot fleet learns an object's outline together.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p = sub.add_parser("simulate", help="all robots in this process (deterministic, fast)")
+    _add_scenario_args(p)
+    _add_fault_args(p)
+    p.set_defaults(func=cmd_simulate)
+    p = sub.add_parser("central", help="solve the same problem with all data in one place")
+    _add_scenario_args(p)
+    p.set_defaults(func=cmd_central)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (UsageError, scenario.ScenarioError, topology.TopologyError) as exc:
+        _fail(str(exc))
+    except ValueError as exc:  # parse_duration / parse_probability / fleet files name their flag
+        _fail(str(exc))
+    except KeyboardInterrupt:
+        print("shapefleet: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,412 @@
+"""msgpack codec for the consensus frames robots exchange.
+
+Sans-IO: bytes in, events out, nothing else. :func:`encode_state` turns a :class:`StateUpdate`
+into a frame; :class:`FrameDecoder` turns any bytes into either :class:`Decoded` or
+:class:`Rejected` and never raises, because a frame is untrusted input from the network and one
+malformed frame must not stop a robot. The format and the rejection codes are specified in
+``docs/protocol.md``.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import math
+import struct
+from collections.abc import Collection
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from protocol.keys import validate_fleet_id, validate_robot_id
+
+FRAME_VERSION = 1
+KIND_STATE = "state"
+CONFIG_TAG_SIZE = 8
+MAX_FRAME_BYTES = 1 << 20
+MAX_ROUND = 2**31 - 1
+MAX_SEQ = 2**63 - 1
+MAX_FLAGS = 2**63 - 1
+# Everything of a frame but its two vectors takes < 200 bytes (fleet ids are <= 64 chars).
+_FRAME_OVERHEAD_BOUND = 256
+MAX_DIM = (MAX_FRAME_BYTES - _FRAME_OVERHEAD_BOUND) // 16
+
+# The checks run in this order; the first that fails names the rejection.
+REJECTION_REASONS: tuple[str, ...] = (
+    "too-large",        # more than MAX_FRAME_BYTES, refused before unpacking
+    "not-msgpack",      # not bytes, not exactly one msgpack object, or beyond the unpack limits
+    "not-a-map",        # the object is not a map
+    "duplicate-field",  # a key appears twice in the map
+    "version",          # "v" is not FRAME_VERSION (checked before the other fields)
+    "kind",             # "kind" is not "state"
+    "unknown-field",    # a key outside the frame's field set
+    "missing-field",    # a field of the frame is absent
+    "field-type",       # a field has the wrong msgpack type (bool is not int, str is not bin)
+    "fleet",            # another fleet's frame
+    "config",           # "cfg" differs: the sender solves a differently configured problem
+    "sender",           # "from" is not a known sender (or not the one expected on this key)
+    "round",            # round outside [0, 2**31)
+    "seq",              # seq outside [0, 2**63)
+    "flags",            # flags or pflags outside [0, 2**63)
+    "prev",             # prev at round 0, or pflags set without prev
+    "vector-length",    # x or prev is not 8 * dim bytes
+    "non-finite",       # x or prev holds NaN or +-inf
+)
+
+_FIELD_TYPES: dict[str, tuple[type, ...]] = {
+    "v": (int,),
+    "kind": (str,),
+    "fleet": (str,),
+    "from": (int,),
+    "round": (int,),
+    "seq": (int,),
+    "cfg": (bytes,),
+    "x": (bytes,),
+    "flags": (int,),
+    "prev": (bytes, type(None)),
+    "pflags": (int,),
+}
+
+
+def _check_int(name: str, value: Any, hi: int) -> int:
+    if type(value) is not int:
+        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+    if not 0 <= value <= hi:
+        raise ValueError(f"{name} {value} is outside [0, {hi}]")
+    return value
+
+
+def _as_vector(name: str, value: Any) -> np.ndarray:
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must be real numbers, got dtype {arr.dtype}")
+    if arr.ndim != 1 or arr.size == 0:
+        raise ValueError(f"{name} must be a non-empty 1-D vector, got shape {arr.shape}")
+    return arr.astype(np.float64, copy=False)
+
+
+@dataclass(frozen=True, eq=False)
+class StateUpdate:
+    """One robot's consensus vector for one round, as the algorithm core sees it.
+
+    ``prev_values`` are the sender's values of ``round - 1``: a receiver that lost that frame
+    recovers the exact value from the next one instead of reusing a stale one (which would bias
+    ADMM). Consequently it must be None at round 0, and ``prev_flags`` must be 0 without it.
+    Equality compares the arrays element-wise (``np.array_equal``); instances are unhashable.
+    """
+
+    sender: int
+    round: int
+    values: np.ndarray
+    flags: int
+    prev_values: np.ndarray | None
+    prev_flags: int = 0
+
+    def __post_init__(self) -> None:
+        validate_robot_id(self.sender)
+        _check_int("round", self.round, MAX_ROUND)
+        _check_int("flags", self.flags, MAX_FLAGS)
+        _check_int("prev_flags", self.prev_flags, MAX_FLAGS)
+        values = _as_vector("values", self.values)
+        object.__setattr__(self, "values", values)
+        if self.prev_values is None:
+            if self.prev_flags:
+                raise ValueError("prev_flags must be 0 when prev_values is None")
+            return
+        if self.round == 0:
+            raise ValueError("prev_values must be None at round 0 (there is no round -1)")
+        prev = _as_vector("prev_values", self.prev_values)
+        if prev.shape != values.shape:
+            raise ValueError(
+                f"prev_values has {prev.size} entries but values has {values.size}"
+            )
+        object.__setattr__(self, "prev_values", prev)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, StateUpdate):
+            return NotImplemented
+        if (self.sender, self.round, self.flags, self.prev_flags) != (
+            other.sender,
+            other.round,
+            other.flags,
+            other.prev_flags,
+        ):
+            return False
+        if not np.array_equal(self.values, other.values):
+            return False
+        if self.prev_values is None or other.prev_values is None:
+            return self.prev_values is None and other.prev_values is None
+        return np.array_equal(self.prev_values, other.prev_values)
+
+    __hash__ = None  # type: ignore[assignment]  # holds mutable arrays
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """A frame that passed every check. ``update`` owns fresh, writable arrays."""
+
+    update: StateUpdate
+    seq: int
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A frame that failed a check: ``reason`` is a code of REJECTION_REASONS, ``detail`` prose."""
+
+    reason: str
+    detail: str
+
+
+def _vector_bytes(name: str, arr: np.ndarray) -> bytes:
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} holds non-finite values; no robot would accept the frame")
+    return np.asarray(arr, "<f8").tobytes()
+
+
+def _check_config_tag(tag: Any) -> bytes:
+    if not isinstance(tag, bytes) or len(tag) != CONFIG_TAG_SIZE:
+        raise ValueError(f"config_tag must be {CONFIG_TAG_SIZE} bytes (see config_tag())")
+    return tag
+
+
+def encode_state(update: StateUpdate, *, fleet: str, seq: int, config_tag: bytes) -> bytes:
+    """Serialise ``update`` as a version-1 state frame.
+
+    Raises ValueError for anything a receiver would reject (non-finite values, seq out of
+    range, bad fleet id or tag, vector longer than MAX_DIM), so such a frame never leaves.
+    """
+    validate_fleet_id(fleet)
+    _check_int("seq", seq, MAX_SEQ)
+    _check_config_tag(config_tag)
+    if update.values.size > MAX_DIM:
+        raise ValueError(f"vector of {update.values.size} entries exceeds MAX_DIM={MAX_DIM}")
+    frame = {
+        "v": FRAME_VERSION,
+        "kind": KIND_STATE,
+        "fleet": fleet,
+        "from": update.sender,
+        "round": update.round,
+        "seq": seq,
+        "cfg": config_tag,
+        "x": _vector_bytes("values", update.values),
+        "flags": update.flags,
+        "prev": (
+            None
+            if update.prev_values is None
+            else _vector_bytes("prev_values", update.prev_values)
+        ),
+        "pflags": update.prev_flags,
+    }
+    data: bytes = msgpack.packb(frame, use_bin_type=True)
+    return data
+
+
+_CONFIG_PERSON = b"shapefleet-cfg1"
+
+
+def _feed(h: Any, part: Any) -> None:
+    """Canonical, type-tagged, length-prefixed bytes of one part (see config_tag)."""
+
+    def length(n: int) -> bytes:
+        return struct.pack("<Q", n)
+
+    if part is None:
+        h.update(b"N")
+    elif isinstance(part, (bool, np.bool_)):
+        h.update(b"B1" if part else b"B0")
+    elif isinstance(part, (int, np.integer)):
+        digits = str(int(part)).encode()
+        h.update(b"I" + length(len(digits)) + digits)
+    elif isinstance(part, (float, np.floating)):
+        value = float(part)
+        if math.isnan(value):
+            raise ValueError("config_tag: NaN has no stable fingerprint")
+        if value.is_integer():  # 2 and 2.0 describe the same configuration
+            _feed(h, int(value))
+        else:
+            h.update(b"F" + struct.pack("<d", value))
+    elif isinstance(part, str):
+        data = part.encode("utf-8")
+        h.update(b"S" + length(len(data)) + data)
+    elif isinstance(part, (bytes, bytearray, memoryview)):
+        data = bytes(part)
+        h.update(b"Y" + length(len(data)) + data)
+    elif isinstance(part, np.ndarray):
+        if part.dtype.kind not in "biuf":
+            raise TypeError(f"config_tag: cannot fingerprint an array of dtype {part.dtype}")
+        arr = part.astype("<f8") + 0.0  # + 0.0 turns -0.0 into 0.0
+        if np.isnan(arr).any():
+            raise ValueError("config_tag: NaN has no stable fingerprint")
+        h.update(b"A" + length(arr.ndim) + b"".join(length(n) for n in arr.shape))
+        h.update(np.ascontiguousarray(arr).tobytes())
+    elif isinstance(part, (list, tuple)):
+        h.update(b"L" + length(len(part)))
+        for item in part:
+            _feed(h, item)
+    else:
+        raise TypeError(f"config_tag: cannot fingerprint a {type(part).__name__}")
+
+
+def config_tag(*parts: Any) -> bytes:
+    """8-byte fingerprint of a problem configuration, identical on every machine.
+
+    Robots whose tags differ reject each other's frames instead of mixing iterates of different
+    problems. Parts may be None, bool, int, float, str, bytes, numpy arrays (hashed as shape plus
+    little-endian float64 values) and lists/tuples of these. Numbers are fingerprinted by value,
+    so ``2``, ``2.0`` and ``np.int64(2)`` agree; a bool is not a number and a list is not an array.
+    NaN is refused (ValueError), other types raise TypeError.
+    """
+    h = hashlib.blake2b(digest_size=CONFIG_TAG_SIZE, person=_CONFIG_PERSON)
+    _feed(h, list(parts))
+    return h.digest()
+
+
+class _Reject(Exception):
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(reason, detail)
+        self.reason = reason
+        self.detail = detail
+
+
+class FrameDecoder:
+    """Validates frames for one robot: its fleet, its neighbours, its vector length, its problem.
+
+    Stateless apart from counters: deduplication and round bookkeeping belong to the algorithm
+    state machine, which sees ``Decoded.update.round`` and ``Decoded.seq``.
+    """
+
+    def __init__(
+        self, fleet: str, known_senders: Collection[int], dim: int, config_tag: bytes
+    ) -> None:
+        self.fleet = validate_fleet_id(fleet)
+        self.known_senders = frozenset(validate_robot_id(s) for s in known_senders)
+        if type(dim) is not int or not 1 <= dim <= MAX_DIM:
+            raise ValueError(f"dim must be an int in [1, {MAX_DIM}], got {dim!r}")
+        self.dim = dim
+        self.config_tag = _check_config_tag(config_tag)
+        self.counts: collections.Counter[str] = collections.Counter()
+        self.accepted = 0
+
+    def decode(self, data: bytes, *, expected_sender: int | None = None) -> Decoded | Rejected:
+        """Check ``data`` completely; never raises.
+
+        ``expected_sender``, when given (e.g. the robot id in the key the frame arrived on),
+        must equal the frame's "from" field, so a robot cannot speak for another.
+        """
+        try:
+            result: Decoded | Rejected = self._decode(data, expected_sender)
+        except _Reject as r:
+            result = Rejected(r.reason, r.detail)
+            self.counts[r.reason] += 1
+        else:
+            self.accepted += 1
+        return result
+
+    def _decode(self, data: Any, expected_sender: int | None) -> Decoded:
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise _Reject("not-msgpack", f"expected bytes, got {type(data).__name__}")
+        size = memoryview(data).nbytes
+        if size > MAX_FRAME_BYTES:
+            raise _Reject("too-large", f"{size} bytes > {MAX_FRAME_BYTES}")
+        frame = self._unpack(data)
+        self._check_version_and_kind(frame)
+        unknown = [k for k in frame if k not in _FIELD_TYPES]
+        if unknown:
+            raise _Reject("unknown-field", f"unknown field(s) {sorted(map(repr, unknown))}")
+        missing = [k for k in _FIELD_TYPES if k not in frame]
+        if missing:
+            raise _Reject("missing-field", f"missing field(s) {missing}")
+        for name, types in _FIELD_TYPES.items():
+            if type(frame[name]) not in types:
+                raise _Reject(
+                    "field-type", f"{name!r} has type {type(frame[name]).__name__}"
+                )
+
+        if frame["fleet"] != self.fleet:
+            raise _Reject("fleet", f"frame of fleet {frame['fleet'][:80]!r}, not {self.fleet!r}")
+        if frame["cfg"] != self.config_tag:
+            raise _Reject(
+                "config",
+                f"config tag {frame['cfg'].hex()} != {self.config_tag.hex()}",
+            )
+        sender = frame["from"]
+        if sender not in self.known_senders:
+            raise _Reject("sender", f"sender {sender} is not a known sender")
+        if expected_sender is not None and sender != expected_sender:
+            raise _Reject("sender", f"sender {sender} on robot {expected_sender}'s key")
+        if not 0 <= frame["round"] <= MAX_ROUND:
+            raise _Reject("round", f"round {frame['round']} outside [0, {MAX_ROUND}]")
+        if not 0 <= frame["seq"] <= MAX_SEQ:
+            raise _Reject("seq", f"seq {frame['seq']} outside [0, {MAX_SEQ}]")
+        for name in ("flags", "pflags"):
+            if not 0 <= frame[name] <= MAX_FLAGS:
+                raise _Reject("flags", f"{name} {frame[name]} outside [0, {MAX_FLAGS}]")
+        if frame["prev"] is not None and frame["round"] == 0:
+            raise _Reject("prev", "prev present at round 0")
+        if frame["prev"] is None and frame["pflags"] != 0:
+            raise _Reject("prev", "pflags set without prev")
+
+        values = self._vector("x", frame["x"])
+        prev = None if frame["prev"] is None else self._vector("prev", frame["prev"])
+        update = StateUpdate(
+            sender=sender,
+            round=frame["round"],
+            values=values,
+            flags=frame["flags"],
+            prev_values=prev,
+            prev_flags=frame["pflags"],
+        )
+        return Decoded(update, frame["seq"])
+
+    @staticmethod
+    def _unpack(data: bytes | bytearray | memoryview) -> dict[str, Any]:
+        try:
+            # Limits bound memory per frame; maps come out as pair lists so duplicate keys show.
+            # msgpack's exception set is not fully documented (ValueError, StackError,
+            # UnicodeDecodeError, TypeError for unhashable keys...): any failure is "not-msgpack".
+            obj = msgpack.unpackb(
+                data,
+                raw=False,
+                use_list=False,
+                strict_map_key=True,
+                object_pairs_hook=list,
+                max_str_len=1024,
+                max_bin_len=MAX_FRAME_BYTES,
+                max_array_len=1024,
+                max_map_len=1024,
+                max_ext_len=0,
+            )
+        except Exception as e:
+            detail = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+            raise _Reject("not-msgpack", detail[:200]) from None
+        if not isinstance(obj, list):  # arrays are tuples (use_list=False), maps are lists
+            raise _Reject("not-a-map", f"top-level {type(obj).__name__}, not a map")
+        frame: dict[str, Any] = {}
+        for key, value in obj:
+            if key in frame:
+                raise _Reject("duplicate-field", f"field {key!r} appears twice")
+            frame[key] = value
+        return frame
+
+    @staticmethod
+    def _check_version_and_kind(frame: dict[str, Any]) -> None:
+        for name, want, reason in (("v", FRAME_VERSION, "version"), ("kind", KIND_STATE, "kind")):
+            if name not in frame:
+                raise _Reject("missing-field", f"missing field(s) [{name!r}]")
+            got = frame[name]
+            if type(got) is not type(want):
+                raise _Reject("field-type", f"{name!r} has type {type(got).__name__}")
+            if got != want:
+                raise _Reject(reason, f"{name!r} is {got!r:.80}, expected {want!r}")
+
+    def _vector(self, name: str, raw: bytes) -> np.ndarray:
+        if len(raw) != 8 * self.dim:
+            raise _Reject(
+                "vector-length", f"{name!r} has {len(raw)} bytes, expected {8 * self.dim}"
+            )
+        arr = np.frombuffer(raw, dtype="<f8").astype(np.float64)  # a copy: never alias input
+        if not np.isfinite(arr).all():
+            raise _Reject("non-finite", f"{name!r} holds NaN or inf")
+        return arr

@@ -1,0 +1,230 @@
+"""Zenoh session configurations for the fleet: one router, robots as clients.
+
+Every configuration built here
+
+* has multicast scouting **off** (``scouting/multicast/enabled = false``) and gossip scouting off:
+  nodes only ever talk to the endpoints written in the configuration;
+* listens / connects on explicit endpoints only, by default restricted to loopback
+  (``127.0.0.1``, ``::1``, ``localhost``);
+* disables the admin space and shared memory (nothing to leak in ``/dev/shm`` if a robot is killed).
+
+Latency: frames are small (a few hundred bytes), so batching is the main source of delay; the robot
+shell declares its publisher with ``express=True`` (no batching for that message) rather than
+switching the whole transport to ``lowlatency`` (which must match on both ends and disables QoS).
+
+Each configuration exists twice: as a plain nested ``dict`` (``*_config_dict``, what tests inspect
+and what ``docker/`` can render to a JSON5 file) and as a ``zenoh.Config`` built from that dict leaf
+by leaf (``router_config``, ``robot_config``).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import re
+import socket
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+__all__ = [
+    "DEFAULT_PORT",
+    "LOOPBACK_HOSTS",
+    "free_loopback_port",
+    "parse_endpoint",
+    "validate_endpoint",
+    "router_endpoint",
+    "router_config_dict",
+    "robot_config_dict",
+    "router_config",
+    "robot_config",
+    "to_zenoh_config",
+    "flatten",
+]
+
+DEFAULT_PORT = 7447
+LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
+
+# What every node shares: no discovery of any kind, no admin space, no shared memory.
+_COMMON: dict[str, Any] = {
+    "scouting": {
+        "multicast": {"enabled": False},
+        "gossip": {"enabled": False},
+    },
+    "adminspace": {"enabled": False},
+    "transport": {"shared_memory": {"enabled": False}},
+}
+
+# Robots wait this long for the router at start-up (the launcher may start them a little before the
+# router is listening) and retry with this back-off.
+CONNECT_TIMEOUT_MS = 10_000
+CONNECT_RETRY = {"period_init_ms": 50, "period_max_ms": 500, "period_increase_factor": 2}
+
+_ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<addr>[^?#]+)$")
+_SUPPORTED_PROTOCOLS = ("tcp",)
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def parse_endpoint(endpoint: str) -> tuple[str, str, int]:
+    """Split ``"tcp/127.0.0.1:7447"`` / ``"tcp/[::1]:7447"`` into ``(protocol, host, port)``.
+
+    Raises ``ValueError`` naming the problem when the endpoint is malformed.
+    """
+    if not isinstance(endpoint, str):
+        raise ValueError(f"endpoint must be a string like 'tcp/127.0.0.1:7447', got {endpoint!r}")
+    m = _ENDPOINT_RE.match(endpoint.strip())
+    if m is None:
+        raise ValueError(
+            f"endpoint {endpoint!r} is not of the form '<protocol>/<host>:<port>', "
+            "e.g. 'tcp/127.0.0.1:7447' (no '?metadata' or '#config' suffix)"
+        )
+    proto, addr = m.group("proto"), m.group("addr")
+    if proto not in _SUPPORTED_PROTOCOLS:
+        raise ValueError(
+            f"endpoint {endpoint!r}: protocol {proto!r} not supported, use one of {_SUPPORTED_PROTOCOLS}"
+        )
+    if addr.startswith("["):
+        close = addr.find("]")
+        if close < 0 or addr[close + 1 : close + 2] != ":":
+            raise ValueError(f"endpoint {endpoint!r}: IPv6 address must be written '[addr]:port'")
+        host, port_s = addr[1:close], addr[close + 2 :]
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            raise ValueError(f"endpoint {endpoint!r}: {host!r} is not an IPv6 address") from None
+    else:
+        host, sep, port_s = addr.rpartition(":")
+        if not sep or not host:
+            raise ValueError(f"endpoint {endpoint!r}: missing ':<port>' after the host")
+        if ":" in host:
+            raise ValueError(f"endpoint {endpoint!r}: write IPv6 addresses in brackets, '[{host}]:{port_s}'")
+    if not port_s.isdigit():
+        raise ValueError(f"endpoint {endpoint!r}: port {port_s!r} is not a number")
+    port = int(port_s)
+    if not 1 <= port <= 65535:
+        raise ValueError(f"endpoint {endpoint!r}: port {port} out of range 1..65535")
+    return proto, host, port
+
+
+def validate_endpoint(endpoint: str, *, loopback_only: bool = True) -> str:
+    """Return the endpoint (stripped) if valid, else raise ``ValueError``.
+
+    With ``loopback_only`` (the default) the host must be 127.0.0.0/8, ::1 or localhost.
+    """
+    proto, host, port = parse_endpoint(endpoint)
+    if loopback_only and not _is_loopback(host):
+        raise ValueError(
+            f"endpoint {endpoint!r}: host {host!r} is not a loopback address "
+            "(127.0.0.1, ::1, localhost); pass loopback_only=False to allow it"
+        )
+    return endpoint.strip()
+
+
+def router_endpoint(port: int, host: str = "127.0.0.1") -> str:
+    """The tcp endpoint string of a router listening on ``host:port``."""
+    return f"tcp/[{host}]:{port}" if ":" in host else f"tcp/{host}:{port}"
+
+
+def _merge(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {k: (_merge(v, {}) if isinstance(v, Mapping) else v) for k, v in base.items()}
+    for k, v in extra.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = _merge(v, {}) if isinstance(v, Mapping) else v
+    return out
+
+
+def router_config_dict(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True) -> dict[str, Any]:
+    """Router listening on ``tcp/host:port`` only, no scouting, connecting to nobody."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise ValueError(f"router port must be an int in 1..65535, got {port!r}")
+    endpoint = validate_endpoint(router_endpoint(port, host), loopback_only=loopback_only)
+    return _merge(
+        _COMMON,
+        {
+            "mode": "router",
+            "listen": {"endpoints": [endpoint]},
+            "connect": {"endpoints": []},
+        },
+    )
+
+
+def robot_config_dict(connect: Iterable[str], *, loopback_only: bool = True) -> dict[str, Any]:
+    """Robot session: client of the router endpoint(s) in ``connect``; listens nowhere."""
+    if isinstance(connect, str):
+        raise ValueError(f"connect must be a list of endpoints, got the string {connect!r}; wrap it in a list")
+    endpoints = [validate_endpoint(e, loopback_only=loopback_only) for e in connect]
+    if not endpoints:
+        raise ValueError("connect must name at least one router endpoint, e.g. ['tcp/127.0.0.1:7447']")
+    if len(set(endpoints)) != len(endpoints):
+        raise ValueError(f"connect lists an endpoint twice: {endpoints}")
+    return _merge(
+        _COMMON,
+        {
+            "mode": "client",
+            "connect": {
+                "endpoints": endpoints,
+                "timeout_ms": CONNECT_TIMEOUT_MS,
+                "exit_on_failure": True,
+                "retry": dict(CONNECT_RETRY),
+            },
+            "listen": {"endpoints": []},
+        },
+    )
+
+
+# Sub-trees that are ``null`` in zenoh's default config: they must be inserted whole.
+_ATOMIC_PATHS = frozenset({"connect/retry", "listen/retry"})
+
+
+def flatten(d: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """``{"a": {"b": 1}}`` -> ``[("a/b", 1)]``; lists (and a few optional sub-trees) are leaves."""
+    out: list[tuple[str, Any]] = []
+    for k, v in d.items():
+        path = f"{prefix}/{k}" if prefix else k
+        if isinstance(v, Mapping) and v and path not in _ATOMIC_PATHS:
+            out.extend(flatten(v, path))
+        else:
+            out.append((path, v))
+    return out
+
+
+def to_zenoh_config(d: Mapping[str, Any]):
+    """Build a ``zenoh.Config`` from a plain dict, inserting leaf by leaf (defaults kept elsewhere)."""
+    import zenoh  # imported lazily: the dict helpers stay usable without the binding
+
+    conf = zenoh.Config()
+    for path, value in flatten(d):
+        try:
+            conf.insert_json5(path, json.dumps(value))
+        except Exception as exc:  # zenoh.ZError
+            raise ValueError(f"zenoh rejected config {path} = {value!r}: {exc}") from exc
+    return conf
+
+
+def router_config(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True):
+    """``zenoh.Config`` of :func:`router_config_dict`."""
+    return to_zenoh_config(router_config_dict(port, host, loopback_only=loopback_only))
+
+
+def robot_config(connect: Iterable[str], *, loopback_only: bool = True):
+    """``zenoh.Config`` of :func:`robot_config_dict`."""
+    return to_zenoh_config(robot_config_dict(connect, loopback_only=loopback_only))
+
+
+def free_loopback_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on the loopback interface right now (the OS picks it; small race by nature)."""
+    if not _is_loopback(host):
+        raise ValueError(f"free_loopback_port: {host!r} is not a loopback address")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]

@@ -1,0 +1,553 @@
+"""Frame codec: exact wire format, exhaustive rejection, and properties over arbitrary input."""
+
+import collections
+import hashlib
+import math
+import re
+import struct
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from protocol.frames import (
+    CONFIG_TAG_SIZE,
+    FRAME_VERSION,
+    MAX_DIM,
+    MAX_FLAGS,
+    MAX_FRAME_BYTES,
+    MAX_ROUND,
+    MAX_SEQ,
+    REJECTION_REASONS,
+    Decoded,
+    FrameDecoder,
+    Rejected,
+    StateUpdate,
+    config_tag,
+    encode_state,
+)
+
+FLEET = "alpha"
+TAG = config_tag("test-problem", 0.5, np.linspace(0.0, 1.0, 5))
+OTHER_TAG = config_tag("test-problem", 0.25, np.linspace(0.0, 1.0, 5))
+DIM = 4
+KNOWN = (0, 1, 2, 7)
+X = np.array([0.5, -1.25, 3.0e-300, 1.0e300])
+PREV = np.array([-0.0, 2.0, 5e-324, -7.5])
+
+
+def decoder() -> FrameDecoder:
+    return FrameDecoder(FLEET, KNOWN, DIM, TAG)
+
+
+def pack(obj) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def le(values) -> bytes:
+    return np.asarray(values, "<f8").tobytes()
+
+
+def valid_map(**changes) -> dict:
+    """A valid frame as a dict; ``changes`` replace fields, a value of ``...`` deletes one."""
+    frame = {
+        "v": FRAME_VERSION,
+        "kind": "state",
+        "fleet": FLEET,
+        "from": 1,
+        "round": 5,
+        "seq": 42,
+        "cfg": TAG,
+        "x": le(X),
+        "flags": 3,
+        "prev": le(PREV),
+        "pflags": 1,
+    }
+    for key, value in changes.items():
+        if value is ...:
+            del frame[key]
+        else:
+            frame[key] = value
+    return frame
+
+
+def raw_map(*pairs) -> bytes:
+    """A msgpack map built pair by pair, so keys may repeat."""
+    assert len(pairs) < 16
+    return bytes([0x80 | len(pairs)]) + b"".join(pack(k) + pack(v) for k, v in pairs)
+
+
+# ---------------------------------------------------------------------------------- wire format
+
+
+def test_encoded_frame_is_the_documented_map():
+    update = StateUpdate(sender=1, round=5, values=X, flags=3, prev_values=PREV, prev_flags=1)
+    data = encode_state(update, fleet=FLEET, seq=42, config_tag=TAG)
+    frame = msgpack.unpackb(data, raw=False)
+    assert frame == valid_map()
+    assert list(frame) == ["v", "kind", "fleet", "from", "round", "seq", "cfg", "x", "flags",
+                           "prev", "pflags"]
+    # vectors are single bin objects of little-endian float64, not arrays of floats
+    assert data.count(b"\xc4\x20") == 2  # bin8 header, 32 bytes each
+    assert np.frombuffer(frame["x"], "<f8").tolist() == X.tolist()
+
+
+def test_golden_frame_bytes():
+    """The example in docs/protocol.md, byte for byte: the format must not drift silently."""
+    update = StateUpdate(sender=3, round=12, values=[0.25, -1.0], flags=1,
+                         prev_values=[0.5, -0.75], prev_flags=0)
+    data = encode_state(update, fleet="demo", seq=57,
+                        config_tag=bytes.fromhex("0123456789abcdef"))
+    doc = (Path(__file__).parents[1] / "docs" / "protocol.md").read_text()
+    example = re.search(r"116 bytes:\n\n```\n(.*?)```", doc, re.S).group(1)
+    assert data == bytes.fromhex(example.replace("\n", " "))
+
+
+def test_documented_rejection_codes_match():
+    doc = (Path(__file__).parents[1] / "docs" / "protocol.md").read_text()
+    section = doc.split("## Validation and rejection codes")[1].split("\n## ")[0]
+    assert tuple(re.findall(r"^\| `([a-z-]+)` \|", section, re.M)) == REJECTION_REASONS
+
+
+def test_round_zero_frame_has_nil_prev():
+    update = StateUpdate(sender=0, round=0, values=X, flags=0, prev_values=None)
+    frame = msgpack.unpackb(encode_state(update, fleet=FLEET, seq=0, config_tag=TAG))
+    assert frame["prev"] is None and frame["pflags"] == 0
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3, 17, 101, 1000, 4096])
+@pytest.mark.parametrize("with_prev", [False, True])
+def test_round_trip_shapes(dim, with_prev):
+    rng = np.random.default_rng(dim)
+    values = rng.standard_normal(dim) * 10.0 ** rng.integers(-300, 300, dim)
+    prev = rng.standard_normal(dim) if with_prev else None
+    update = StateUpdate(sender=7, round=1 if with_prev else 0, values=values,
+                         flags=MAX_FLAGS, prev_values=prev, prev_flags=5 if with_prev else 0)
+    dec = FrameDecoder(FLEET, KNOWN, dim, TAG)
+    result = dec.decode(encode_state(update, fleet=FLEET, seq=MAX_SEQ, config_tag=TAG))
+    assert result == Decoded(update, MAX_SEQ)
+    assert result.update.values.tobytes() == values.tobytes()
+    assert dec.accepted == 1 and not dec.counts
+
+
+def test_decode_accepts_bytearray_and_memoryview():
+    data = pack(valid_map())
+    for view in (bytearray(data), memoryview(data)):
+        assert decoder().decode(view) == decoder().decode(data)
+    big = np.zeros(MAX_FRAME_BYTES // 8 + 1)  # 8-byte items: size is counted in bytes
+    assert decoder().decode(memoryview(big)).reason == "too-large"
+    assert decoder().decode(memoryview(np.zeros(8))[::2]).reason == "not-msgpack"
+
+
+def test_decoded_arrays_are_private_writable_copies():
+    data = pack(valid_map())
+    update = decoder().decode(data).update
+    for arr in (update.values, update.prev_values):
+        assert arr.dtype == np.float64 and arr.flags.writeable and arr.flags.owndata
+        arr[:] = 0.0  # does not touch the frame bytes
+    assert decoder().decode(data).update.values.tolist() == X.tolist()
+
+
+def test_encode_accepts_lists_and_float32_and_big_endian():
+    for values in ([1, 2, 3, 4], np.float32([1, 2, 3, 4]), np.array([1, 2, 3, 4], ">f8")):
+        update = StateUpdate(sender=0, round=0, values=values, flags=0, prev_values=None)
+        out = decoder().decode(encode_state(update, fleet=FLEET, seq=0, config_tag=TAG))
+        assert out.update.values.tolist() == [1.0, 2.0, 3.0, 4.0]
+
+
+def test_largest_frame_fits_the_cap():
+    update = StateUpdate(sender=MAX_FLAGS % 2**31, round=MAX_ROUND, values=np.ones(MAX_DIM),
+                         flags=MAX_FLAGS, prev_values=np.ones(MAX_DIM), prev_flags=MAX_FLAGS)
+    data = encode_state(update, fleet="f" * 64, seq=MAX_SEQ, config_tag=TAG)
+    assert len(data) <= MAX_FRAME_BYTES
+
+
+# ------------------------------------------------------------------------------------ rejection
+
+NOT_MSGPACK_CASES = {
+    "reserved-byte": b"\xc1",
+    "empty": b"",
+    "truncated": pack(valid_map())[:-1],
+    "trailing-data": pack(valid_map()) + b"\xc0",
+    "deep-nesting": b"\x91" * 5000 + b"\xc0",
+    "ext-type": pack(msgpack.ExtType(5, b"abc")),
+    "timestamp-ext": pack(msgpack.Timestamp(1, 0)),
+    "bad-utf8": b"\xa2\xff\xfe",
+    "int-map-key": pack({1: 2}),
+    "nil-map-key": b"\x81\xc0\x01",
+    "huge-array-header": b"\xdd\xff\xff\xff\xff",
+    "huge-bin-header": b"\xc6\xff\xff\xff\xff",
+    "str-input": "not bytes",
+    "none-input": None,
+}
+
+REJECTION_CASES: dict[str, tuple[str, object]] = {
+    **{f"too-large/{n}": ("too-large", b"\x00" * n) for n in (MAX_FRAME_BYTES + 1, 3 << 20)},
+    **{f"not-msgpack/{k}": ("not-msgpack", v) for k, v in NOT_MSGPACK_CASES.items()},
+    "not-a-map/int": ("not-a-map", pack(5)),
+    "not-a-map/nil": ("not-a-map", pack(None)),
+    "not-a-map/array": ("not-a-map", pack([1, 2])),
+    "not-a-map/pairs": ("not-a-map", pack(list(valid_map().items()))),
+    "not-a-map/bin": ("not-a-map", pack(pack(valid_map()))),
+    "duplicate-field/v": ("duplicate-field", raw_map(*valid_map().items(), ("v", 1))),
+    "duplicate-field/x": ("duplicate-field", raw_map(("x", le(X)), *valid_map().items())),
+    "version/2": ("version", pack(valid_map(v=2))),
+    "version/0": ("version", pack(valid_map(v=0))),
+    "version/first": ("version", pack(valid_map(v=2, kind="?", extra=1, x=...))),
+    "kind/status": ("kind", pack(valid_map(kind="status"))),
+    "kind/empty": ("kind", pack(valid_map(kind=""))),
+    "unknown-field/str": ("unknown-field", pack(valid_map(extra=1))),
+    "unknown-field/bin-key": ("unknown-field", pack({**valid_map(), b"x": le(X)})),
+    "fleet/other": ("fleet", pack(valid_map(fleet="beta"))),
+    "fleet/case": ("fleet", pack(valid_map(fleet="Alpha"))),
+    "config/other": ("config", pack(valid_map(cfg=OTHER_TAG))),
+    "config/short": ("config", pack(valid_map(cfg=TAG[:7]))),
+    "config/empty": ("config", pack(valid_map(cfg=b""))),
+    "sender/unknown": ("sender", pack(valid_map(**{"from": 3}))),
+    "sender/negative": ("sender", pack(valid_map(**{"from": -1}))),
+    "sender/huge": ("sender", pack(valid_map(**{"from": 2**64 - 1}))),
+    "round/negative": ("round", pack(valid_map(round=-1))),
+    "round/too-big": ("round", pack(valid_map(round=MAX_ROUND + 1))),
+    "seq/negative": ("seq", pack(valid_map(seq=-1))),
+    "seq/too-big": ("seq", pack(valid_map(seq=MAX_SEQ + 1))),
+    "flags/negative": ("flags", pack(valid_map(flags=-1))),
+    "flags/too-big": ("flags", pack(valid_map(flags=MAX_FLAGS + 1))),
+    "flags/pflags": ("flags", pack(valid_map(pflags=2**64 - 1))),
+    "prev/at-round-0": ("prev", pack(valid_map(round=0))),
+    "prev/pflags-without-prev": ("prev", pack(valid_map(prev=None))),
+    "vector-length/x-short": ("vector-length", pack(valid_map(x=le(X[:3])))),
+    "vector-length/x-long": ("vector-length", pack(valid_map(x=le(np.ones(5))))),
+    "vector-length/x-odd": ("vector-length", pack(valid_map(x=le(X) + b"\x00"))),
+    "vector-length/x-empty": ("vector-length", pack(valid_map(x=b""))),
+    "vector-length/prev": ("vector-length", pack(valid_map(prev=le(PREV[:2])))),
+}
+for _name in ("v", "kind", "fleet", "from", "round", "seq", "cfg", "x", "flags", "prev",
+              "pflags"):
+    REJECTION_CASES[f"missing-field/{_name}"] = ("missing-field", pack(valid_map(**{_name: ...})))
+for _bad in (math.nan, math.inf, -math.inf):
+    for _pos in (0, DIM - 1):
+        for _field, _base in (("x", X), ("prev", PREV)):
+            _vec = _base.copy()
+            _vec[_pos] = _bad
+            REJECTION_CASES[f"non-finite/{_field}[{_pos}]={_bad}"] = (
+                "non-finite", pack(valid_map(**{_field: le(_vec)}))
+            )
+_WRONG_TYPES = {
+    "v": [True, 1.0, "1", None],
+    "kind": [b"state", None, 1],
+    "fleet": [FLEET.encode(), 1, None, [FLEET]],
+    "from": [True, False, 1.0, "1", None],
+    "round": [True, 5.0, "5", None, [5]],
+    "seq": [False, 42.0, b"\x2a", None],
+    "cfg": [TAG.hex(), None, list(TAG)],
+    "x": [X.tolist(), le(X).decode("latin-1"), None, {"data": le(X)}],
+    "flags": [True, 3.0, None],
+    "prev": [PREV.tolist(), 0, False, le(PREV).decode("latin-1")],
+    "pflags": [True, 1.0, None],
+}
+for _name, _values in _WRONG_TYPES.items():
+    for _i, _value in enumerate(_values):
+        REJECTION_CASES[f"field-type/{_name}/{_i}"] = (
+            "field-type", pack(valid_map(**{_name: _value}))
+        )
+
+
+def test_every_rejection_reason_is_reachable():
+    assert {reason for reason, _ in REJECTION_CASES.values()} == set(REJECTION_REASONS)
+
+
+@pytest.mark.parametrize(("reason", "data"), list(REJECTION_CASES.values()),
+                         ids=list(REJECTION_CASES))
+def test_rejection(reason, data):
+    dec = decoder()
+    result = dec.decode(data)
+    assert isinstance(result, Rejected)
+    assert (result.reason, dec.counts, dec.accepted) == (reason, {reason: 1}, 0)
+    assert result.detail and len(result.detail) < 400
+
+
+def test_expected_sender_must_match():
+    dec = decoder()
+    data = pack(valid_map())
+    assert isinstance(dec.decode(data, expected_sender=1), Decoded)
+    assert dec.decode(data, expected_sender=2) == Rejected("sender", "sender 1 on robot 2's key")
+    assert dec.decode(data, expected_sender=None).seq == 42
+
+
+def test_counters_accumulate():
+    dec = decoder()
+    expected = collections.Counter()
+    for reason, data in REJECTION_CASES.values():
+        dec.decode(data)
+        expected[reason] += 1
+    for _ in range(3):
+        dec.decode(pack(valid_map()))
+    assert dec.counts == expected and dec.accepted == 3
+
+
+def test_version_is_checked_before_unknown_fields():
+    """A future version may add fields; the receiver should say 'version', not 'unknown-field'."""
+    result = decoder().decode(pack({"v": 2, "kind": "state", "x2": b""}))
+    assert result.reason == "version"
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(fleet="a/b", known_senders=KNOWN, dim=DIM, config_tag=TAG),
+        dict(fleet=FLEET, known_senders=[-1], dim=DIM, config_tag=TAG),
+        dict(fleet=FLEET, known_senders=[True], dim=DIM, config_tag=TAG),
+        dict(fleet=FLEET, known_senders=KNOWN, dim=0, config_tag=TAG),
+        dict(fleet=FLEET, known_senders=KNOWN, dim=MAX_DIM + 1, config_tag=TAG),
+        dict(fleet=FLEET, known_senders=KNOWN, dim=4.0, config_tag=TAG),
+        dict(fleet=FLEET, known_senders=KNOWN, dim=DIM, config_tag=TAG[:4]),
+        dict(fleet=FLEET, known_senders=KNOWN, dim=DIM, config_tag=TAG.hex()),
+    ],
+)
+def test_decoder_rejects_bad_configuration(kwargs):
+    with pytest.raises(ValueError):
+        FrameDecoder(**kwargs)
+
+
+# ---------------------------------------------------------------------- StateUpdate and encode
+
+
+def test_state_update_equality():
+    a = StateUpdate(sender=1, round=2, values=X, flags=0, prev_values=PREV)
+    assert a == StateUpdate(sender=1, round=2, values=X.copy(), flags=0, prev_values=PREV.copy())
+    assert a != StateUpdate(sender=1, round=2, values=X, flags=0, prev_values=None)
+    assert a != StateUpdate(sender=1, round=2, values=X, flags=0, prev_values=PREV + 1)
+    assert a != StateUpdate(sender=1, round=2, values=X, flags=1, prev_values=PREV)
+    assert a != StateUpdate(sender=1, round=2, values=X[:3], flags=0, prev_values=PREV[:3])
+    assert a != "not an update"
+    with pytest.raises(TypeError):
+        hash(a)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error"),
+    [
+        (dict(sender=True), ValueError),
+        (dict(sender=-1), ValueError),
+        (dict(round=-1), ValueError),
+        (dict(round=MAX_ROUND + 1), ValueError),
+        (dict(round=1.0), TypeError),
+        (dict(flags=-1), ValueError),
+        (dict(flags=MAX_FLAGS + 1), ValueError),
+        (dict(flags=np.int64(1)), TypeError),
+        (dict(prev_flags=1, prev_values=None), ValueError),
+        (dict(round=0), ValueError),  # prev at round 0
+        (dict(values=np.ones((2, 2)), prev_values=None), ValueError),
+        (dict(values=np.ones(0), prev_values=None), ValueError),
+        (dict(values=np.ones(4, complex), prev_values=None), TypeError),
+        (dict(values=["a", "b"], prev_values=None), TypeError),
+        (dict(prev_values=np.ones(3)), ValueError),
+    ],
+)
+def test_state_update_validation(kwargs, error):
+    base = dict(sender=1, round=2, values=X, flags=0, prev_values=PREV, prev_flags=0)
+    with pytest.raises(error):
+        StateUpdate(**{**base, **kwargs})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (dict(fleet="bad fleet"), "fleet id"),
+        (dict(seq=-1), "seq"),
+        (dict(seq=MAX_SEQ + 1), "seq"),
+        (dict(config_tag=b"short"), "config_tag"),
+        (dict(config_tag="0123456789abcdef"), "config_tag"),
+    ],
+)
+def test_encode_validates_arguments(kwargs, match):
+    update = StateUpdate(sender=1, round=2, values=X, flags=0, prev_values=PREV)
+    with pytest.raises(ValueError, match=match):
+        encode_state(update, **{**dict(fleet=FLEET, seq=0, config_tag=TAG), **kwargs})
+
+
+@pytest.mark.parametrize("field", ["values", "prev_values"])
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_encode_refuses_non_finite(field, bad):
+    kwargs = dict(sender=1, round=2, values=X.copy(), flags=0, prev_values=PREV.copy())
+    kwargs[field][1] = bad
+    with pytest.raises(ValueError, match="non-finite"):
+        encode_state(StateUpdate(**kwargs), fleet=FLEET, seq=0, config_tag=TAG)
+
+
+def test_encode_refuses_oversized_vector():
+    update = StateUpdate(sender=1, round=0, values=np.ones(MAX_DIM + 1), flags=0,
+                         prev_values=None)
+    with pytest.raises(ValueError, match="MAX_DIM"):
+        encode_state(update, fleet=FLEET, seq=0, config_tag=TAG)
+
+
+# ----------------------------------------------------------------------------------- config_tag
+
+
+def test_config_tag_is_stable():
+    """Pinned: a change of the canonical serialisation would split mixed-version fleets."""
+    tag = config_tag("rbf", 0.5, 2, np.array([[0.0, 1.0], [2.0, 3.5]]), [1, "a", None, True],
+                     b"\x00\xff")
+    assert len(tag) == CONFIG_TAG_SIZE
+    assert tag.hex() == "62bce63c5aa0a2b1"
+
+
+def test_config_tag_serialisation_matches_the_spec():
+    """The byte layout documented in docs/protocol.md, rebuilt independently."""
+
+    def q(n: int) -> bytes:
+        return struct.pack("<Q", n)
+
+    grid = np.array([[0.0, 1.0], [2.0, 3.5]])
+    body = (
+        b"L" + q(5)
+        + b"S" + q(3) + b"rbf"
+        + b"F" + struct.pack("<d", 0.5)
+        + b"I" + q(2) + b"-2"
+        + b"A" + q(2) + q(2) + q(2) + grid.astype("<f8").tobytes()
+        + b"L" + q(4) + b"N" + b"B1" + b"Y" + q(2) + b"\x00\xff" + b"I" + q(1) + b"3"
+    )
+    expected = hashlib.blake2b(body, digest_size=8, person=b"shapefleet-cfg1").digest()
+    assert config_tag("rbf", 0.5, -2, grid, (None, True, b"\x00\xff", 3.0)) == expected
+
+
+def test_config_tag_equivalences_and_distinctions():
+    grid = np.arange(6.0).reshape(2, 3)
+    assert config_tag(2) == config_tag(2.0) == config_tag(np.int64(2)) == config_tag(np.float32(2))
+    assert config_tag(0.0) == config_tag(-0.0)
+    assert config_tag(grid) == config_tag(grid.astype(np.int32)) == config_tag(grid.T.T.copy())
+    assert config_tag(np.array([-0.0, 1.0])) == config_tag(np.array([0.0, 1.0]))
+    assert config_tag(grid) == config_tag(np.asfortranarray(grid))
+    distinct = [
+        config_tag(),
+        config_tag(None),
+        config_tag(True),
+        config_tag(1),
+        config_tag("1"),
+        config_tag(b"1"),
+        config_tag([1]),
+        config_tag(np.array([1.0])),
+        config_tag(np.array(1.0)),
+        config_tag(grid),
+        config_tag(grid.T),
+        config_tag(grid.reshape(6)),
+        config_tag("ab", "c"),
+        config_tag("a", "bc"),
+        config_tag(["a", "b"], "c"),
+        config_tag(0.1),
+        config_tag(np.float32(0.1)),
+        config_tag(math.inf),
+        config_tag(-math.inf),
+        config_tag(2**70),
+    ]
+    assert len(set(distinct)) == len(distinct)
+
+
+@pytest.mark.parametrize(
+    ("part", "error"),
+    [
+        (math.nan, ValueError),
+        (np.array([1.0, math.nan]), ValueError),
+        ({"a": 1}, TypeError),
+        (1 + 2j, TypeError),
+        (np.array(["a"]), TypeError),
+        (object(), TypeError),
+    ],
+)
+def test_config_tag_refuses_what_it_cannot_fingerprint(part, error):
+    with pytest.raises(error):
+        config_tag(part)
+
+
+# ----------------------------------------------------------------------------------- properties
+
+finite = st.floats(allow_nan=False, allow_infinity=False)
+
+
+@st.composite
+def updates(draw, dim=None):
+    dim = dim or draw(st.integers(1, 40))
+    vec = st.lists(finite, min_size=dim, max_size=dim).map(np.array)
+    rnd = draw(st.integers(0, MAX_ROUND))
+    prev = draw(vec) if rnd > 0 and draw(st.booleans()) else None
+    return StateUpdate(
+        sender=draw(st.sampled_from(KNOWN)),
+        round=rnd,
+        values=draw(vec),
+        flags=draw(st.integers(0, MAX_FLAGS)),
+        prev_values=prev,
+        prev_flags=draw(st.integers(0, MAX_FLAGS)) if prev is not None else 0,
+    )
+
+
+@given(updates(), st.integers(0, MAX_SEQ))
+def test_valid_frames_round_trip_bit_for_bit(update, seq):
+    dec = FrameDecoder(FLEET, KNOWN, update.values.size, TAG)
+    result = dec.decode(encode_state(update, fleet=FLEET, seq=seq, config_tag=TAG))
+    assert isinstance(result, Decoded) and result.seq == seq
+    assert result.update == update
+    assert result.update.values.tobytes() == update.values.tobytes()  # -0.0, subnormals
+    if update.prev_values is not None:
+        assert result.update.prev_values.tobytes() == update.prev_values.tobytes()
+
+
+def _check_total(data) -> None:
+    dec = decoder()
+    result = dec.decode(data)
+    assert isinstance(result, (Decoded, Rejected))
+    if isinstance(result, Rejected):
+        assert result.reason in REJECTION_REASONS and dec.counts == {result.reason: 1}
+    else:
+        assert dec.accepted == 1
+
+
+@given(st.binary(max_size=512))
+def test_decode_never_raises_on_bytes(data):
+    _check_total(data)
+
+
+msgpack_leaves = (
+    st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats()
+    | st.text(max_size=20) | st.binary(max_size=40)
+)
+msgpack_values = st.recursive(
+    msgpack_leaves,
+    lambda children: st.lists(children, max_size=4)
+    | st.dictionaries(st.text(max_size=8) | st.binary(max_size=4), children, max_size=4),
+    max_leaves=6,
+)
+field_names = st.sampled_from(sorted(valid_map())) | st.text(max_size=6)
+
+
+@given(st.dictionaries(field_names, msgpack_leaves | st.lists(msgpack_leaves, max_size=3),
+                       max_size=12))
+def test_decode_never_raises_on_arbitrary_maps(frame):
+    _check_total(pack(frame))
+
+
+@given(msgpack_values)
+def test_decode_never_raises_on_arbitrary_values(value):
+    _check_total(pack(value))
+
+
+@given(st.dictionaries(field_names, msgpack_values | st.none(), max_size=4))
+def test_decode_never_raises_on_near_valid_frames(changes):
+    """Mostly-valid frames reach the deep checks that random maps rarely get to."""
+    frame = valid_map()
+    frame.update(changes)
+    _check_total(pack(frame))
+
+
+@settings(suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_decode_never_raises_on_mutated_frames(data):
+    frame = bytearray(pack(valid_map()))
+    for _ in range(data.draw(st.integers(1, 4))):
+        pos = data.draw(st.integers(0, len(frame) - 1))
+        frame[pos] = data.draw(st.integers(0, 255))
+    cut = data.draw(st.integers(0, len(frame)))
+    _check_total(bytes(frame[:cut]))

@@ -1,0 +1,116 @@
+"""Key expressions: exact strings, validation, and the key -> robot inverse."""
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from protocol.keys import (
+    MAX_FLEET_ID_LEN,
+    MAX_ROBOT_ID,
+    fleet_prefix,
+    robot_from_key,
+    state_key,
+    state_wildcard,
+    status_key,
+    status_wildcard,
+    validate_fleet_id,
+    validate_robot_id,
+)
+
+fleet_ids = st.text(
+    alphabet="abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-",
+    min_size=1,
+    max_size=MAX_FLEET_ID_LEN,
+)
+robot_ids = st.integers(0, MAX_ROBOT_ID)
+
+
+def test_exact_key_strings():
+    assert fleet_prefix("demo") == "shapefleet/demo"
+    assert state_key("demo", 3) == "shapefleet/demo/robot/3/state"
+    assert status_key("demo", 3) == "shapefleet/demo/robot/3/status"
+    assert state_wildcard("demo") == "shapefleet/demo/robot/*/state"
+    assert status_wildcard("demo") == "shapefleet/demo/robot/*/status"
+
+
+@pytest.mark.parametrize("fleet", ["a", "Fleet_01", "x-y", "z" * MAX_FLEET_ID_LEN])
+def test_valid_fleet_ids(fleet):
+    assert validate_fleet_id(fleet) == fleet
+
+
+@pytest.mark.parametrize(
+    ("fleet", "problem"),
+    [
+        ("", "empty"),
+        ("z" * (MAX_FLEET_ID_LEN + 1), "65 characters"),
+        ("a/b", "'/'"),
+        ("a*", "'*'"),
+        ("a b", "' '"),
+        ("café", "'é'"),
+        ("a$b", "'$'"),
+        (7, "string"),
+        (None, "string"),
+    ],
+)
+def test_invalid_fleet_ids_name_the_problem(fleet, problem):
+    with pytest.raises(ValueError, match=problem.replace("*", r"\*").replace("$", r"\$")):
+        validate_fleet_id(fleet)
+
+
+@pytest.mark.parametrize("robot", [-1, MAX_ROBOT_ID + 1, True, 1.0, "1", None])
+def test_invalid_robot_ids(robot):
+    with pytest.raises(ValueError, match="robot id"):
+        validate_robot_id(robot)
+    with pytest.raises(ValueError):
+        state_key("demo", robot)
+
+
+def test_key_builders_validate_fleet():
+    for build in (fleet_prefix, state_wildcard, status_wildcard):
+        with pytest.raises(ValueError):
+            build("a/b")
+    with pytest.raises(ValueError):
+        status_key("", 1)
+
+
+@given(fleet_ids, robot_ids)
+def test_robot_from_key_inverts_builders(fleet, robot):
+    assert robot_from_key(state_key(fleet, robot)) == robot
+    assert robot_from_key(status_key(fleet, robot)) == robot
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "shapefleet/demo/robot/*/state",
+        "shapefleet/demo/robot/03/state",
+        "shapefleet/demo/robot/-3/state",
+        "shapefleet/demo/robot/+3/state",
+        "shapefleet/demo/robot/3/other",
+        "shapefleet/demo/robot/3/state/extra",
+        "shapefleet/demo/robot/3",
+        "shapefleet/demo/robot//state",
+        f"shapefleet/demo/robot/{MAX_ROBOT_ID + 1}/state",
+        "shapefleet/demo/robot/99999999999/state",
+        "shapefleet/a/b/robot/3/state",
+        "shapefleet//robot/3/state",
+        "other/demo/robot/3/state",
+        " shapefleet/demo/robot/3/state",
+        "shapefleet/demo/robot/3/state\n",
+        "shapefleet/demo/robot/٣/state",  # non-ASCII digit
+        "",
+        None,
+        b"shapefleet/demo/robot/3/state",
+    ],
+)
+def test_robot_from_key_rejects_non_canonical(key):
+    assert robot_from_key(key) is None
+
+
+@given(st.text(max_size=80))
+def test_robot_from_key_total(key):
+    result = robot_from_key(key)
+    assert result is None or state_key(key.split("/")[1], result) in (
+        key,
+        key.removesuffix("status") + "state",
+    )

@@ -1,0 +1,543 @@
+"""The Zenoh robot shell (agents/robot.py) driving a small fake core through a real router.
+
+The fake core is a genuine state machine with the core interface: each round every robot replaces
+its vector by the mean of its own and its neighbours' vectors (ids sorted), for K rounds. Its
+iterates are computed independently below, so the networked run is checked for *exact* equality.
+
+Everything runs on 127.0.0.1 through one router subprocess (multicast scouting off); every process
+started here is stopped by its PID in a finally; every test has a hard time limit.
+Run this file as a script to get one robot process (used by the crash/restart test).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from agents.robot import alive_key, run_robot  # noqa: E402
+from protocol.frames import StateUpdate, config_tag, encode_state  # noqa: E402
+from protocol.keys import state_key  # noqa: E402
+from protocol.links import LinkFaults  # noqa: E402
+from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint  # noqa: E402
+
+pytestmark = pytest.mark.integration
+TEST_TIMEOUT_S = 40.0
+
+
+# ----------------------------------------------------------------------------- fake core
+
+
+@dataclass(frozen=True)
+class Timing:
+    retransmit_s: float = 0.05
+    dead_after_s: float = 5.0
+    max_wall_s: float = 20.0
+
+
+@dataclass(frozen=True)
+class FakeSpec:
+    fleet: str
+    graph: dict[int, tuple[int, ...]]
+    rounds: int
+    dim: int = 4
+    seed: int = 7
+    faults: LinkFaults = field(default_factory=LinkFaults)
+    timing: Timing = field(default_factory=Timing)
+    slow_s: float = 0.0  # sleep per advance (only to give crash tests time); 0 = pure
+
+    @property
+    def robot_ids(self) -> tuple[int, ...]:
+        return tuple(sorted(self.graph))
+
+    @functools.cached_property
+    def config_tag(self) -> bytes:
+        return config_tag("averaging", self.rounds, self.dim, self.seed)
+
+    def x0(self, i: int) -> np.ndarray:
+        rng = np.random.default_rng([self.seed, i, sum(map(ord, self.fleet))])
+        return rng.normal(size=self.dim)
+
+
+class AveragingCore:
+    """x_i <- mean of x_k over k in {i} + neighbours (sorted), K times. Sans-IO."""
+
+    def __init__(self, spec: FakeSpec, robot_id: int) -> None:
+        self.spec = spec
+        self.robot_id = robot_id
+        self.neighbours = tuple(sorted(spec.graph[robot_id]))
+        self.dim = spec.dim
+        self.round = 0
+        self.finished = spec.rounds == 0
+        self._x = spec.x0(robot_id)
+        self._prev: np.ndarray | None = None
+        self._inbox: dict[int, dict[int, np.ndarray]] = {}
+        self.dropped: list[int] = []
+        self.residual = float("inf")
+
+    def outgoing(self) -> StateUpdate:
+        return StateUpdate(self.robot_id, self.round, self._x.copy(), 0,
+                           None if self._prev is None else self._prev.copy())
+
+    def receive(self, u: StateUpdate) -> None:
+        if u.sender not in self.neighbours:
+            return
+        for rnd, vals in ((u.round, u.values), (u.round - 1, u.prev_values)):
+            if vals is not None and rnd in (self.round, self.round + 1):
+                self._inbox.setdefault(rnd, {})[u.sender] = vals
+
+    def missing(self) -> tuple[int, ...]:
+        have = self._inbox.get(self.round, {})
+        return tuple(j for j in self.neighbours if j not in have)
+
+    def ready(self) -> bool:
+        return not self.finished and not self.missing()
+
+    def advance(self) -> StateUpdate:
+        assert self.ready(), (self.robot_id, self.round, self.missing())
+        if self.spec.slow_s:
+            time.sleep(self.spec.slow_s)
+        theirs = self._inbox.pop(self.round)
+        vals = {self.robot_id: self._x, **{j: theirs[j] for j in self.neighbours}}
+        new = np.mean(np.stack([vals[k] for k in sorted(vals)]), axis=0)
+        self.residual = float(np.linalg.norm(new - self._x))
+        self._prev, self._x = self._x, new
+        self.round += 1
+        self._inbox = {r: v for r, v in self._inbox.items() if r >= self.round}
+        self.finished = self.round >= self.spec.rounds
+        return self.outgoing()
+
+    def drop_neighbour(self, j: int) -> None:
+        self.neighbours = tuple(n for n in self.neighbours if n != j)
+        self.dropped.append(j)
+        for per in self._inbox.values():
+            per.pop(j, None)
+
+    def checkpoint(self) -> dict:
+        return {
+            "round": self.round, "finished": self.finished, "x": self._x.tobytes(),
+            "prev": None if self._prev is None else self._prev.tobytes(),
+            "neighbours": list(self.neighbours), "dropped": self.dropped, "residual": self.residual,
+            "inbox": [[r, j, v.tobytes()] for r, per in self._inbox.items() for j, v in per.items()],
+        }
+
+    @classmethod
+    def restore(cls, spec: FakeSpec, robot_id: int, ck: dict) -> AveragingCore:
+        core = cls(spec, robot_id)
+        core.round, core.finished, core.residual = ck["round"], ck["finished"], ck["residual"]
+        core._x = np.frombuffer(ck["x"]).copy()
+        core._prev = None if ck["prev"] is None else np.frombuffer(ck["prev"]).copy()
+        core.neighbours, core.dropped = tuple(ck["neighbours"]), list(ck["dropped"])
+        core._inbox = {}
+        for r, j, v in ck["inbox"]:
+            core._inbox.setdefault(r, {})[j] = np.frombuffer(v).copy()
+        return core
+
+    def status(self) -> dict:
+        return {"robot": self.robot_id, "round": self.round, "residual": self.residual}
+
+    def result(self) -> dict:
+        return {"id": self.robot_id, "x": self._x.tolist(), "rounds": self.round,
+                "converged": self.finished, "dropped": list(self.dropped)}
+
+
+class CrashingCore(AveragingCore):
+    """Raises in advance() at round ``crash_at`` (a crash the checkpoint must survive)."""
+
+    crash_at = 5
+
+    def advance(self) -> StateUpdate:
+        if self.round == self.crash_at:
+            raise RuntimeError("simulated crash")
+        return super().advance()
+
+
+def expected(spec: FakeSpec, graph: dict[int, tuple[int, ...]] | None = None) -> dict[int, np.ndarray]:
+    graph = spec.graph if graph is None else graph
+    x = {i: spec.x0(i) for i in graph}
+    for _ in range(spec.rounds):
+        x = {i: np.mean(np.stack([x[k] for k in sorted((i, *graph[i]))]), axis=0) for i in graph}
+    return x
+
+
+LINE3 = {0: (1,), 1: (0, 2), 2: (1,)}
+
+
+# ----------------------------------------------------------------------------- router fixture
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+@pytest.fixture(scope="module")
+def router(tmp_path_factory):
+    port = free_loopback_port()
+    ready = tmp_path_factory.mktemp("router") / "ready.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "launcher.router", "--port", str(port), "--ready-file", str(ready),
+         "--max-wall-s", "300"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)),
+    )
+    try:
+        deadline = time.monotonic() + 15
+        while not ready.exists():
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "router did not become ready"
+            time.sleep(0.02)
+        yield router_endpoint(port)
+    finally:
+        _stop(proc)
+    assert proc.returncode == 0, proc.stderr.read().decode()
+
+
+def _run(spec, i, endpoint, **kw):
+    kw.setdefault("status_stream", None)
+    kw.setdefault("checkpoint_path", None)
+    kw.setdefault("result_path", None)
+    kw.setdefault("build", AveragingCore)
+    kw.setdefault("restore", AveragingCore.restore)
+    return run_robot(spec, i, connect=[endpoint], **kw)
+
+
+def _assert_exact(results: dict[int, dict], want: dict[int, np.ndarray], rounds: int) -> None:
+    for i, res in results.items():
+        assert res["rounds"] == rounds, res
+        assert res["stopped"] == "finished", res
+        np.testing.assert_array_equal(np.array(res["x"]), want[i])
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+async def test_three_robots_exact_iterates(router, tmp_path):
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = FakeSpec("shell-exact", LINE3, rounds=60)
+        streams = {i: io.StringIO() for i in spec.robot_ids}
+        paths = {i: tmp_path / f"result-{i}.json" for i in spec.robot_ids}
+        out = await asyncio.gather(*(
+            _run(spec, i, router, status_stream=streams[i], result_path=paths[i],
+                 checkpoint_path=tmp_path / f"ck-{i}.msgpack")
+            for i in spec.robot_ids
+        ))
+        results = dict(zip(spec.robot_ids, out))
+        _assert_exact(results, expected(spec), 60)
+        for i, res in results.items():
+            assert json.loads(paths[i].read_text()) == json.loads(json.dumps(res))
+            assert res["frames_rejected"]["total"] == 0 and res["frames_lost"] == 0
+            assert res["restarts"] == 0 and res["neighbours_dropped"] == []
+            assert res["frames_sent"] >= 61
+            lines = [json.loads(x) for x in streams[i].getvalue().splitlines()]
+            assert [x["round"] for x in lines[:60]] == list(range(1, 61))
+            assert set(lines[0]) >= {"robot", "round", "residual", "sent", "received", "lost", "rejected"}
+            ck = msgpack.unpackb((tmp_path / f"ck-{i}.msgpack").read_bytes(), strict_map_key=False)
+            assert ck["core"]["round"] == 59  # written before the last advance
+
+
+async def test_lossy_delayed_links_still_exact(router):
+    """Loss, duplication, delay, jitter and reordering on every receiving link: same iterates."""
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        faults = LinkFaults(delay=0.002, jitter=0.001, loss=0.3, duplicate=0.2, reorder=0.2)
+        spec = FakeSpec("shell-lossy", LINE3, rounds=30, faults=faults, timing=Timing(retransmit_s=0.02))
+        out = await asyncio.gather(*(_run(spec, i, router) for i in spec.robot_ids))
+        results = dict(zip(spec.robot_ids, out))
+        _assert_exact(results, expected(spec), 30)
+        assert sum(r["frames_lost"] for r in out) > 0
+        assert sum(r["frames_duplicated"] for r in out) > 0
+
+
+async def test_garbage_is_rejected_and_counted(router):
+    import zenoh
+
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = FakeSpec("shell-garbage", LINE3, rounds=20)
+        other = FakeSpec("shell-other", LINE3, rounds=20)
+        good = StateUpdate(2, 0, np.zeros(spec.dim), 0, None)
+        nan_frame = msgpack.unpackb(encode_state(good, fleet=spec.fleet, seq=1, config_tag=spec.config_tag))
+        nan_frame["x"] = np.full(spec.dim, np.nan).tobytes()
+        garbage = {
+            "not-msgpack": b"\xc1garbage",
+            "fleet": encode_state(good, fleet=other.fleet, seq=1, config_tag=spec.config_tag),
+            "config": encode_state(good, fleet=spec.fleet, seq=1, config_tag=b"12345678"),
+            "sender": encode_state(StateUpdate(0, 0, np.zeros(spec.dim), 0, None),
+                                   fleet=spec.fleet, seq=1, config_tag=spec.config_tag),
+            "vector-length": encode_state(StateUpdate(2, 0, np.zeros(spec.dim + 1), 0, None),
+                                          fleet=spec.fleet, seq=1, config_tag=spec.config_tag),
+            "non-finite": msgpack.packb(nan_frame),
+        }
+        session = await asyncio.to_thread(zenoh.open, robot_config([router]))
+        try:
+            seen = asyncio.Event()
+            loop = asyncio.get_running_loop()
+            alive = session.liveliness().declare_subscriber(
+                alive_key(spec.fleet, 1), lambda s: loop.call_soon_threadsafe(seen.set), history=True)
+            pub = session.declare_publisher(state_key(spec.fleet, 2))
+            early = [asyncio.ensure_future(_run(spec, i, router)) for i in (0, 1)]
+            await seen.wait()  # robot 1 subscribed to robot 2's key; it cannot finish without robot 2
+            for payload in garbage.values():
+                pub.put(payload)
+            await asyncio.sleep(0.2)
+            late = await _run(spec, 2, router)
+            r0, r1 = await asyncio.gather(*early)
+            alive.undeclare()
+            pub.undeclare()
+        finally:
+            await asyncio.to_thread(session.close)
+        _assert_exact({0: r0, 1: r1, 2: late}, expected(spec), 20)
+        assert r1["frames_rejected"]["by_reason"] == {reason: 1 for reason in garbage}
+        assert r1["frames_rejected"]["total"] == len(garbage)
+        assert r0["frames_rejected"]["total"] == 0  # robot 0 does not listen to robot 2
+
+
+async def test_other_fleet_on_same_router_is_not_heard(router):
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        a = FakeSpec("shell-fleet-a", LINE3, rounds=40)
+        b = FakeSpec("shell-fleet-b", LINE3, rounds=40, seed=8)
+        out = await asyncio.gather(*(_run(s, i, router) for s in (a, b) for i in s.robot_ids))
+        ra, rb = dict(zip(a.robot_ids, out[:3])), dict(zip(b.robot_ids, out[3:]))
+        _assert_exact(ra, expected(a), 40)
+        _assert_exact(rb, expected(b), 40)
+        for res in out:
+            assert res["frames_rejected"]["total"] == 0  # never even delivered
+            assert res["frames_received"] == res["frames_accepted"]
+
+
+async def test_restart_resumes_from_checkpoint(router, tmp_path):
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = FakeSpec("shell-restart", LINE3, rounds=25)
+        ck = tmp_path / "ck-1.msgpack"
+        others = [asyncio.ensure_future(_run(spec, i, router)) for i in (0, 2)]
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            await _run(spec, 1, router, checkpoint_path=ck, build=CrashingCore)
+        assert ck.exists()
+        r1 = await _run(spec, 1, router, checkpoint_path=ck)
+        r0, r2 = await asyncio.gather(*others)
+        _assert_exact({0: r0, 1: r1, 2: r2}, expected(spec), 25)
+        assert r1["restarts"] == 1
+
+
+async def test_silent_neighbour_is_dropped(router):
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = FakeSpec("shell-dead", LINE3, rounds=10, timing=Timing(dead_after_s=0.5))
+        r0, r1 = await asyncio.gather(*(_run(spec, i, router) for i in (0, 1)))  # robot 2 never starts
+        _assert_exact({0: r0, 1: r1}, expected(spec, {0: (1,), 1: (0,)}), 10)
+        assert r1["neighbours_dropped"] == [2] and r0["neighbours_dropped"] == []
+
+
+async def test_wall_clock_cap(router):
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = FakeSpec("shell-wall", LINE3, rounds=10, timing=Timing(dead_after_s=60, max_wall_s=0.5))
+        t = time.monotonic()
+        res = await _run(spec, 0, router)  # robot 1 never comes
+        assert time.monotonic() - t < 5
+        assert res["stopped"] == "max_wall" and res["converged"] is False and res["rounds"] == 0
+
+
+# ----------------------------------------------------------------------------- the real core
+
+
+def _real_spec(fleet: str, faults: LinkFaults | None = None, rounds: int = 120):
+    from agents.spec import FleetSpec, RobotSpec
+    from agents.spec import Timing as SpecTiming
+
+    rng = np.random.default_rng(3)
+
+    def robot(i: int, neighbours: tuple[int, ...]) -> RobotSpec:
+        ang, r = rng.uniform(0, 2 * np.pi, 25), rng.uniform(0.2, 2.0, 25)
+        return RobotSpec(i, neighbours, np.c_[r * np.cos(ang), r * np.sin(ang)], np.where(r > 1.0, 1, -1))
+
+    gx, gy = np.meshgrid(np.linspace(-2, 2, 4), np.linspace(-2, 2, 4))
+    return FleetSpec(
+        fleet=fleet, algorithm="admm", sigma=0.8, C=10.0, grid=np.c_[gx.ravel(), gy.ravel()],
+        robots={i: robot(i, nb) for i, nb in LINE3.items()},
+        params={"max_rounds": rounds, "tol": 1e-3, "diameter": 2},
+        faults=faults or LinkFaults(), seed=11,
+        timing=SpecTiming(retransmit_s=0.02, dead_after_s=10.0, max_wall_s=30.0, linger_s=1.0),
+    )
+
+
+def _in_memory(spec) -> dict[int, dict]:
+    """Reference: the same cores driven by a perfect in-memory exchange."""
+    from agents.spec import build_core
+
+    cores = {i: build_core(spec, i) for i in spec.robot_ids}
+    for _ in range(10 * spec.params["max_rounds"]):
+        if all(c.finished for c in cores.values()):
+            break
+        for u in [c.outgoing() for c in cores.values()]:
+            for c in cores.values():
+                if u.sender in c.neighbours:
+                    c.receive(u)
+        for c in cores.values():
+            if c.ready():
+                c.advance()
+    return {i: c.result() for i, c in cores.items()}
+
+
+def _assert_same_as_reference(results: dict[int, dict], ref: dict[int, dict]) -> None:
+    for i, want in ref.items():
+        got = results[i]
+        assert got["stopped"] == "finished"
+        assert (got["rounds"], got["converged"]) == (want["rounds"], want["converged"])
+        assert got["x"] == want["x"] and got["gamma"] == want["gamma"]  # bit for bit
+
+
+@pytest.mark.parametrize(
+    "faults",
+    [None, LinkFaults(delay=0.001, jitter=0.001, loss=0.2, duplicate=0.1, reorder=0.1)],
+    ids=["clean", "lossy"],
+)
+async def test_real_admm_core_same_iterates_as_in_memory(router, tmp_path, faults):
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = _real_spec(f"shell-real-{'lossy' if faults else 'clean'}", faults)
+        ref = _in_memory(spec)
+        assert all(r["rounds"] == 120 for r in ref.values())
+        out = await asyncio.gather(*(
+            run_robot(spec, i, connect=[router], checkpoint_path=tmp_path / f"ck-{i}", result_path=None,
+                      status_stream=None)
+            for i in spec.robot_ids
+        ))
+        _assert_same_as_reference(dict(zip(spec.robot_ids, out)), ref)
+
+
+async def test_real_admm_core_crash_and_restore(router, tmp_path):
+    from agents.spec import build_core
+
+    def crashing_build(spec, i):
+        core = build_core(spec, i)
+        advance = core.advance
+
+        def crash_at_7():
+            if core.round == 7:
+                raise RuntimeError("simulated crash")
+            return advance()
+
+        core.advance = crash_at_7
+        return core
+
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = _real_spec("shell-real-crash")
+        ref = _in_memory(spec)
+        others = [asyncio.ensure_future(run_robot(spec, i, connect=[router], status_stream=None)) for i in (0, 2)]
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            await run_robot(spec, 1, connect=[router], checkpoint_path=tmp_path / "ck-1",
+                            status_stream=None, build=crashing_build)
+        r1 = await run_robot(spec, 1, connect=[router], checkpoint_path=tmp_path / "ck-1", status_stream=None)
+        r0, r2 = await asyncio.gather(*others)
+        _assert_same_as_reference({0: r0, 1: r1, 2: r2}, ref)
+        assert r1["restarts"] == 1
+
+
+def _robot_cmd(spec_args: list[str], endpoint: str, i: int, tmp: Path) -> list[str]:
+    return [sys.executable, __file__, "--robot", str(i), "--connect", endpoint, "--dir", str(tmp), *spec_args]
+
+
+async def test_processes_crash_and_restart(router, tmp_path):
+    """Three robot processes; robot 1 is SIGKILLed mid-run and restarted from its checkpoint."""
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = FakeSpec("shell-procs", LINE3, rounds=150, slow_s=0.004)
+        args = ["--fleet", spec.fleet, "--rounds", "150", "--slow", "0.004"]
+        procs: list[subprocess.Popen] = []
+        try:
+            for i in spec.robot_ids:
+                procs.append(subprocess.Popen(_robot_cmd(args, router, i, tmp_path), cwd=ROOT,
+                                              stdout=subprocess.PIPE, stderr=subprocess.PIPE))
+            victim = procs[1]
+            # wait until robot 1 has done >= 20 rounds (its status lines), then kill it hard
+            while True:
+                line = await asyncio.to_thread(victim.stdout.readline)
+                assert line, victim.stderr.read().decode()
+                if json.loads(line)["round"] >= 20:
+                    break
+            victim.kill()
+            victim.wait(5)
+            await asyncio.sleep(0.2)
+            procs.append(subprocess.Popen(_robot_cmd(args, router, 1, tmp_path), cwd=ROOT,
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
+            for p in (procs[0], procs[2], procs[3]):
+                rc = await asyncio.to_thread(p.wait, 30)
+                assert rc == 0, p.stderr.read().decode()
+        finally:
+            for p in procs:
+                _stop(p)
+            for p in procs:
+                for s in (p.stdout, p.stderr):
+                    if s is not None:
+                        s.close()
+        results = {i: json.loads((tmp_path / f"result-{i}.json").read_text()) for i in spec.robot_ids}
+        _assert_exact(results, expected(spec), 150)
+        assert results[1]["restarts"] == 1 and results[0]["restarts"] == 0
+
+
+async def test_process_stops_cleanly_on_sigterm(router, tmp_path):
+    import zenoh
+
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        fleet = "shell-sigterm"
+        session = await asyncio.to_thread(zenoh.open, robot_config([router]))
+        proc = None
+        try:
+            seen = asyncio.Event()
+            loop = asyncio.get_running_loop()
+            alive = session.liveliness().declare_subscriber(
+                alive_key(fleet, 0), lambda s: loop.call_soon_threadsafe(seen.set), history=True)
+            proc = subprocess.Popen(_robot_cmd(["--fleet", fleet, "--rounds", "10"], router, 0, tmp_path),
+                                    cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+            await seen.wait()  # robot 0 is up (and waits forever for robot 1)
+            proc.send_signal(signal.SIGTERM)
+            rc = await asyncio.to_thread(proc.wait, 10)
+            assert rc == 0, proc.stderr.read().decode()
+            alive.undeclare()
+        finally:
+            if proc is not None:
+                _stop(proc)
+                proc.stderr.close()
+            await asyncio.to_thread(session.close)
+        res = json.loads((tmp_path / "result-0.json").read_text())
+        assert res["stopped"] == "signal" and res["converged"] is False and res["rounds"] == 0
+
+
+def _main() -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--robot", type=int, required=True)
+    ap.add_argument("--connect", required=True)
+    ap.add_argument("--dir", type=Path, required=True)
+    ap.add_argument("--fleet", required=True)
+    ap.add_argument("--rounds", type=int, required=True)
+    ap.add_argument("--slow", type=float, default=0.0)
+    a = ap.parse_args()
+    spec = FakeSpec(a.fleet, LINE3, rounds=a.rounds, slow_s=a.slow)
+    asyncio.run(run_robot(
+        spec, a.robot, connect=[a.connect], checkpoint_path=a.dir / f"ck-{a.robot}.msgpack",
+        result_path=a.dir / f"result-{a.robot}.json", status_stream=sys.stdout,
+        build=AveragingCore, restore=AveragingCore.restore, handle_signals=True,
+    ))
+
+
+if __name__ == "__main__":
+    _main()
