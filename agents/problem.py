@@ -58,8 +58,9 @@ class QPSolution:
 class MarginQP:
     """One quadratic program over v = (x, gamma[, xi]) with the margin constraints of some data.
 
-    P is fixed at construction (it does not change between ADMM rounds), q changes every round:
-    piqp's `update` reuses the factorisation set-up, which keeps a round well under a millisecond.
+    Every solve sets piqp up afresh (about 0.1 ms for a robot's problem): piqp carries internal
+    state from one solve to the next, and a round must be a pure function of its inputs so that a
+    robot restored from a checkpoint continues bit for bit.
     """
 
     def __init__(
@@ -70,7 +71,6 @@ class MarginQP:
         x_weight: float,
         prox_weight: float,
         C: float | None,
-        prox_weight_gamma: float | None = None,
     ) -> None:
         self.dim = features.shape[1] + 1
         rows = margin_rows(features, labels)
@@ -80,41 +80,39 @@ class MarginQP:
         size = self.dim + self.n_slack
         self._x_weight = x_weight
         self._size = size
-        self._P = self._p_matrix(prox_weight, prox_weight if prox_weight_gamma is None else prox_weight_gamma)
+        self._P = self._p_matrix(prox_weight)
         self._q_slack = np.full(self.n_slack, float(C) if self.soft else 0.0)
         G = np.hstack([rows, np.eye(n)]) if self.soft else rows
         self._G = np.asfortranarray(G)
-        h_l = np.ones(n)
-        h_u = np.full(n, np.inf)
-        x_l = x_u = None
+        self._h_l = np.ones(n)
+        self._h_u = np.full(n, np.inf)
+        self._x_l = self._x_u = None
         if self.soft:
-            x_l = np.concatenate([np.full(self.dim, -np.inf), np.zeros(n)])
-            x_u = np.full(size, np.inf)
-        self._solver = piqp.DenseSolver()
-        _settings(self._solver)
-        self._solver.setup(self._P, np.zeros(size), None, None, self._G, h_l, h_u, x_l, x_u)
+            self._x_l = np.concatenate([np.full(self.dim, -np.inf), np.zeros(n)])
+            self._x_u = np.full(size, np.inf)
 
-    def _p_matrix(self, prox_x: float, prox_gamma: float) -> np.ndarray:
+    def _p_matrix(self, prox: float) -> np.ndarray:
         p_diag = np.zeros(self._size)
-        p_diag[: self.dim - 1] = self._x_weight + prox_x
-        p_diag[self.dim - 1] = prox_gamma
+        p_diag[: self.dim - 1] = self._x_weight + prox
+        p_diag[self.dim - 1] = prox
         return np.asfortranarray(np.diag(p_diag))
 
-    def set_prox(self, prox_x: float, prox_gamma: float) -> None:
-        """Change the proximal weights (an ADMM penalty changed); the constraints stay."""
-        self._P = self._p_matrix(prox_x, prox_gamma)
-        self._solver.update(P=self._P)
+    def set_prox(self, prox: float) -> None:
+        """Change the proximal weight (e.g. 0 for a robot's own solve); the constraints stay."""
+        self._P = self._p_matrix(prox)
 
     def solve(self, q: np.ndarray) -> QPSolution:
         """Minimise 1/2 v' P v + q' v over the margin constraints; q has length dim."""
         full_q = np.concatenate([np.asarray(q, dtype=float), self._q_slack])
-        self._solver.update(c=full_q)
-        status = self._solver.solve()
+        solver = piqp.DenseSolver()
+        _settings(solver)
+        solver.setup(self._P, full_q, None, None, self._G, self._h_l, self._h_u, self._x_l, self._x_u)
+        status = solver.solve()
         if status == piqp.PIQP_PRIMAL_INFEASIBLE:
             raise InfeasibleError(INFEASIBLE_ADVICE)
         if status != piqp.PIQP_SOLVED:
             raise SolverError(f"piqp returned {status}")
-        z = np.array(self._solver.result.x, dtype=float)
+        z = np.array(solver.result.x, dtype=float)
         return QPSolution(
             x=z[: self.dim - 1].copy(),
             gamma=float(z[self.dim - 1]),

@@ -8,14 +8,16 @@ keeps time, and persists the core between rounds:
 
     core.outgoing() / core.advance() --> encode_state(seq++) --> publisher.put (express)
 
-Main loop (one asyncio task, never sleeps in the hot path; it waits on an ``asyncio.Event`` set by
-arriving frames, with a time-out that is the earliest of: next retransmission, next delayed frame
-due out of the fault link, next neighbour death deadline, wall-clock cap):
+Main loop (one asyncio task, never sleeps in the hot path; it awaits a wake-up future that arriving
+frames resolve, with a timer for the earliest of: next retransmission, next delayed frame due out
+of the fault link, next neighbour death deadline, wall-clock cap):
 
-* ``core.ready()``  -> checkpoint (msgpack, tmp + ``os.replace``), ``core.advance()``, publish,
-  one JSON status line;
-* waiting           -> republish the latest frame every ``retransmit_s`` (exact recovery comes from
-  the previous round piggybacked in every frame plus retransmission; the shell never invents values);
+* ``core.ready()``  -> checkpoint (msgpack, atomic, see :func:`write_checkpoint`), ``core.advance()``,
+  publish, one JSON status line;
+* waiting           -> republish the latest frame every ``retransmit_s``, or after ``fast_resend_s``
+  when a neighbour's frame shows it is one round behind us (it lost our last frame); exact recovery
+  comes from the previous round piggybacked in every frame plus retransmission: the shell never
+  invents or substitutes values;
 * a neighbour we wait for and have not heard from for ``dead_after_s`` -> ``core.drop_neighbour(j)``;
 * ``core.finished`` -> linger: keep republishing the final frame until every live neighbour has been
   heard at our final round or later (it has finished too) or the bounded linger time is over;
@@ -67,7 +69,19 @@ SEQ_EPOCH = 1 << 40  # seq = restarts * SEQ_EPOCH + n: strictly increasing acros
 # retransmit_s); it ends earlier as soon as every live neighbour has been heard at our final round.
 LINGER_MIN_S = 0.5
 FAST_RESEND_MIN_S = 0.002
+PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 LINGER_RETRANSMITS = 5
+
+
+def _finite(obj: Any) -> Any:
+    """JSON-safe copy: non-finite floats (e.g. an initial residual of inf) become None."""
+    if isinstance(obj, float):
+        return obj if obj == obj and obj not in (float("inf"), float("-inf")) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
 
 
 def alive_key(fleet: str, robot: int) -> str:
@@ -372,32 +386,34 @@ class RobotShell:
             },
         )
 
-    def _status_line(self) -> None:
+    def _status_line(self, stopped: str | None = None) -> None:
         if self.status_stream is None:
             return
         st = self.core.status()
+        residual = st.get("residual")
+        residual = float(residual) if residual is not None else None
         line = {
             "robot": self.me,
             "round": st.get("round", self.core.round),
-            "residual": st.get("residual"),
+            "residual": residual if residual is not None and abs(residual) < float("inf") else None,
             "sent": self.sent,
             "received": self.received,
             "lost": self.lost,
             "rejected": sum(self.rejected.values()),
             "finished": bool(self.core.finished),
         }
+        if stopped is not None:  # the last line: final counters and why the robot stopped
+            line["stopped"] = stopped
         try:
-            self.status_stream.write(json.dumps(line, default=float) + "\n")
+            self.status_stream.write(json.dumps(line) + "\n")
             self.status_stream.flush()
         except (BrokenPipeError, ValueError):  # launcher went away / stream closed
             self.status_stream = None
 
     # ---------------------------------------------------------------- main loop
 
-    def _drop(self, j: int, now: float) -> None:
-        silent = now - self.last_heard.get(j, self._t0)
-        log.warning("robot %d: neighbour %d silent for %.2fs (> dead_after_s=%.2fs), dropping it",
-                    self.me, j, silent, self.dead_after_s)
+    def _drop(self, j: int, why: str) -> None:
+        log.warning("robot %d: dropping neighbour %d at round %d: %s", self.me, j, self.core.round, why)
         self.core.drop_neighbour(j)
         self.neighbours_dropped.append(j)
         sub = self._subs.pop(j, None)
@@ -450,7 +466,7 @@ class RobotShell:
         while True:
             now = self.clock()
             self._pump(now)
-            while core.ready():  # ready() is false once finished
+            if core.ready():  # ready() is false once finished
                 self._checkpoint()
                 update = core.advance()
                 self._publish(update)
@@ -458,6 +474,11 @@ class RobotShell:
                 self.round_times.append(t - last_advance)
                 last_advance = t
                 self._status_line()
+                if core.ready():
+                    # Still ready (no neighbours left, or their next values already here): let
+                    # other tasks and callbacks run before the next round (costs one loop pass).
+                    await asyncio.sleep(0)
+                continue
             if core.finished:
                 return "finished"
             now = self.clock()
@@ -466,8 +487,16 @@ class RobotShell:
                 return "max_wall"
             dropped_any = False
             for j in core.missing():
-                if now - self.last_heard.get(j, self._t0) >= self.dead_after_s:
-                    self._drop(j, now)
+                silent = now - self.last_heard.get(j, self._t0)
+                if silent >= self.dead_after_s:
+                    self._drop(j, f"silent for {silent:.2f}s (dead_after_s={self.dead_after_s:g}s)")
+                    dropped_any = True
+                elif self.heard_round.get(j, -1) >= core.round + 2:
+                    # A live neighbour is never more than one round ahead of us unless it dropped
+                    # us (e.g. we were restarted too late): its frames carry only rounds it is past,
+                    # so the value we wait for will never come. (A restored core is ready at once,
+                    # so a neighbour two rounds past our checkpoint never gets here.)
+                    self._drop(j, f"it is at round {self.heard_round[j]}, so it has dropped us")
                     dropped_any = True
             if dropped_any:
                 continue
@@ -499,6 +528,7 @@ class RobotShell:
             await self._wait(deadline)
 
     def result(self, stopped: str) -> dict[str, Any]:
+        """core.result() plus the shell's counters; JSON-safe (non-finite floats -> None)."""
         res = dict(self.core.result())
         if stopped != "finished":
             res["converged"] = False
@@ -524,7 +554,12 @@ class RobotShell:
                 },
             }
         )
-        return res
+        # The core's per-round iterates (ConsensusADMM keeps them by default): the launcher's
+        # convergence history needs them. After a restart they start at the checkpoint's round.
+        trace = getattr(self.core, "trace", None)
+        if trace:
+            res["trace"] = {str(k): [float(a) for a in v] for k, v in sorted(trace.items())}
+        return _finite(res)
 
     async def run(self) -> dict[str, Any]:
         import zenoh
@@ -549,7 +584,7 @@ class RobotShell:
                     state_key(fleet, j), lambda sample, j=j: self._on_sample_thread(j, sample)
                 )
             self._pub = session.declare_publisher(
-                state_key(fleet, self.me), express=True, congestion_control=zenoh.CongestionControl.DROP
+                state_key(fleet, self.me), express=PUBLISH_EXPRESS, congestion_control=zenoh.CongestionControl.DROP
             )
             alive_sub = session.liveliness().declare_subscriber(alive_wildcard(fleet), self._on_alive_thread)
             token = session.liveliness().declare_token(alive_key(fleet, self.me))
@@ -559,7 +594,7 @@ class RobotShell:
             stopped = await self._rounds()
             if stopped == "finished":
                 await self._linger()
-            self._status_line()
+            self._status_line(stopped)
             result = self.result(stopped)
         finally:
             self._closing = True
@@ -602,8 +637,9 @@ async def run_robot(
     """Run robot ``robot_id`` of ``spec`` until its core finishes or ``spec.timing.max_wall_s``.
 
     ``connect``: router endpoint(s), e.g. ``["tcp/127.0.0.1:7447"]`` (validated, loopback only).
-    ``checkpoint_path``: written atomically before every round; if it exists at start the robot
-    resumes from it (``restarts`` += 1). ``result_path``: JSON result written atomically at the end.
+    ``checkpoint_path``: written (crash-safe) before every ``core.advance()``; if a checkpoint is
+    there at start the robot resumes from it exactly (``restarts`` += 1); it must belong to the
+    same fleet, robot and config tag (else ValueError). ``result_path``: JSON result written atomically at the end.
     ``status_stream``: one JSON line per round (None: silent).
     ``build`` / ``restore``: core factories, default ``agents.spec.build_core`` / ``restore_core``.
     ``handle_signals``: on SIGTERM/SIGINT stop cleanly (session closed, result written with
@@ -640,7 +676,7 @@ async def run_robot(
             await task
         except asyncio.CancelledError:
             pass
-        result = shell.result("signal")
+        result = shell.result("finished" if shell.core.finished else "signal")
         if shell.result_path is not None:
             _write_atomic(shell.result_path, json.dumps(result, indent=1, default=float).encode())
         return result

@@ -170,6 +170,7 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
         n_robots=spec.n_robots,
         params=ADMMParams(**spec.params),
         C=spec.C,
+        neighbour_degrees={j: len(spec.robots[j].neighbours) for j in me.neighbours},
         keep_trace=keep_trace,
     )
 

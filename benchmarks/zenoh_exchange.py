@@ -1,15 +1,16 @@
-"""Bare Zenoh round exchange: N processes through one loopback router, ms per round.
+"""Zenoh round exchange: N processes through one loopback router, ms per round.
 
 Each worker process is one "robot" on a complete graph. A round is: publish my round-r frame
 (a small binary payload of ``dim`` float64), then wait until every other worker's round-r frame has
-arrived. No mathematics, no codec: this is the floor under the robot shell's per-round latency.
+arrived. The bare variants have no mathematics and no codec: they are the floor under the robot
+shell's per-round latency; the shell variants run ``agents/robot.py`` itself.
 
 Variants measured (each with a fresh router and fresh workers):
 
-* ``asyncio``  -- subscriber callback -> ``loop.call_soon_threadsafe`` -> ``asyncio.Event``
-                  (what ``agents/robot.py`` does), publisher ``express=True``;
+* ``asyncio``  -- subscriber callback -> ``loop.call_soon_threadsafe`` -> ``asyncio.Event``,
+                  publisher ``express=True``;
 * ``asyncio-batched`` -- same, publisher without ``express`` (Zenoh's default batching);
-* ``shell``    -- ``agents.robot.run_robot`` with a trivial averaging core (codec, fault link with no
+* ``shell``    -- ``agents.robot.RobotShell`` with a trivial averaging core (codec, fault link with no
                   faults, decoder, checkpoint before every round, status accounting): the shell's
                   own cost on top of the bare exchange; ``shell-no-checkpoint`` without checkpoints;
 * ``blocking`` -- no event loop: subscriber callback -> ``queue.SimpleQueue`` -> blocking ``get``,
@@ -191,7 +192,6 @@ class _MeanCore:
     def __init__(self, me: int, n: int, rounds: int, dim: int) -> None:
         import numpy as np
 
-        self._np = np
         self.robot_id, self.neighbours, self.dim = me, tuple(j for j in range(n) if j != me), dim
         self.round, self.finished, self._rounds = 0, False, rounds
         self._x, self._prev, self._inbox = np.full(dim, float(me)), None, {}
@@ -214,7 +214,7 @@ class _MeanCore:
         return not self.finished and not self.missing()
 
     def advance(self):
-        theirs = self._inbox.pop(self.round)
+        theirs = self._inbox.pop(self.round, {})
         self._prev, self._x = self._x, (self._x + sum(theirs.values())) / (1 + len(theirs))
         self.round += 1
         self.finished = self.round >= self._rounds
@@ -235,11 +235,11 @@ class _MeanCore:
 
 
 def worker_shell(endpoint: str, run: str, me: int, n: int, rounds: int, dim: int, checkpoint: bool, timeout: float):
-    """agents/robot.py's run_robot with a trivial core: the shell's own cost on top of Zenoh."""
+    """agents/robot.py's shell with a trivial core: the shell's own cost on top of Zenoh."""
     import itertools
     from types import SimpleNamespace
 
-    from agents.robot import run_robot
+    from agents.robot import RobotShell
     from protocol.links import LinkFaults
 
     spec = SimpleNamespace(
@@ -247,28 +247,15 @@ def worker_shell(endpoint: str, run: str, me: int, n: int, rounds: int, dim: int
         timing=SimpleNamespace(retransmit_s=RETRANSMIT_S, dead_after_s=timeout, max_wall_s=timeout, linger_s=0.5),
     )
     with tempfile.TemporaryDirectory(prefix="zx-ck-") as tmp:
-        ck = Path(tmp) / f"ck-{me}" if checkpoint else None
-        captured = {}
-
-        def build(spec, i):
-            captured["core"] = core = _MeanCore(i, n, rounds, dim)
-            return core
-
-        import agents.robot as robot_mod
-
-        shells = []
-        orig_init = robot_mod.RobotShell.__init__
-
-        def init(self, *a, **kw):
-            orig_init(self, *a, **kw)
-            shells.append(self)
-
-        robot_mod.RobotShell.__init__ = init
-        res = asyncio.run(run_robot(spec, me, connect=[endpoint], checkpoint_path=ck, result_path=None,
-                                    status_stream=None, build=build))
-        if not res["stopped"] == "finished":
-            raise RuntimeError(f"shell worker {me} stopped: {res['stopped']}")
-        return list(itertools.accumulate(shells[0].round_times))
+        shell = RobotShell(
+            spec, me, connect=[endpoint], checkpoint_path=Path(tmp) / f"ck-{me}" if checkpoint else None,
+            result_path=None, status_stream=None, build=lambda _spec, i: _MeanCore(i, n, rounds, dim),
+            restore=None,
+        )
+        res = asyncio.run(shell.run())
+    if res["stopped"] != "finished":
+        raise RuntimeError(f"shell worker {me} stopped: {res['stopped']}")
+    return list(itertools.accumulate(shell.round_times))
 
 
 VARIANTS = {
@@ -382,11 +369,11 @@ def main(argv: list[str] | None = None) -> int:
         for r in rows:
             print(json.dumps(r))
         return 0
-    print(f"bare Zenoh exchange, {args.robots} processes, complete graph, {args.dim} float64/frame, "
+    print(f"Zenoh round exchange, {args.robots} processes, complete graph, {args.dim} float64/frame, "
           f"one loopback router, {args.rounds} rounds (first 10 skipped)")
-    print(f"{'variant':<17}{'mean ms':>9}{'p50 ms':>9}{'p95 ms':>9}{'max ms':>9}{'rounds/s':>10}")
+    print(f"{'variant':<21}{'mean ms':>9}{'p50 ms':>9}{'p95 ms':>9}{'max ms':>9}{'rounds/s':>10}")
     for r in rows:
-        print(f"{r['variant']:<17}{r['mean_ms']:>9.3f}{r['p50_ms']:>9.3f}{r['p95_ms']:>9.3f}"
+        print(f"{r['variant']:<21}{r['mean_ms']:>9.3f}{r['p50_ms']:>9.3f}{r['p95_ms']:>9.3f}"
               f"{r['max_ms']:>9.3f}{r['rounds_per_s']:>10.0f}")
     return 0
 

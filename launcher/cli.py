@@ -108,8 +108,11 @@ def _faults(args: argparse.Namespace) -> LinkFaults:
 
 
 def _options(args: argparse.Namespace, **extra: Any) -> Options:
-    faults = _faults(args) if hasattr(args, "delay") else LinkFaults.none()
-    timing = Timing(retransmit_s=parse_duration(args.retransmit, flag="--retransmit")) if hasattr(args, "retransmit") else Timing()
+    try:
+        faults = _faults(args) if hasattr(args, "delay") else LinkFaults.none()
+        timing = Timing(retransmit_s=parse_duration(args.retransmit, flag="--retransmit")) if hasattr(args, "retransmit") else Timing()
+    except ValueError as exc:  # the parsers name their flag
+        raise UsageError(str(exc)) from None
     if timing.retransmit_s <= 0:
         raise UsageError("--retransmit: must be a positive duration")
     return Options(
@@ -240,6 +243,94 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_launch(args: argparse.Namespace) -> int:
+    """The Zenoh fleet: a router and one process per robot on this machine."""
+    from agents.problem import solve_central
+    from launcher.fleet import launch_fleet, parse_crash
+
+    try:
+        crashes = [parse_crash(text) for text in args.crash]
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.restart_after < 0:
+        raise UsageError("--restart-after: must be a non-negative number of seconds")
+    if args.zenoh_port is not None and not 1 <= args.zenoh_port <= 65535:
+        raise UsageError(f"--zenoh-port: {args.zenoh_port} is not a TCP port (1-65535)")
+    t0 = time.perf_counter()
+    out, world, spec, central = _prepare(args, "launch", fleet_id=args.fleet_id)
+    unknown = [c.robot for c in crashes if c.robot not in spec.robots]
+    if unknown:
+        raise UsageError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
+    if not central.solved:
+        _infeasible(out, world, spec, central)
+    outcome = launch_fleet(
+        spec,
+        workdir=out / "fleet",
+        crashes=crashes,
+        restart_after=args.restart_after,
+        restart=not args.no_restart,
+        zenoh_port=args.zenoh_port,
+    )
+    extra: dict[str, Any] = {
+        "fleet": spec.fleet,
+        "topology": args.topology,
+        "faults": _fault_dict(spec.faults),
+        "participants": sorted(int(r["id"]) for r in outcome.robots),
+        "absent": sorted(set(spec.robot_ids) - {int(r["id"]) for r in outcome.robots}),
+    }
+    if extra["absent"]:
+        # the survivors solved the problem of *their* data: measure them against that
+        kept = [r for r in world.robots if r.id in extra["participants"]]
+        pts = np.vstack([r.points for r in kept])
+        labels = np.concatenate([r.labels for r in kept])
+        central = solve_central(spec.basis, pts, labels, spec.C)
+        extra["reference"] = "central solution of the participants' data"
+    _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
+    return 0
+
+
+def cmd_robot(args: argparse.Namespace) -> int:
+    """One robot process (started by `launch`, or by hand on another host)."""
+    import asyncio
+    import json
+    import logging
+
+    from agents.robot import run_robot
+    from agents.spec import FleetSpec
+    from protocol.zenoh_config import validate_endpoint
+
+    logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
+    try:
+        spec = FleetSpec.load(args.fleet_file)
+        connect = [validate_endpoint(e, loopback_only=not args.allow_remote) for e in args.connect]
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.id not in spec.robots:
+        raise UsageError(f"--id: robot {args.id} is not in {args.fleet_file} (robots {list(spec.robot_ids)})")
+    result = asyncio.run(
+        run_robot(
+            spec,
+            args.id,
+            connect=connect,
+            checkpoint_path=args.checkpoint,
+            result_path=args.result,
+            handle_signals=True,
+        )
+    )
+    if args.result is None:
+        print(json.dumps({"result": result}))
+    return 0 if result.get("stopped") == "finished" else 1
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from launcher.router import run_router
+
+    if not 1 <= args.port <= 65535:
+        raise UsageError(f"--port: {args.port} is not a TCP port (1-65535)")
+    run_router(args.port, host=args.host, ready_file=args.ready_file)
+    return 0
+
+
 def _fault_dict(faults: LinkFaults) -> dict[str, float]:
     from dataclasses import asdict
 
@@ -254,9 +345,32 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario_args(p)
     _add_fault_args(p)
     p.set_defaults(func=cmd_simulate)
+    p = sub.add_parser("launch", help="one process per robot on Zenoh, with a fault-injecting network")
+    _add_scenario_args(p)
+    _add_fault_args(p)
+    g = p.add_argument_group("processes")
+    g.add_argument("--crash", action="append", default=[], metavar="ID@ROUND", help="SIGKILL robot ID when it reaches ROUND (repeatable)")
+    g.add_argument("--restart-after", type=_finite_float, default=1.0, help="seconds before a crashed robot restarts from its checkpoint (default 1)")
+    g.add_argument("--no-restart", action="store_true", help="leave crashed robots dead: the others finish without them")
+    g.add_argument("--fleet-id", help="fleet id on the network (default: unique per run)")
+    g.add_argument("--zenoh-port", type=int, help="the router's loopback port (default: a free one)")
+    p.set_defaults(func=cmd_launch)
     p = sub.add_parser("central", help="solve the same problem with all data in one place")
     _add_scenario_args(p)
     p.set_defaults(func=cmd_central)
+    p = sub.add_parser("robot", help="run one robot process from a fleet file")
+    p.add_argument("--fleet-file", type=Path, required=True, help="the fleet file written by launch")
+    p.add_argument("--id", type=int, required=True, help="this robot's id")
+    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--checkpoint", type=Path, help="checkpoint file: written every round, resumed from on restart")
+    p.add_argument("--result", type=Path, help="write the result JSON here (default: stdout)")
+    p.add_argument("--allow-remote", action="store_true", help="accept non-loopback endpoints (multi-host deployments)")
+    p.set_defaults(func=cmd_robot)
+    p = sub.add_parser("router", help="a Zenoh router on a loopback port")
+    p.add_argument("--port", type=int, default=7447, help="TCP port (default 7447)")
+    p.add_argument("--host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
+    p.add_argument("--ready-file", type=Path, help="written once the router listens")
+    p.set_defaults(func=cmd_router)
     return parser
 
 
@@ -266,8 +380,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (UsageError, scenario.ScenarioError, topology.TopologyError) as exc:
-        _fail(str(exc))
-    except ValueError as exc:  # parse_duration / parse_probability / fleet files name their flag
         _fail(str(exc))
     except KeyboardInterrupt:
         print("shapefleet: interrupted", file=sys.stderr)

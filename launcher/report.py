@@ -27,6 +27,8 @@ def _robot_c(basis: GridBasis, robot: dict[str, Any]) -> np.ndarray:
 
 def _errors(basis: GridBasis, fs: list[tuple[np.ndarray, float]], central: CentralSolution) -> tuple[float, float]:
     """(largest function error vs the central solution, largest distance to the fleet mean)."""
+    if not fs:
+        return float("nan"), float("nan")
     c_mean = np.mean([c for c, _ in fs], axis=0)
     g_mean = float(np.mean([g for _, g in fs]))
     consensus = max(basis.function_error(c, g, c_mean, g_mean) for c, g in fs)
@@ -69,9 +71,9 @@ def build_result(
     fs = [(_robot_c(basis, r), float(r["gamma"])) for r in robots]
     function, consensus = _errors(basis, fs, central)
     pts, labels = world.points, world.labels
-    accuracy = min(float(np.mean(np.sign(basis.decision(pts, c, g)) == labels)) for c, g in fs)
+    accuracy = min((float(np.mean(np.sign(basis.decision(pts, c, g)) == labels)) for c, g in fs), default=None)
     iou = None
-    if world.shape is not None:
+    if world.shape is not None and fs:
         x0, x1, y0, y1 = world.bounds
         ious = [
             scenario.iou_on_raster(world.shape, lambda p, c=c, g=g: basis.decision(p, c, g) < 0, (x0, x1, y0, y1))
@@ -226,6 +228,6 @@ def summary_table(result: dict[str, Any]) -> Any:
 
     table.caption = (
         f"function error {fmt(m['function_error'], '.2e')}  consensus error {fmt(m['consensus_error'], '.2e')}  "
-        f"train accuracy {m['train_accuracy']:.3f}  IoU {fmt(m['iou'], '.3f')}"
+        f"train accuracy {fmt(m['train_accuracy'], '.3f')}  IoU {fmt(m['iou'], '.3f')}"
     )
     return table

@@ -16,6 +16,7 @@ from shapely import Polygon
 
 from agents.spec import FleetSpec, RobotSpec, Timing
 from launcher import scenario, topology
+from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults
 
 
@@ -40,10 +41,10 @@ class Options:
     topology: str = "complete"
     comm_range: float | None = None
     algorithm: str = "admm"
-    rho: float = 10.0
-    relax: float = 1.9
+    rho: float = 15.0
+    relax: float = 1.95
     tol: float = 1e-4
-    max_rounds: int = 2000
+    max_rounds: int = 5000
     faults: LinkFaults = field(default_factory=LinkFaults.none)
     timing: Timing = field(default_factory=Timing)
     fleet_id: str | None = None
@@ -85,6 +86,11 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
     if opts.max_rounds < 1:
         raise scenario.ScenarioError(f"--max-rounds: {opts.max_rounds!r} must be at least 1")
     nx_, ny_ = scenario.parse_grid(opts.grid)
+    if opts.fleet_id is not None:
+        try:
+            validate_fleet_id(opts.fleet_id)
+        except ValueError as exc:
+            raise scenario.ScenarioError(f"--fleet-id: {exc}") from None
 
     if opts.data is not None:
         shape = None

@@ -113,7 +113,7 @@ class AveragingCore:
         assert self.ready(), (self.robot_id, self.round, self.missing())
         if self.spec.slow_s:
             time.sleep(self.spec.slow_s)
-        theirs = self._inbox.pop(self.round)
+        theirs = self._inbox.pop(self.round, {})
         vals = {self.robot_id: self._x, **{j: theirs[j] for j in self.neighbours}}
         new = np.mean(np.stack([vals[k] for k in sorted(vals)]), axis=0)
         self.residual = float(np.linalg.norm(new - self._x))
@@ -177,6 +177,43 @@ def expected(spec: FakeSpec, graph: dict[int, tuple[int, ...]] | None = None) ->
 
 
 LINE3 = {0: (1,), 1: (0, 2), 2: (1,)}
+
+
+# ----------------------------------------------------------------------------- checkpoint files
+
+
+def test_checkpoint_survives_a_crash_at_any_step(tmp_path):
+    from agents.robot import checkpoint_exists, read_checkpoint, write_checkpoint
+
+    path = tmp_path / "ck"
+    assert not checkpoint_exists(path)
+    with pytest.raises(ValueError, match="no complete"):
+        read_checkpoint(path)
+    env = lambda n: {"v": 1, "n": n, "core": {"round": n}}  # noqa: E731
+    write_checkpoint(path, env(1))
+    assert read_checkpoint(path)["n"] == 1 and not (tmp_path / "ck.tmp").exists()
+    # crash while writing the tmp file: truncated tmp, old checkpoint intact
+    (tmp_path / "ck.tmp").write_bytes(msgpack.packb(env(2))[:-3])
+    assert read_checkpoint(path)["n"] == 1
+    # crash after the tmp file was complete, before or after the unlink: the newest wins
+    (tmp_path / "ck.tmp").write_bytes(msgpack.packb(env(2)))
+    assert read_checkpoint(path)["n"] == 2
+    path.unlink()
+    assert checkpoint_exists(path) and read_checkpoint(path)["n"] == 2
+    write_checkpoint(path, env(3))  # the next write cleans up
+    assert read_checkpoint(path)["n"] == 3 and not (tmp_path / "ck.tmp").exists()
+
+
+def test_checkpoint_of_another_robot_is_refused(tmp_path):
+    from agents.robot import RobotShell, write_checkpoint
+
+    spec = FakeSpec("shell-ck", LINE3, rounds=3)
+    path = tmp_path / "ck"
+    write_checkpoint(path, {"v": 1, "n": 1, "fleet": spec.fleet, "robot": 2, "cfg": spec.config_tag,
+                            "core": AveragingCore(spec, 2).checkpoint()})
+    with pytest.raises(ValueError, match="belongs to fleet 'shell-ck' robot 2"):
+        RobotShell(spec, 1, connect=["tcp/127.0.0.1:7447"], checkpoint_path=path, result_path=None,
+                   status_stream=None, build=AveragingCore, restore=AveragingCore.restore)
 
 
 # ----------------------------------------------------------------------------- router fixture
@@ -347,12 +384,33 @@ async def test_silent_neighbour_is_dropped(router):
         assert r1["neighbours_dropped"] == [2] and r0["neighbours_dropped"] == []
 
 
+async def test_neighbour_that_dropped_us_is_dropped_too(router):
+    """Robot 2 comes too late: robot 1 has dropped it and moved on. Robot 2 keeps hearing robot 1
+    (so it is not silent) but at rounds that can never give it what it needs: it drops robot 1
+    instead of hanging until max_wall_s, and finishes alone."""
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = FakeSpec("shell-ahead", LINE3, rounds=150, slow_s=0.005, timing=Timing(dead_after_s=0.3))
+        early = [asyncio.ensure_future(_run(spec, i, router)) for i in (0, 1)]
+        await asyncio.sleep(0.6)
+        t = time.monotonic()
+        r2 = await _run(spec, 2, router)
+        assert time.monotonic() - t < 5
+        r0, r1 = await asyncio.gather(*early)
+        assert r1["neighbours_dropped"] == [2] and r2["neighbours_dropped"] == [1]
+        want = expected(spec, {0: (1,), 1: (0,)})
+        _assert_exact({0: r0, 1: r1}, want, 150)
+        _assert_exact({2: r2}, {2: spec.x0(2)}, 150)
+
+
 async def test_wall_clock_cap(router):
     async with asyncio.timeout(TEST_TIMEOUT_S):
         spec = FakeSpec("shell-wall", LINE3, rounds=10, timing=Timing(dead_after_s=60, max_wall_s=0.5))
         t = time.monotonic()
-        res = await _run(spec, 0, router)  # robot 1 never comes
+        stream = io.StringIO()
+        res = await _run(spec, 0, router, status_stream=stream)  # robot 1 never comes
         assert time.monotonic() - t < 5
+        last = json.loads(stream.getvalue().splitlines()[-1])
+        assert last["stopped"] == "max_wall" and last["round"] == 0 and last["residual"] is None
         assert res["stopped"] == "max_wall" and res["converged"] is False and res["rounds"] == 0
 
 
@@ -414,7 +472,7 @@ async def test_real_admm_core_same_iterates_as_in_memory(router, tmp_path, fault
     async with asyncio.timeout(TEST_TIMEOUT_S):
         spec = _real_spec(f"shell-real-{'lossy' if faults else 'clean'}", faults)
         ref = _in_memory(spec)
-        assert all(r["rounds"] == 120 for r in ref.values())
+        assert all(r["rounds"] >= 20 for r in ref.values())  # a real run, not a trivial one
         out = await asyncio.gather(*(
             run_robot(spec, i, connect=[router], checkpoint_path=tmp_path / f"ck-{i}", result_path=None,
                       status_stream=None)
@@ -449,6 +507,29 @@ async def test_real_admm_core_crash_and_restore(router, tmp_path):
         r0, r2 = await asyncio.gather(*others)
         _assert_same_as_reference({0: r0, 1: r1, 2: r2}, ref)
         assert r1["restarts"] == 1
+
+
+@pytest.mark.parametrize(
+    "faults",
+    [LinkFaults(), LinkFaults(delay=0.001, jitter=0.0005, loss=0.1, duplicate=0.1, reorder=0.1)],
+    ids=["clean", "lossy"],
+)
+async def test_same_results_as_the_in_process_simulator(router, faults):
+    """The architecture's contract: both shells drive the same cores to the same iterates."""
+    from agents.spec import Timing as SpecTiming
+    from launcher.simulate import simulate_fleet
+    from launcher.world import Options, build_world
+
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        _world, spec = build_world(Options(
+            robots=4, points=15, grid="4x3", topology="ring", max_rounds=60, faults=faults,
+            timing=SpecTiming(retransmit_s=0.02, dead_after_s=10.0, max_wall_s=30.0, linger_s=1.0),
+            fleet_id=f"shell-sim-{'clean' if faults.is_clean else 'lossy'}",
+        ))
+        sim = {r["id"]: r for r in simulate_fleet(spec).robots}
+        out = await asyncio.gather(*(run_robot(spec, i, connect=[router], status_stream=None)
+                                     for i in spec.robot_ids))
+        _assert_same_as_reference(dict(zip(spec.robot_ids, out)), sim)
 
 
 def _robot_cmd(spec_args: list[str], endpoint: str, i: int, tmp: Path) -> list[str]:

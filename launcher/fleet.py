@@ -1,0 +1,664 @@
+"""The Zenoh fleet on this machine: one router process and one process per robot.
+
+``launch_fleet(spec, ...)`` is what ``shapefleet launch`` runs:
+
+1. write the fleet file ``workdir/fleet.json`` (timing adjusted to the crash plan, see below);
+2. start the router (``python -m launcher.router --port P --ready-file ...``) on a loopback port and
+   wait, bounded, until it listens;
+3. start one ``python -m launcher.cli robot --fleet-file ... --id I --connect tcp/127.0.0.1:P
+   --checkpoint workdir/robot-I.ckpt --result workdir/robot-I.json`` per robot; stdout is a pipe
+   (one JSON status line per round, read by one thread per process), stderr goes to
+   ``workdir/robot-I.log``;
+4. follow the status lines: live table (rich) of round, residual, frame counters and state;
+   carry out the crash plan: when robot I reports round >= R it is SIGKILLed; with restarts it is
+   started again after ``restart_after`` seconds with the same arguments and resumes from its
+   checkpoint, without restarts it stays dead and its neighbours drop it after ``dead_after_s``;
+5. when every robot process has exited (or the overall time bound is over: then every robot is
+   asked to stop, SIGTERM, and writes a result saying so), stop the router and collect the result
+   files. A robot that is dead for good wrote none and is absent from the outcome.
+
+Every process started here is stopped by its own PID (SIGTERM, a grace period, SIGKILL, reaped) in
+a ``finally``: on success, on error, on the time bound and on Ctrl-C. Children run in their own
+session, so a terminal's Ctrl-C reaches only the launcher, which then stops them in order. As a
+last line of defence against a launcher that is itself SIGKILLed, the router is given a
+``--max-wall-s`` and every robot its ``timing.max_wall_s``: nothing outlives its bound.
+
+Loopback only; multicast scouting is off in every configuration (protocol/zenoh_config.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import queue
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from agents.spec import FleetSpec
+from launcher.simulate import FleetOutcome
+from protocol.zenoh_config import free_loopback_port, parse_endpoint, router_endpoint, validate_endpoint
+
+__all__ = [
+    "CrashPlan",
+    "CrashEvent",
+    "LaunchError",
+    "LaunchOutcome",
+    "parse_crash",
+    "launch_fleet",
+    "fleet_timing",
+    "stop_process",
+]
+
+log = logging.getLogger("shapefleet.launch")
+
+ROOT = Path(__file__).resolve().parent.parent
+HOST = "127.0.0.1"
+
+ROUTER_START_TIMEOUT_S = 20.0  # router process up and listening
+ROUTER_PORT_ATTEMPTS = 3  # a port picked for us may be taken between the pick and the bind
+STOP_GRACE_S = 3.0  # SIGTERM -> SIGKILL
+START_ALLOWANCE_S = 5.0  # a robot process: interpreter, imports, session, core (2 loaded cores)
+NO_RESTART_DEAD_AFTER_S = 2.5  # --no-restart: neighbours give a crashed robot up this soon
+WALL_MARGIN_S = 15.0  # on top of max_wall_s + start + restarts + linger
+REFRESH_PER_S = 4
+
+STATES = ("starting", "running", "crashed", "restarted", "dead", "finished", "stopped")
+
+
+class LaunchError(RuntimeError):
+    """The fleet could not be run (e.g. the router did not come up); the message says why."""
+
+
+@dataclass(frozen=True)
+class CrashPlan:
+    """SIGKILL robot ``robot`` as soon as it reports round ``round`` or later."""
+
+    robot: int
+    round: int
+
+
+@dataclass(frozen=True)
+class CrashEvent:
+    """A crash the launcher carried out."""
+
+    robot: int
+    planned_round: int
+    round: int  # the round the robot had reported when it was killed
+    pid: int
+    at_s: float  # seconds since launch
+    restarted_at_s: float | None = None
+
+
+@dataclass
+class LaunchOutcome(FleetOutcome):
+    """FleetOutcome plus what only a process fleet has: states, crashes, the router port."""
+
+    states: dict[int, str] = field(default_factory=dict)
+    crashes: list[CrashEvent] = field(default_factory=list)
+    crashes_not_fired: list[CrashPlan] = field(default_factory=list)
+    port: int = 0
+    workdir: Path | None = None
+    timed_out: bool = False
+    pids: list[int] = field(default_factory=list)  # every process started (router first)
+
+
+_CRASH_RE = re.compile(r"\s*(\d+)\s*@\s*(\d+)\s*")
+
+
+def parse_crash(text: str) -> CrashPlan:
+    """``"1@40"`` -> ``CrashPlan(robot=1, round=40)``; ValueError naming --crash otherwise."""
+    m = _CRASH_RE.fullmatch(text) if isinstance(text, str) else None
+    if m is None:
+        raise ValueError(f"--crash: {text!r} is not ID@ROUND, e.g. 1@40")
+    robot, rnd = int(m.group(1)), int(m.group(2))
+    if rnd < 1:
+        raise ValueError(f"--crash: {text!r} is not ID@ROUND with ROUND >= 1, e.g. 1@40")
+    return CrashPlan(robot, rnd)
+
+
+def fleet_timing(spec: FleetSpec, crashes: list[CrashPlan], *, restart: bool, restart_after: float) -> Any:
+    """The timing the robots are given: ``dead_after_s`` fitted to the crash plan.
+
+    With restarts, a neighbour must not give a crashed robot up before it is back:
+    ``dead_after_s >= restart_after + START_ALLOWANCE_S``. Without restarts, the survivors should
+    not wait the default 6 s: ``dead_after_s <= NO_RESTART_DEAD_AFTER_S`` (still well above the
+    spread of the robots' start-up times on a small fleet).
+    """
+    timing = spec.timing
+    if not crashes:
+        return timing
+    if restart:
+        dead = max(timing.dead_after_s, restart_after + START_ALLOWANCE_S)
+    else:
+        dead = min(timing.dead_after_s, NO_RESTART_DEAD_AFTER_S)
+    return dataclasses.replace(timing, dead_after_s=dead)
+
+
+# --------------------------------------------------------------------------- processes
+
+
+def _child_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+def _spawn(argv: list[str], *, stdout: Any, stderr: Any) -> subprocess.Popen:
+    return subprocess.Popen(
+        argv,
+        cwd=ROOT,
+        env=_child_env(),
+        stdin=subprocess.DEVNULL,
+        stdout=stdout,
+        stderr=stderr,
+        start_new_session=True,  # a terminal Ctrl-C reaches the launcher only; it stops them
+    )
+
+
+def _signal(proc: subprocess.Popen, sig: int) -> None:
+    if proc.poll() is None:
+        try:
+            os.kill(proc.pid, sig)
+        except ProcessLookupError:
+            pass
+
+
+def stop_process(proc: subprocess.Popen, grace_s: float = STOP_GRACE_S) -> int | None:
+    """SIGTERM ``proc`` by its PID, wait ``grace_s``, SIGKILL, reap. Returns its exit code."""
+    return _stop_all([proc], grace_s)[0]
+
+
+def _stop_all(procs: list[subprocess.Popen], grace_s: float = STOP_GRACE_S) -> list[int | None]:
+    """Stop several processes at once: SIGTERM each, wait up to ``grace_s`` in total, SIGKILL the
+    rest, reap all. A Ctrl-C while waiting skips to SIGKILL (and is re-raised afterwards)."""
+    interrupted: BaseException | None = None
+    for p in procs:
+        _signal(p, signal.SIGTERM)
+    end = time.monotonic() + grace_s
+    try:
+        for p in procs:
+            try:
+                p.wait(max(0.0, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+    except KeyboardInterrupt as exc:
+        interrupted = exc
+    for p in procs:
+        _signal(p, signal.SIGKILL)
+    for p in procs:
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:  # unkillable (D state): nothing more we can do
+            log.error("process %d did not die after SIGKILL", p.pid)
+    if interrupted is not None:
+        raise interrupted
+    return [p.returncode for p in procs]
+
+
+def _port_in_use(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a listener would
+        try:
+            s.bind((HOST, port))
+        except OSError:
+            return True
+    return False
+
+
+class _Router:
+    """The router subprocess, started on ``port`` and waited for (bounded)."""
+
+    def __init__(self, port: int, workdir: Path, lifetime_s: float) -> None:
+        self.port = port
+        self.endpoint = router_endpoint(port, HOST)
+        self.ready_file = workdir / "router.ready.json"
+        self.log_path = workdir / "router.log"
+        try:
+            self.ready_file.unlink()
+        except FileNotFoundError:
+            pass
+        self._log = open(self.log_path, "wb")
+        argv = [sys.executable, "-m", "launcher.router", "--port", str(port), "--host", HOST,
+                "--ready-file", str(self.ready_file), "--max-wall-s", f"{lifetime_s:.0f}"]
+        try:
+            self.proc = _spawn(argv, stdout=self._log, stderr=subprocess.STDOUT)
+        except BaseException:
+            self._log.close()
+            raise
+
+    def wait_ready(self, timeout_s: float) -> None:
+        """Return once the router listens; LaunchError (port in use, exited, too slow) otherwise."""
+        end = time.monotonic() + timeout_s
+        while not self.ready_file.exists():
+            if self.proc.poll() is not None:
+                text = self.log_path.read_text(errors="replace")
+                if "Address already in use" in text or "os error 98" in text:
+                    raise _PortInUse(self.port)
+                last = text.strip().splitlines()[-1] if text.strip() else "no output"
+                raise LaunchError(f"the Zenoh router exited with code {self.proc.returncode}: {last} "
+                                  f"(log: {self.log_path})")
+            if time.monotonic() > end:
+                raise LaunchError(f"the Zenoh router on port {self.port} did not come up within "
+                                  f"{timeout_s:g}s (log: {self.log_path})")
+            time.sleep(0.02)
+
+    def stop(self) -> None:
+        try:
+            stop_process(self.proc)
+        finally:
+            self._log.close()
+
+
+class _PortInUse(LaunchError):
+    def __init__(self, port: int) -> None:
+        super().__init__(f"port {port} is in use")
+        self.port = port
+
+
+def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, started: list[int]) -> _Router:
+    """Start the router on ``zenoh_port`` (ValueError if taken) or on a free port (retried)."""
+    attempts = 1 if zenoh_port is not None else ROUTER_PORT_ATTEMPTS
+    for attempt in range(attempts):
+        port = zenoh_port if zenoh_port is not None else free_loopback_port(HOST)
+        if zenoh_port is not None and _port_in_use(port):
+            raise ValueError(f"--zenoh-port {port} is in use")
+        router = _Router(port, workdir, lifetime_s)
+        started.append(router.proc.pid)
+        try:
+            router.wait_ready(ROUTER_START_TIMEOUT_S)
+            return router
+        except _PortInUse:
+            router.stop()
+            if zenoh_port is not None:
+                raise ValueError(f"--zenoh-port {port} is in use") from None
+            log.info("port %d was taken before the router bound it (attempt %d)", port, attempt + 1)
+        except BaseException:
+            router.stop()
+            raise
+    raise LaunchError(f"no free loopback port for the Zenoh router after {attempts} attempts")
+
+
+# --------------------------------------------------------------------------- robots
+
+
+@dataclass
+class _Robot:
+    id: int
+    argv: list[str]
+    log_path: Path
+    result_path: Path
+    crashes: list[CrashPlan]  # still to carry out, by round
+    proc: subprocess.Popen | None = None
+    log_fh: IO[bytes] | None = None
+    reader: threading.Thread | None = None
+    generation: int = -1
+    state: str = "starting"
+    status: dict[str, Any] = field(default_factory=dict)
+    restarts: int = 0
+    restart_at: float | None = None
+    killed: bool = False  # the current process was SIGKILLed by us
+    exit_code: int | None = None
+
+
+def _read_lines(stream: IO[bytes], rid: int, gen: int, events: queue.SimpleQueue) -> None:
+    try:
+        for line in iter(stream.readline, b""):
+            events.put((rid, gen, line))
+    except (OSError, ValueError):  # stream closed under us while shutting down
+        pass
+    events.put((rid, gen, None))
+
+
+class _Fleet:
+    """The robot processes and what the launcher knows about them."""
+
+    def __init__(self, spec: FleetSpec, workdir: Path, fleet_file: Path, endpoint: str,
+                 crashes: list[CrashPlan], restart: bool, restart_after: float,
+                 started: list[int], console: Any | None) -> None:
+        self.spec = spec
+        self.restart = restart
+        self.restart_after = restart_after
+        self.events: queue.SimpleQueue = queue.SimpleQueue()
+        self.started = started
+        self.console = console
+        self.t0 = time.monotonic()
+        self.crash_events: list[CrashEvent] = []
+        self.robots: dict[int, _Robot] = {}
+        for i in spec.robot_ids:
+            ck, res = workdir / f"robot-{i}.ckpt", workdir / f"robot-{i}.json"
+            for stale in (ck, ck.with_name(ck.name + ".tmp"), res):  # never resume a previous run
+                try:
+                    stale.unlink()
+                except FileNotFoundError:
+                    pass
+            argv = [sys.executable, "-m", "launcher.cli", "robot", "--fleet-file", str(fleet_file),
+                    "--id", str(i), "--connect", endpoint, "--checkpoint", str(ck), "--result", str(res)]
+            plans = sorted((c for c in crashes if c.robot == i), key=lambda c: c.round)
+            self.robots[i] = _Robot(i, argv, workdir / f"robot-{i}.log", res, plans)
+
+    # -- process life ------------------------------------------------------------------------
+    def start(self, r: _Robot) -> None:
+        if r.log_fh is None:
+            r.log_fh = open(r.log_path, "ab")
+        r.generation += 1
+        r.proc = _spawn(r.argv, stdout=subprocess.PIPE, stderr=r.log_fh)
+        self.started.append(r.proc.pid)
+        r.killed = False
+        r.exit_code = None
+        r.restart_at = None
+        r.reader = threading.Thread(target=_read_lines, args=(r.proc.stdout, r.id, r.generation, self.events),
+                                    name=f"robot-{r.id}-stdout", daemon=True)
+        r.reader.start()
+
+    def start_all(self) -> None:
+        for r in self.robots.values():
+            self.start(r)
+
+    def live(self) -> list[subprocess.Popen]:
+        return [r.proc for r in self.robots.values() if r.proc is not None and r.proc.poll() is None]
+
+    def busy(self) -> bool:
+        """Some robot process runs, or one is due to be restarted."""
+        return bool(self.live()) or any(r.restart_at is not None for r in self.robots.values())
+
+    def _say(self, text: str) -> None:
+        log.info("%s", text)
+        if self.console is not None:
+            self.console.log(text)
+
+    def crash(self, r: _Robot, plan: CrashPlan, reported: int) -> None:
+        assert r.proc is not None
+        os.kill(r.proc.pid, signal.SIGKILL)
+        r.proc.wait(10)
+        r.killed = True
+        r.exit_code = r.proc.returncode
+        now = time.monotonic() - self.t0
+        self.crash_events.append(CrashEvent(r.id, plan.round, reported, r.proc.pid, now))
+        if self.restart:
+            r.state = "crashed"
+            r.restart_at = time.monotonic() + self.restart_after
+            self._say(f"robot {r.id} SIGKILLed at round {reported} (plan {r.id}@{plan.round}); "
+                      f"restart in {self.restart_after:g}s")
+        else:
+            r.state = "dead"
+            self._say(f"robot {r.id} SIGKILLed at round {reported} (plan {r.id}@{plan.round}); stays dead")
+
+    def restart_due(self, now: float) -> None:
+        for r in self.robots.values():
+            if r.restart_at is not None and now >= r.restart_at:
+                r.restarts += 1
+                self.start(r)
+                r.state = "restarted"
+                ev = next(e for e in reversed(self.crash_events) if e.robot == r.id)
+                self.crash_events[self.crash_events.index(ev)] = dataclasses.replace(
+                    ev, restarted_at_s=now - self.t0)
+                self._say(f"robot {r.id} restarted (pid {r.proc.pid}), resuming from its checkpoint")
+
+    def next_restart(self) -> float | None:
+        due = [r.restart_at for r in self.robots.values() if r.restart_at is not None]
+        return min(due) if due else None
+
+    # -- status lines ------------------------------------------------------------------------
+    def on_line(self, rid: int, gen: int, line: bytes | None) -> None:
+        r = self.robots[rid]
+        if line is None or gen != r.generation:
+            return  # end of a stream, or a line a killed process had written before it died
+        try:
+            st = json.loads(line)
+        except ValueError:
+            log.debug("robot %d: not a status line: %r", rid, line[:200])
+            return
+        if not isinstance(st, dict) or "round" not in st:
+            return
+        r.status = st
+        if r.state == "starting":
+            r.state = "running"
+        if r.crashes and not st.get("finished") and "stopped" not in st:
+            plan = r.crashes[0]
+            if int(st["round"]) >= plan.round and r.proc is not None and r.proc.poll() is None:
+                r.crashes.pop(0)
+                self.crash(r, plan, int(st["round"]))
+
+    def reap(self) -> None:
+        """Notice processes that exited on their own."""
+        for r in self.robots.values():
+            if r.proc is None or r.killed or r.exit_code is not None:
+                continue
+            rc = r.proc.poll()
+            if rc is None:
+                continue
+            r.exit_code = rc
+            stopped = r.status.get("stopped")
+            if rc == 0:
+                r.state = "finished"
+            elif stopped is not None:  # max_wall / signal: a result, not converged
+                r.state = "stopped"
+            else:
+                r.state = "dead"
+                self._say(f"robot {r.id} exited with code {rc} (see {r.log_path})")
+
+    def close(self) -> None:
+        for r in self.robots.values():
+            if r.reader is not None:
+                r.reader.join(5)
+            if r.proc is not None and r.proc.stdout is not None:
+                r.proc.stdout.close()
+            if r.log_fh is not None:
+                r.log_fh.close()
+
+    # -- display -----------------------------------------------------------------------------
+    def table(self, title: str) -> Any:
+        from rich.table import Table
+
+        t = Table(title=title, title_justify="left")
+        for col in ("robot", "state", "round", "residual", "sent", "received", "lost", "rejected", "restarts"):
+            t.add_column(col, justify="left" if col == "state" else "right")
+        colour = {"running": "green", "restarted": "green", "crashed": "yellow", "dead": "red",
+                  "finished": "cyan", "stopped": "magenta", "starting": "dim"}
+        for r in self.robots.values():
+            st = r.status
+            res = st.get("residual")
+            t.add_row(
+                str(r.id), f"[{colour.get(r.state, '')}]{r.state}", str(st.get("round", "-")),
+                "-" if res is None else f"{res:.2e}",
+                *(str(st.get(k, "-")) for k in ("sent", "received", "lost", "rejected")),
+                str(r.restarts),
+            )
+        return t
+
+
+def _normalise(res: dict[str, Any]) -> dict[str, Any]:
+    """A robot's result file -> the FleetOutcome row (same shape as simulate_fleet's rows)."""
+    out = dict(res)
+    rej = out.get("frames_rejected", 0)
+    if isinstance(rej, dict):
+        out["frames_rejected"] = int(rej.get("total", 0))
+        out["frames_rejected_by_reason"] = {str(k): int(v) for k, v in rej.get("by_reason", {}).items()}
+    else:
+        out["frames_rejected"] = int(rej or 0)
+        out.setdefault("frames_rejected_by_reason", {})
+    if "trace" in out:
+        out["trace"] = {int(k): v for k, v in out["trace"].items()}
+    out["id"] = int(out["id"])
+    for k in ("frames_sent", "frames_received", "frames_lost", "restarts"):
+        out[k] = int(out.get(k, 0) or 0)
+    return out
+
+
+def _collect(fleet: _Fleet) -> list[dict[str, Any]]:
+    results = []
+    for r in fleet.robots.values():
+        try:
+            data = json.loads(r.result_path.read_text())
+        except FileNotFoundError:
+            continue
+        except ValueError as exc:  # never half-written (atomic), so this is a bug: say it
+            log.error("robot %d: unreadable result %s: %s", r.id, r.result_path, exc)
+            continue
+        results.append(_normalise(data))
+    return sorted(results, key=lambda res: res["id"])
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def launch_fleet(
+    spec: FleetSpec,
+    *,
+    workdir: Path,
+    crashes: list[CrashPlan],
+    restart_after: float,
+    restart: bool,
+    zenoh_port: int | None,
+    progress: bool = True,
+    router: str | None = None,
+    on_running: Callable[[str], None] | None = None,
+) -> LaunchOutcome:
+    """Run ``spec`` as one process per robot plus a router on 127.0.0.1; see the module doc.
+
+    ``crashes``: robots to SIGKILL at a round (``parse_crash``); ``restart``: start them again
+    after ``restart_after`` seconds (they resume from their checkpoint), else they stay dead.
+    ``zenoh_port``: the router's port (ValueError if taken), None for a free one.
+    ``progress``: live table on a terminal (never when stdout is not a TTY).
+    ``router``: the endpoint of a router that already runs (loopback): connect the robots to it
+    instead of starting one (several fleets can share a router; ``zenoh_port`` must be None).
+    ``on_running(endpoint)``: called once the router is up and the robots were started.
+
+    Returns a :class:`LaunchOutcome` (a ``FleetOutcome``): ``robots`` holds the result of every
+    robot that wrote one, sorted by id; a robot dead for good is absent.
+    """
+    unknown = sorted({c.robot for c in crashes} - set(spec.robot_ids))
+    if unknown:
+        raise ValueError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
+    if restart_after < 0:
+        raise ValueError("--restart-after: must be a non-negative number of seconds")
+    if router is not None:
+        if zenoh_port is not None:
+            raise ValueError("launch_fleet: give zenoh_port or router, not both")
+        router = validate_endpoint(router)  # loopback only
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    timing = fleet_timing(spec, crashes, restart=restart, restart_after=restart_after)
+    run_spec = dataclasses.replace(spec, timing=timing) if timing is not spec.timing else spec
+    fleet_file = workdir / "fleet.json"
+    run_spec.save(fleet_file)
+
+    restarts_total = len(crashes) if restart else 0
+    bound_s = (timing.max_wall_s + START_ALLOWANCE_S + getattr(timing, "linger_s", 1.0)
+               + restarts_total * (restart_after + START_ALLOWANCE_S) + WALL_MARGIN_S)
+    show = progress and sys.stdout.isatty()
+    console = None
+    if show:
+        from rich.console import Console
+
+        console = Console()
+
+    started: list[int] = []
+    t0 = time.monotonic()
+    if router is None:
+        own_router: _Router | None = _start_router(zenoh_port, workdir, bound_s + 2 * WALL_MARGIN_S, started)
+        endpoint, port = own_router.endpoint, own_router.port
+    else:
+        own_router, endpoint, port = None, router, parse_endpoint(router)[2]
+    fleet: _Fleet | None = None
+    timed_out = False
+    live_display = None
+    try:
+        fleet = _Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
+                       started, console)
+        fleet.start_all()
+        if on_running is not None:
+            on_running(endpoint)
+        title = f"fleet {spec.fleet}: {spec.n_robots} robots on {endpoint}"
+        if show:
+            from rich.live import Live
+
+            live_display = Live(fleet.table(title), console=console, refresh_per_second=REFRESH_PER_S,
+                                transient=True)
+            live_display.start()
+        deadline = t0 + bound_s
+        next_draw = 0.0
+        while True:
+            now = time.monotonic()
+            fleet.restart_due(now)
+            fleet.reap()
+            if not fleet.busy():
+                break
+            if now >= deadline:
+                timed_out = True
+                log.warning("fleet %s: time bound %.0fs reached; stopping every robot", spec.fleet, bound_s)
+                if console is not None:
+                    console.log(f"time bound {bound_s:.0f}s reached: stopping every robot")
+                break
+            wait = min(0.25, deadline - now)
+            nxt = fleet.next_restart()
+            if nxt is not None:
+                wait = max(0.0, min(wait, nxt - now))
+            try:
+                item = fleet.events.get(timeout=wait)
+            except queue.Empty:
+                item = None
+            while item is not None:
+                fleet.on_line(*item)
+                try:
+                    item = fleet.events.get_nowait()
+                except queue.Empty:
+                    item = None
+            if live_display is not None and now >= next_draw:
+                live_display.update(fleet.table(title))
+                next_draw = now + 1.0 / REFRESH_PER_S
+    finally:
+        try:
+            if fleet is not None:
+                _stop_all(fleet.live())  # SIGTERM: a robot still running writes its result
+        finally:
+            try:
+                if own_router is not None:
+                    own_router.stop()
+            finally:
+                if live_display is not None:
+                    live_display.stop()
+                if fleet is not None:
+                    fleet.close()
+    assert fleet is not None
+    while True:  # status lines written just before the end
+        try:
+            fleet.on_line(*fleet.events.get_nowait())
+        except queue.Empty:
+            break
+    fleet.reap()
+    robots = _collect(fleet)
+    for res in robots:
+        if fleet.robots[res["id"]].state in ("starting", "running", "restarted"):
+            fleet.robots[res["id"]].state = "stopped"
+    totals = {
+        k: sum(int(r.get(f"frames_{k}", 0) or 0) for r in robots)
+        for k in ("sent", "received", "lost", "duplicated", "accepted", "rejected")
+    }
+    wall = time.monotonic() - t0
+    if console is not None:
+        console.print(fleet.table(f"fleet {spec.fleet}: {len(robots)}/{spec.n_robots} results, {wall:.1f}s"))
+    return LaunchOutcome(
+        robots=robots,
+        wall_s=wall,
+        virtual_s=wall,  # a process fleet runs in real time
+        link_stats=totals,
+        states={i: r.state for i, r in fleet.robots.items()},
+        crashes=list(fleet.crash_events),
+        crashes_not_fired=[c for r in fleet.robots.values() for c in r.crashes],
+        port=port,
+        workdir=workdir,
+        timed_out=timed_out,
+        pids=list(started),
+    )

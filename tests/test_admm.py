@@ -1,0 +1,198 @@
+"""The per-robot ADMM state machine: frames in, frames out, and the invariants behind them."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+
+from agents.admm import ADMMParams, ConsensusADMM
+from agents.spec import build_core, restore_core
+from protocol.frames import StateUpdate
+
+from .conftest import make_run, max_function_error
+
+
+def step_all(cores, deliver=None):
+    """One lock-step round: everyone publishes, everyone receives, everyone advances."""
+    updates = [c.outgoing() for c in cores]
+    for c in cores:
+        for u in updates:
+            if deliver is None or deliver(u, c):
+                c.receive(u)
+    for c in cores:
+        c.advance()
+
+
+def run_to_end(cores, limit=5000):
+    for _ in range(limit):
+        if all(c.finished for c in cores):
+            return
+        step_all(cores)
+    raise AssertionError("fleet did not finish")
+
+
+@pytest.fixture()
+def fleet3():
+    _, spec, central = make_run(tol=1e-6)
+    return spec, central, [build_core(spec, i) for i in spec.robot_ids]
+
+
+def test_lone_robot_solves_the_central_problem_in_round_zero():
+    world, spec, central = make_run(robots=1)
+    core = build_core(spec, 0)
+    assert core.finished and core.round == 0
+    assert max_function_error(spec, central, [core.result()]) < 1e-6
+
+
+def test_missing_neighbour_blocks_the_round(fleet3):
+    _, _, cores = fleet3
+    a, b, c = cores
+    a.receive(b.outgoing())
+    assert a.missing() == (c.robot_id,)
+    assert not a.ready()
+    with pytest.raises(RuntimeError, match="waiting"):
+        a.advance()
+    a.receive(c.outgoing())
+    assert a.ready()
+
+
+def test_receive_ignores_strangers_and_stale_rounds(fleet3):
+    _, _, cores = fleet3
+    a, b, c = cores
+    stranger = StateUpdate(sender=99, round=0, values=np.zeros(a.dim), flags=0, prev_values=None)
+    a.receive(stranger)
+    assert set(a.missing()) == {b.robot_id, c.robot_id}
+    step_all(cores)
+    step_all(cores)
+    old = StateUpdate(sender=b.robot_id, round=0, values=np.zeros(a.dim), flags=0, prev_values=None)
+    a.receive(old)  # round 0 is long gone: must not be taken for round 2
+    assert b.robot_id in a.missing()
+
+
+def test_piggybacked_previous_round_recovers_a_lost_frame(fleet3):
+    _, _, cores = fleet3
+    a, b, c = cores
+    # b's round-0 frame to a is lost; b moves on (it heard everyone) and publishes round 1
+    for x in (b, c):
+        for y in cores:
+            if y is not x:
+                x.receive(y.outgoing())
+    a.receive(c.outgoing())
+    round0_of_b = b.outgoing()
+    b.advance()
+    c.advance()
+    assert b.robot_id in a.missing()
+    a.receive(b.outgoing())  # round 1 frame carries round 0 as prev
+    assert a.ready()
+    a.advance()
+    # and the value a used is b's exact round-0 value
+    np.testing.assert_array_equal(b.outgoing().prev_values, round0_of_b.values)
+
+
+def test_duals_stay_exactly_antisymmetric(fleet3):
+    _, _, cores = fleet3
+    for _ in range(25):
+        step_all(cores)
+    by_id = {c.robot_id: c for c in cores}
+    for c in cores:
+        for j, edge in c._edges.items():
+            other = by_id[j]._edges[c.robot_id]
+            np.testing.assert_array_equal(edge.lam, other.lam)  # same canonical copy, bit for bit
+            np.testing.assert_array_equal(edge.z, other.z)
+            assert edge.sign == -other.sign
+
+
+def test_all_robots_stop_in_the_same_round_with_the_central_solution(fleet3):
+    spec, central, cores = fleet3
+    run_to_end(cores)
+    assert len({c.round for c in cores}) == 1
+    assert all(c.converged for c in cores)
+    assert max_function_error(spec, central, [c.result() for c in cores]) < 1e-3
+
+
+def test_round_cap_stops_everyone_unconverged():
+    _, spec, _ = make_run(max_rounds=7)
+    cores = [build_core(spec, i) for i in spec.robot_ids]
+    run_to_end(cores)
+    assert [c.round for c in cores] == [7, 7, 7]
+    assert not any(c.converged for c in cores)
+
+
+def test_a_stale_substitute_biases_the_answer(fleet3):
+    """The trap in the architecture guide, shown: reuse an old neighbour value once and the
+    fleet converges -- to the wrong point. Exact recovery is what keeps the answer right."""
+    spec, central, cores = fleet3
+    a, b, _ = cores
+    for _ in range(5):
+        step_all(cores)
+    stale = b.outgoing()
+    step_all(cores)
+    # a gets b's round-5 values labelled as round 6
+    forged = StateUpdate(sender=b.robot_id, round=a.round, values=stale.values, flags=0, prev_values=stale.prev_values, prev_flags=0)
+
+    def deliver(u, c):
+        return not (c is a and u.sender == b.robot_id)
+
+    updates = [c.outgoing() for c in cores]
+    for c in cores:
+        for u in updates:
+            if deliver(u, c):
+                c.receive(u)
+    a.receive(forged)
+    for c in cores:
+        c.advance()
+    run_to_end(cores)
+    assert max_function_error(spec, central, [c.result() for c in cores]) > 1e-2
+
+
+def test_checkpoint_restore_resumes_bit_for_bit(fleet3):
+    spec, _, cores = fleet3
+    for _ in range(12):
+        step_all(cores)
+    saved = msgpack.unpackb(msgpack.packb(cores[1].checkpoint()), strict_map_key=False)
+    twin = restore_core(spec, cores[1].robot_id, saved)
+    shadow = list(cores)
+    shadow[1] = twin
+    originals = [build_core(spec, i) for i in spec.robot_ids]  # unused, documents restart cost
+    assert len(originals) == 3
+    for _ in range(10):
+        before = cores[1].outgoing()
+        assert twin.outgoing() == before
+        updates = [c.outgoing() for c in cores]
+        for u in updates:
+            twin.receive(u)
+        step_all(cores)
+        twin.advance()
+    assert twin.outgoing() == cores[1].outgoing()
+
+
+def test_dropping_a_dead_neighbour_converges_on_the_survivors_data():
+    world, spec, _ = make_run(robots=5, tol=1e-6, max_rounds=5000)
+    cores = [build_core(spec, i) for i in spec.robot_ids]
+    for _ in range(20):
+        step_all(cores)
+    dead = cores.pop()
+    for c in cores:
+        c.drop_neighbour(dead.robot_id)
+    run_to_end(cores)
+    from agents.problem import solve_central
+
+    survivors = [r for r in world.robots if r.id != dead.robot_id]
+    ref = solve_central(spec.basis, np.vstack([r.points for r in survivors]), np.concatenate([r.labels for r in survivors]))
+    assert max_function_error(spec, ref, [c.result() for c in cores]) < 1e-3
+    assert all(dead.robot_id in c.result()["dropped"] for c in cores)
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [({"rho": 0}, "rho"), ({"relax": 2.0}, "relaxation"), ({"tol": -1}, "tol"), ({"max_rounds": 0}, "max_rounds"), ({"diameter": 63}, "diameter")],
+)
+def test_bad_parameters_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ADMMParams(**kwargs)
+
+
+def test_robot_cannot_be_its_own_neighbour():
+    with pytest.raises(ValueError, match="itself"):
+        ConsensusADMM(0, (0, 1), np.ones((2, 3)), np.array([1, -1]), n_robots=2, params=ADMMParams())
