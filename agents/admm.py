@@ -44,7 +44,7 @@ class ADMMParams:
 
     rho: float = 15.0
     relax: float = 1.8
-    tol: float = 1e-4  # bound on the estimated relative function error at the stop
+    tol: float = 1e-3  # bound on the estimated relative function error at the stop
     max_rounds: int = 1000
     diameter: int = 1
 

@@ -43,7 +43,7 @@ class Options:
     algorithm: str = "admm"
     rho: float = 15.0
     relax: float = 1.95
-    tol: float = 1e-4
+    tol: float = 1e-3
     max_rounds: int = 5000
     faults: LinkFaults = field(default_factory=LinkFaults.none)
     timing: Timing = field(default_factory=Timing)

@@ -1,0 +1,98 @@
+"""Rounds to tolerance and compute cost of the decentralized ADMM, in process (no network).
+
+For each scenario: the first round at which every robot is within 1e-3 function error of the
+centralized solution, the round at which the fleet's own stopping rule ends the run, the error
+there, and the mean compute time per robot-round. Writes benchmarks/results/rounds.md.
+
+    .venv/bin/python benchmarks/rounds.py            # the full table (a few minutes)
+    .venv/bin/python benchmarks/rounds.py --quick    # the paper's setting only
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents.problem import solve_central  # noqa: E402
+from agents.spec import build_core  # noqa: E402
+from launcher.world import Options, build_world  # noqa: E402
+
+SCENARIOS = [
+    ("paper setting: 3 robots, blob, complete", {}),
+    ("3 robots, bean", {"shape": "bean"}),
+    ("3 robots, star", {"shape": "star"}),
+    ("3 robots, crescent", {"shape": "crescent"}),
+    ("4 robots, ring", {"robots": 4, "topology": "ring"}),
+    ("5 robots, line", {"robots": 5, "topology": "line"}),
+    ("8 robots, ring", {"robots": 8, "topology": "ring"}),
+    ("8 robots, complete", {"robots": 8}),
+    ("16 robots, geometric 3.0", {"robots": 16, "topology": "geometric", "comm_range": 3.0}),
+    ("16 robots, ring", {"robots": 16, "topology": "ring"}),
+]
+
+
+def measure(kwargs: dict, max_rounds: int) -> dict:
+    world, spec = build_world(Options(fleet_id="bench", max_rounds=max_rounds, **kwargs))
+    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    b = spec.basis
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+
+    def error() -> float:
+        return max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores)
+
+    first = None
+    compute = 0.0
+    while not all(c.finished for c in cores):
+        updates = [c.outgoing() for c in cores]
+        for c in cores:
+            for u in updates:
+                c.receive(u)
+        t = time.perf_counter()
+        for c in cores:
+            c.advance()
+        compute += time.perf_counter() - t
+        if first is None and error() < 1e-3:
+            first = cores[0].round
+    rounds = cores[0].round
+    return {
+        "first": first,
+        "stop": rounds,
+        "converged": all(c.converged for c in cores),
+        "error": error(),
+        "ms": 1e3 * compute / max(rounds * len(cores), 1),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="only the paper's setting")
+    ap.add_argument("--max-rounds", type=int, default=5000)
+    args = ap.parse_args()
+    rows = SCENARIOS[:1] if args.quick else SCENARIOS
+    d = Options()
+    lines = [
+        f"Defaults: rho {d.rho}, over-relaxation {d.relax}, tol {d.tol:g} (estimated error), grid {d.grid}, "
+        f"sigma {d.sigma}, {d.points} points per robot, LiDAR offset {d.offset}.",
+        "",
+        "| scenario | rounds to 1e-3 | rounds at stop | converged | error at stop | ms per robot-round |",
+        "|---|---:|---:|:---:|---:|---:|",
+    ]
+    for name, kwargs in rows:
+        r = measure(kwargs, args.max_rounds)
+        line = (
+            f"| {name} | {r['first'] if r['first'] is not None else '>' + str(r['stop'])} | {r['stop']} | "
+            f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e} | {r['ms']:.3f} |"
+        )
+        lines.append(line)
+        print(line, flush=True)
+    out = Path(__file__).parent / "results" / ("rounds-quick.md" if args.quick else "rounds.md")
+    out.write_text("# Decentralized ADMM: rounds to tolerance (in process)\n\n" + "\n".join(lines) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,535 @@
+"""The Zenoh fleet as processes (launcher/fleet.py): a router and one process per robot.
+
+The contract checked throughout: the process fleet drives the same cores to the same iterates as
+the in-process simulator, round for round and bit for bit -- with a clean network, with a lossy,
+slow, duplicating, reordering one (recovery is exact), across a crash and a restart from a
+checkpoint, with garbage on the wire and with another fleet on the same router.
+
+Every test has a hard wall-clock bound (SIGALRM; the launcher's ``finally`` then stops its
+processes) and is followed by a check that no process it started is left: every process the
+launcher starts carries the test's tmp folder in its command line, so /proc is scanned for it
+(leftovers are SIGKILLed by PID, then the test fails). Loopback only, multicast scouting off.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from agents.robot import alive_key  # noqa: E402
+from agents.spec import Timing  # noqa: E402
+from launcher.fleet import CrashPlan, launch_fleet, parse_crash, stop_process  # noqa: E402
+from launcher.simulate import simulate_fleet  # noqa: E402
+from protocol.frames import StateUpdate, encode_state  # noqa: E402
+from protocol.keys import state_key  # noqa: E402
+from protocol.links import LinkFaults  # noqa: E402
+from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint  # noqa: E402
+from tests.conftest import make_run, max_function_error  # noqa: E402
+
+pytestmark = pytest.mark.integration
+
+DEFAULT_BOUND_S = 45.0
+FAULTS = LinkFaults(delay=0.020, jitter=0.010, loss=0.3, duplicate=0.05, reorder=0.1)
+# short time-outs: a test never waits the production defaults
+TIMING = Timing(retransmit_s=0.02, dead_after_s=6.0, max_wall_s=40.0, linger_s=1.0)
+
+
+# ----------------------------------------------------------------------------- guards
+
+
+def bound(seconds: float):
+    """Hard wall-clock bound of one test (default DEFAULT_BOUND_S)."""
+
+    def mark(fn):
+        fn._bound_s = seconds
+        return fn
+
+    return mark
+
+
+def _processes_with(marker: str) -> list[int]:
+    """PIDs (other than ours) whose command line contains ``marker``."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit() or int(entry) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{entry}/cmdline", "rb") as fh:
+                cmdline = fh.read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # gone meanwhile
+            continue
+        if marker in cmdline:
+            found.append(int(entry))
+    return found
+
+
+def _assert_gone(pids: list[int]) -> None:
+    """Every PID was reaped: no such process any more (or, after PID reuse, not one of ours)."""
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                cmdline = fh.read()
+        except OSError:
+            continue
+        assert b"launcher" not in cmdline, f"process {pid} is still there: {cmdline!r}"
+
+
+@pytest.fixture(autouse=True)
+def bounded_and_clean(request, tmp_path):
+    limit = getattr(request.function, "_bound_s", DEFAULT_BOUND_S)
+
+    def on_alarm(signum, frame):
+        raise TimeoutError(f"{request.node.name} exceeded its {limit:g}s bound")
+
+    previous = signal.signal(signal.SIGALRM, on_alarm)
+    signal.setitimer(signal.ITIMER_REAL, limit)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+        left = _processes_with(str(tmp_path))
+        for pid in left:  # never leave them running, even when failing
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        assert not left, f"processes left behind: {left}"
+
+
+@pytest.fixture(scope="module")
+def shared_router(tmp_path_factory):
+    """One router several fleets (and test clients) connect to."""
+    port = free_loopback_port()
+    folder = tmp_path_factory.mktemp("shared-router")
+    ready = folder / "ready.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "launcher.router", "--port", str(port), "--ready-file", str(ready),
+         "--max-wall-s", "240"],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+    )
+    try:
+        deadline = time.monotonic() + 20
+        while not ready.exists():
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "router did not become ready"
+            time.sleep(0.02)
+        yield router_endpoint(port)
+    finally:
+        stop_process(proc)
+        proc.stderr.close()
+    _assert_gone([proc.pid])
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _run(**options):
+    options.setdefault("timing", TIMING)
+    return make_run(**options)
+
+
+def _simulate(spec) -> dict[int, dict]:
+    return {r["id"]: r for r in simulate_fleet(spec).robots}
+
+
+def _launch(spec, tmp_path: Path, **kw):
+    kw.setdefault("crashes", [])
+    kw.setdefault("restart_after", 0.5)
+    kw.setdefault("restart", True)
+    kw.setdefault("zenoh_port", None)
+    kw.setdefault("progress", False)
+    out = launch_fleet(spec, workdir=tmp_path / "fleet", **kw)
+    _assert_gone(out.pids)
+    assert not out.timed_out
+    return out
+
+
+def _assert_same_iterates(robots: list[dict], want: dict[int, dict], *, ids=None, restarted=()) -> None:
+    """Round for round, bit for bit: every recorded iterate, the final x and gamma, the rounds."""
+    assert sorted(r["id"] for r in robots) == sorted(want if ids is None else ids)
+    for r in robots:
+        w = want[r["id"]]
+        assert r["stopped"] == "finished", r["stopped"]
+        assert (r["rounds"], r["converged"]) == (w["rounds"], w["converged"])
+        rounds = sorted(r["trace"])
+        first = 0 if r["id"] not in restarted else rounds[0]
+        assert rounds == list(range(first, w["rounds"] + 1))
+        np.testing.assert_array_equal(np.array([r["trace"][k] for k in rounds]),
+                                      np.array([w["trace"][k] for k in rounds]))
+        assert r["x"] == w["x"] and r["gamma"] == w["gamma"]
+
+
+# ----------------------------------------------------------------------------- parse_crash
+
+
+def test_parse_crash():
+    assert parse_crash("1@40") == CrashPlan(1, 40)
+    assert parse_crash(" 12 @ 3 ") == CrashPlan(12, 3)
+    for bad in ("1-40", "x", "1@", "@4", "-1@4", "1@-4", "1@4.5", ""):
+        with pytest.raises(ValueError, match=r"^--crash: .* is not ID@ROUND"):
+            parse_crash(bad)
+    with pytest.raises(ValueError, match=r"--crash: '1-40' is not ID@ROUND, e.g. 1@40"):
+        parse_crash("1-40")
+    with pytest.raises(ValueError, match="ROUND >= 1"):
+        parse_crash("1@0")
+
+
+# ----------------------------------------------------------------------------- 1. clean network
+
+
+@bound(40)
+def test_three_robots_same_iterates_as_simulate_and_central(tmp_path):
+    _world, spec, central = _run(tol=1e-3, fleet_id="launch-clean")
+    want = _simulate(spec)
+    assert all(w["converged"] and w["rounds"] > 200 for w in want.values())  # a real run
+    out = _launch(spec, tmp_path)
+    _assert_same_iterates(out.robots, want)
+    assert max_function_error(spec, central, out.robots) < 1e-3
+    for r in out.robots:
+        assert r["frames_lost"] == 0 and r["frames_rejected"] == 0 and r["restarts"] == 0
+        assert r["frames_rejected_by_reason"] == {}
+        assert r["frames_sent"] > r["rounds"] and r["frames_received"] > 0
+    assert out.states == {0: "finished", 1: "finished", 2: "finished"}
+    assert json.loads((tmp_path / "fleet" / "fleet.json").read_text())["fleet"] == "launch-clean"
+
+
+# ----------------------------------------------------------------------------- 2. faults
+
+
+@bound(60)
+def test_lossy_slow_network_same_iterates_to_convergence(tmp_path):
+    """loss 0.3, delay 20ms, jitter 10ms, duplicate 0.05, reorder 0.1: exact recovery."""
+    _world, spec, central = _run(tol=1e-3, faults=FAULTS, fleet_id="launch-faults")
+    clean = _simulate(make_run(tol=1e-3, timing=TIMING, fleet_id="launch-faults")[1])
+    want = _simulate(spec)
+    for i in want:  # the simulator itself recovers exactly
+        assert want[i]["trace"].keys() == clean[i]["trace"].keys()
+        assert all(np.array_equal(want[i]["trace"][k], clean[i]["trace"][k]) for k in clean[i]["trace"])
+    out = _launch(spec, tmp_path)
+    _assert_same_iterates(out.robots, clean)
+    assert all(r["converged"] for r in out.robots)
+    assert max_function_error(spec, central, out.robots) < 1e-3
+    assert all(r["frames_lost"] > 0 and r["frames_duplicated"] > 0 for r in out.robots)
+    assert out.link_stats["lost"] == sum(r["frames_lost"] for r in out.robots) > 0
+
+
+@bound(40)
+def test_half_the_frames_lost_same_iterates(tmp_path):
+    faults = LinkFaults(loss=0.5, delay=0.002, jitter=0.001)
+    _world, spec, _central = _run(tol=1e-3, max_rounds=80, faults=faults, fleet_id="launch-loss50")
+    clean = _simulate(make_run(tol=1e-3, max_rounds=80, timing=TIMING, fleet_id="launch-loss50")[1])
+    out = _launch(spec, tmp_path)
+    _assert_same_iterates(out.robots, clean)
+    assert all(r["rounds"] == 80 for r in out.robots)
+    lost = sum(r["frames_lost"] for r in out.robots)
+    sent = sum(r["frames_received"] for r in out.robots)
+    assert 0.35 < lost / sent < 0.65  # what the links dropped out of what Zenoh delivered
+
+
+# ----------------------------------------------------------------------------- 3. eight robots
+
+
+@bound(50)
+def test_eight_robots_lossy_same_iterates(tmp_path):
+    faults = LinkFaults(loss=0.2, delay=0.010, jitter=0.002)
+    _world, spec, _central = _run(robots=8, max_rounds=60, faults=faults, fleet_id="launch-eight")
+    want = _simulate(spec)
+    out = _launch(spec, tmp_path)
+    _assert_same_iterates(out.robots, want)
+    assert all(r["frames_lost"] > 0 for r in out.robots)
+
+
+# ----------------------------------------------------------------------------- 4.-5. crashes
+
+
+@bound(40)
+def test_crash_and_restart_from_checkpoint(tmp_path):
+    _world, spec, central = _run(tol=1e-3, fleet_id="launch-crash")
+    want = _simulate(spec)
+    out = _launch(spec, tmp_path, crashes=[CrashPlan(1, 40)], restart=True, restart_after=0.5)
+    assert [(c.robot, c.planned_round) for c in out.crashes] == [(1, 40)]
+    assert out.crashes[0].round >= 40 and out.crashes[0].restarted_at_s is not None
+    assert out.crashes_not_fired == []
+    _assert_same_iterates(out.robots, want, restarted=(1,))
+    by_id = {r["id"]: r for r in out.robots}
+    assert min(by_id[1]["trace"]) <= out.crashes[0].round  # resumed from its last checkpoint
+    assert [by_id[i]["restarts"] for i in (0, 1, 2)] == [0, 1, 0]
+    assert all(r["neighbours_dropped"] == [] for r in out.robots)
+    assert max_function_error(spec, central, out.robots) < 1e-3
+    # the fleet file given to the robots keeps them waiting long enough for the restart
+    timing = json.loads((tmp_path / "fleet" / "fleet.json").read_text())["timing"]
+    assert timing["dead_after_s"] >= 0.5 + 1.0
+
+
+@bound(40)
+def test_crash_without_restart_survivors_finish(tmp_path):
+    world, spec, _central = _run(tol=1e-3, fleet_id="launch-dead")
+    t = time.monotonic()
+    out = _launch(spec, tmp_path, crashes=[CrashPlan(1, 40)], restart=False)
+    assert time.monotonic() - t < 25
+    assert [r["id"] for r in out.robots] == [0, 2]  # the dead robot has no result
+    assert out.states[1] == "dead" and out.states[0] == out.states[2] == "finished"
+    assert not (tmp_path / "fleet" / "robot-1.json").exists()
+    r0, r2 = out.robots
+    assert r0["neighbours_dropped"] == r2["neighbours_dropped"] == [1]
+    assert r0["converged"] and r2["converged"] and r0["rounds"] == r2["rounds"]
+    b = spec.basis
+    c0, c2 = b.c_from_x(np.asarray(r0["x"])), b.c_from_x(np.asarray(r2["x"]))
+    assert b.function_error(c0, r0["gamma"], c2, r2["gamma"]) < 1e-2  # survivors agree
+    # ... on the solution of *their* data
+    from agents.problem import solve_central
+
+    kept = [r for r in world.robots if r.id in (0, 2)]
+    ref = solve_central(b, np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept]), spec.C)
+    assert max_function_error(spec, ref, out.robots) < 2e-2
+
+
+# ----------------------------------------------------------------------------- 6. bad frames
+
+
+def _garbage(spec) -> dict[str, bytes]:
+    """Frames that must be rejected when they arrive on robot 2's state key."""
+    dim, tag = spec.dim, spec.config_tag
+    good = StateUpdate(2, 0, np.zeros(dim), 0, None)
+    nan_frame = msgpack.unpackb(encode_state(good, fleet=spec.fleet, seq=1, config_tag=tag))
+    nan_frame["x"] = np.full(dim, np.nan).tobytes()
+    return {
+        "random": np.random.default_rng(5).bytes(150),
+        "fleet": encode_state(good, fleet="another-fleet", seq=1, config_tag=tag),
+        "sender": encode_state(StateUpdate(99, 0, np.zeros(dim), 0, None), fleet=spec.fleet, seq=1, config_tag=tag),
+        "vector-length": encode_state(StateUpdate(2, 0, np.zeros(dim + 1), 0, None),
+                                      fleet=spec.fleet, seq=1, config_tag=tag),
+        "non-finite": msgpack.packb(nan_frame),
+    }
+
+
+@bound(40)
+def test_bad_frames_are_rejected_and_counted(tmp_path, shared_router):
+    import zenoh
+
+    _world, spec, _central = _run(tol=1e-4, fleet_id="launch-garbage")
+    want = _simulate(spec)
+    garbage = _garbage(spec)
+    sent = threading.Event()
+    errors: list[BaseException] = []
+
+    def inject() -> None:  # a foreign client on the fleet's router, in client mode
+        try:
+            session = zenoh.open(robot_config([shared_router]))
+            try:
+                # robots 0 and 1 listen to robot 2's key; a robot's liveliness token is declared
+                # after its subscriptions: once both tokens are seen, both will get the garbage
+                up = {i: threading.Event() for i in (0, 1)}
+                subs = [session.liveliness().declare_subscriber(alive_key(spec.fleet, i), lambda s, i=i: up[i].set(),
+                                                                history=True) for i in up]
+                pub = session.declare_publisher(state_key(spec.fleet, 2))
+                assert all(ev.wait(20) for ev in up.values()), "robots 0 and 1 never came up"
+                for payload in garbage.values():
+                    pub.put(payload)
+                time.sleep(0.3)  # let them leave before the session closes (puts are queued)
+                sent.set()
+                pub.undeclare()
+                for sub in subs:
+                    sub.undeclare()
+            finally:
+                session.close()
+        except BaseException as exc:  # noqa: BLE001 - reported by the test
+            errors.append(exc)
+
+    injector = threading.Thread(target=inject, daemon=True)
+    injector.start()
+    try:
+        out = _launch(spec, tmp_path, router=shared_router)
+    finally:
+        injector.join(20)
+    assert not errors and sent.is_set()
+    _assert_same_iterates(out.robots, want)
+    by_id = {r["id"]: r for r in out.robots}
+    for i in (0, 1):  # both listen to robot 2
+        reasons = by_id[i]["frames_rejected_by_reason"]
+        assert by_id[i]["frames_rejected"] == len(garbage) == sum(reasons.values())
+        assert {"fleet", "sender", "vector-length", "non-finite"} <= set(reasons)
+        assert set(reasons) - {"fleet", "sender", "vector-length", "non-finite"} <= {"not-msgpack", "not-a-map"}
+    assert by_id[2]["frames_rejected"] == 0  # robot 2 does not listen to its own key
+
+
+# ----------------------------------------------------------------------------- 7. two fleets
+
+
+@bound(45)
+def test_two_fleets_on_one_router_do_not_hear_each_other(tmp_path, shared_router):
+    """Same robot ids, same key layout, same router, same time: only the fleet id differs."""
+    specs = {
+        "a": _run(tol=1e-3, fleet_id="launch-fleet-a")[1],
+        "b": _run(tol=1e-3, seed=3, points=15, fleet_id="launch-fleet-b")[1],
+    }
+    want = {k: _simulate(s) for k, s in specs.items()}
+    assert want["a"][0]["x"] != want["b"][0]["x"]
+    outs: dict[str, object] = {}
+    errors: list[BaseException] = []
+
+    def run_a() -> None:
+        try:
+            outs["a"] = _launch(specs["a"], tmp_path / "a", router=shared_router)
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    other = threading.Thread(target=run_a, daemon=True)
+    other.start()
+    try:
+        outs["b"] = _launch(specs["b"], tmp_path / "b", router=shared_router)
+    finally:
+        other.join(40)
+    assert not errors and not other.is_alive()
+    for k in ("a", "b"):
+        _assert_same_iterates(outs[k].robots, want[k])
+        for r in outs[k].robots:
+            assert r["frames_rejected"] == 0  # never delivered, not even to be rejected
+            assert r["frames_received"] == r["frames_accepted"]
+
+
+# ----------------------------------------------------------------------------- bounds, Ctrl-C
+
+
+@bound(30)
+def test_time_bound_stops_robots_and_keeps_their_results(tmp_path, monkeypatch):
+    """Past the launcher's overall bound every robot is stopped; what they wrote is kept."""
+    import launcher.fleet as fleet_mod
+
+    monkeypatch.setattr(fleet_mod, "time_bound_s", lambda *a: 4.0)
+    _world, spec, _central = _run(tol=1e-9, max_rounds=100000, faults=LinkFaults(delay=0.01),
+                                  fleet_id="launch-bound")
+    t = time.monotonic()
+    out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
+                       zenoh_port=None, progress=False)
+    assert 4.0 <= time.monotonic() - t < 4.0 + 10
+    _assert_gone(out.pids)
+    assert out.timed_out and set(out.states.values()) == {"stopped"}
+    assert [r["id"] for r in out.robots] == [0, 1, 2]
+    for r in out.robots:
+        assert r["stopped"] == "signal" and r["converged"] is False and r["rounds"] > 0
+
+
+@bound(30)
+def test_ctrl_c_stops_every_process(tmp_path):
+    _world, spec, _central = _run(tol=1e-9, max_rounds=100000, faults=LinkFaults(delay=0.01),
+                                  fleet_id="launch-ctrl-c")
+    started: list[int] = []
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    import launcher.fleet as fleet_mod
+
+    real_spawn = fleet_mod._spawn
+
+    def spawn(*a, **kw):
+        proc = real_spawn(*a, **kw)
+        started.append(proc.pid)
+        return proc
+
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    fleet_mod._spawn = spawn
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 3.0)
+        with pytest.raises(KeyboardInterrupt):
+            launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
+                         zenoh_port=None, progress=False)
+    finally:
+        fleet_mod._spawn = real_spawn
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert len(started) == 4  # router + 3 robots
+    _assert_gone(started)
+    # the robots were asked to stop (SIGTERM) and said so in their results
+    for i in spec.robot_ids:
+        res = json.loads((tmp_path / "fleet" / f"robot-{i}.json").read_text())
+        assert res["stopped"] == "signal" and res["rounds"] > 0
+
+
+def test_port_in_use_is_named(tmp_path):
+    import socket
+
+    _world, spec, _central = _run(fleet_id="launch-port")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        with pytest.raises(ValueError, match=f"^--zenoh-port {port} is in use$"):
+            launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
+                         zenoh_port=port, progress=False)
+
+
+# ----------------------------------------------------------------------------- 8. the CLI
+
+
+def _cli() -> list[str]:
+    script = Path(sys.executable).with_name("shapefleet")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "launcher.cli"]
+
+
+def _shapefleet(*args: str, timeout: float) -> subprocess.CompletedProcess:
+    return subprocess.run([*_cli(), *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
+
+
+@bound(60)
+def test_cli_launch_end_to_end(tmp_path):
+    out = tmp_path / "run"
+    proc = _shapefleet("launch", "--out", str(out), "--tol", "1e-3", "--max-rounds", "120", "--loss", "0.2",
+                       "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50)
+    assert proc.returncode == 0, proc.stderr
+    for name in ("result.json", "data.csv", "shapes.png", "convergence.png", "fleet/fleet.json"):
+        assert (out / name).stat().st_size > 0, name
+    result = json.loads((out / "result.json").read_text())
+    assert result["participants"] == [0, 1, 2] and result["absent"] == []
+    assert result["rounds"] == 120 and len(result["history"]) == 121
+    rows = {r["id"]: r for r in result["robots"]}
+    assert sum(r["frames_lost"] for r in rows.values()) > 0
+    assert [rows[i]["restarts"] for i in (0, 1, 2)] == [0, 1, 0]
+    assert all(isinstance(r["frames_rejected"], int) for r in rows.values())
+    assert result["metrics"]["consensus_error"] is not None
+
+
+@bound(40)
+@pytest.mark.parametrize(
+    "args, flag",
+    [(["--crash", "x"], "--crash"), (["--loss", "2"], "--loss"), (["--crash", "7@10"], "--crash")],
+    ids=["crash-syntax", "loss", "crash-unknown-robot"],
+)
+def test_cli_bad_flags_exit_2_with_one_line(tmp_path, args, flag):
+    proc = _shapefleet("launch", "--out", str(tmp_path / "run"), "--max-rounds", "5", *args, timeout=30)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and flag in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "run" / "fleet").exists()  # nothing was started
+
+
+@bound(40)
+def test_cli_zenoh_port_in_use(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        proc = _shapefleet("launch", "--out", str(tmp_path / "run"), "--max-rounds", "5",
+                           "--zenoh-port", str(port), timeout=30)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [f"shapefleet: error: --zenoh-port {port} is in use"]
