@@ -44,11 +44,12 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import msgpack
+import numpy as np
 
 from protocol.frames import Decoded, FrameDecoder, StateUpdate, encode_state
 from protocol.keys import fleet_prefix, state_key
 from protocol.links import LinkLayer
-from protocol.zenoh_config import robot_config
+from protocol.zenoh_config import robot_config, to_zenoh_config
 
 __all__ = [
     "run_robot",
@@ -69,6 +70,10 @@ SEQ_EPOCH = 1 << 40  # seq = restarts * SEQ_EPOCH + n: strictly increasing acros
 # retransmit_s); it ends earlier as soon as every live neighbour has been heard at our final round.
 LINGER_MIN_S = 0.5
 FAST_RESEND_MIN_S = 0.002
+# adaptive resend interval: ADAPT_FACTOR x the fast quartile of the last ADAPT_WINDOW round times
+ADAPT_FACTOR = 1.5
+ADAPT_WINDOW = 32
+ADAPT_MIN_ROUNDS = 8
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 LINGER_RETRANSMITS = 5
 
@@ -177,10 +182,12 @@ class RobotShell:
         build: Callable[[Any, int], Any],
         restore: Callable[[Any, int, dict], Any],
         clock: Callable[[], float] = time.monotonic,
+        zenoh_config: Any | None = None,
     ) -> None:
         self.spec = spec
         self.me = int(robot_id)
         self.connect = list(connect)
+        self.zenoh_config = zenoh_config
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.result_path = None if result_path is None else Path(result_path)
         self.status_stream = status_stream
@@ -444,18 +451,34 @@ class RobotShell:
             timer.cancel()
             self._waiter = None
 
+    def _resend_interval(self) -> tuple[float, float]:
+        """(periodic, fast) resend intervals, adapted to how long a round takes here.
+
+        A fixed interval shorter than a normal round (16 robots sharing 2 cores take ~50 ms a
+        round) makes every waiting robot resend again and again, and the extra frames slow the
+        rounds further. Like TCP's retransmission timer, wait a few typical rounds -- the fast
+        quartile of recent rounds, which loss does not inflate -- and never less than
+        ``retransmit_s``.
+        """
+        recent = self.round_times[-ADAPT_WINDOW:]
+        typical = float(np.percentile(recent, 25)) if len(recent) >= ADAPT_MIN_ROUNDS else 0.0
+        periodic = max(self.retransmit_s, ADAPT_FACTOR * typical)
+        fast = min(periodic, max(FAST_RESEND_MIN_S, periodic / 4))
+        return periodic, fast
+
     def _resend(self, now: float) -> float:
         """Republish the latest frame if due; return when the next resend is due.
 
-        Due every ``retransmit_s``, or after ``fast_resend_s`` when a neighbour showed it is behind
-        (or (re)appeared). The shell only repeats the latest frame; it never invents values.
+        Due every resend interval, or sooner when a neighbour showed it is behind (or
+        (re)appeared). The shell only repeats the latest frame; it never invents values.
         """
+        periodic, fast = self._resend_interval()
         since = now - self._last_put
-        if since >= self.retransmit_s or (self._republish_now and since >= self.fast_resend_s):
+        if since >= periodic or (self._republish_now and since >= fast):
             self._publish(self._latest)
-        nxt = self._last_put + self.retransmit_s
+        nxt = self._last_put + periodic
         if self._republish_now:
-            nxt = min(nxt, self._last_put + self.fast_resend_s)
+            nxt = min(nxt, self._last_put + fast)
         return nxt
 
     async def _rounds(self) -> str:
@@ -567,7 +590,10 @@ class RobotShell:
         self._zenoh = zenoh
         self._loop = asyncio.get_running_loop()
         self._t0 = self.clock()
-        config = robot_config(self.connect)
+        if self.zenoh_config is not None:  # e.g. TLS, remote endpoints: built by the caller
+            config = to_zenoh_config(self.zenoh_config)
+        else:
+            config = robot_config(self.connect)
         # open/close block (TCP connect, up to the connect timeout): keep them off the event loop.
         opening = self._loop.run_in_executor(None, zenoh.open, config)
         try:
@@ -633,10 +659,13 @@ async def run_robot(
     build: Callable[[Any, int], Any] | None = None,
     restore: Callable[[Any, int, dict], Any] | None = None,
     handle_signals: bool = False,
+    zenoh_config: Any | None = None,
 ) -> dict[str, Any]:
     """Run robot ``robot_id`` of ``spec`` until its core finishes or ``spec.timing.max_wall_s``.
 
     ``connect``: router endpoint(s), e.g. ``["tcp/127.0.0.1:7447"]`` (validated, loopback only).
+    ``zenoh_config``: the session configuration as a dict (``protocol.zenoh_config.robot_config_dict``
+    with TLS files or ``loopback_only=False``); default ``robot_config(connect)``.
     ``checkpoint_path``: written (crash-safe) before every ``core.advance()``; if a checkpoint is
     there at start the robot resumes from it exactly (``restarts`` += 1); it must belong to the
     same fleet, robot and config tag (else ValueError). ``result_path``: JSON result written atomically at the end.
@@ -656,6 +685,7 @@ async def run_robot(
         status_stream=status_stream,
         build=build or _default_build,
         restore=restore or _default_restore,
+        zenoh_config=zenoh_config,
     )
     if not handle_signals or threading.current_thread() is not threading.main_thread():
         return await shell.run()

@@ -8,7 +8,7 @@ processes). It is plain JSON on disk, so a robot on another host needs only this
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -16,12 +16,13 @@ from typing import Any
 import numpy as np
 
 from agents.admm import ADMMParams, ConsensusADMM
+from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.kernel import GridBasis
 from protocol.frames import config_tag as make_config_tag
 from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults
 
-ALGORITHMS = ("admm",)
+ALGORITHMS = ("admm", "ct-admm")
 
 
 @dataclass(frozen=True)
@@ -58,9 +59,12 @@ class FleetSpec:
     faults: LinkFaults = field(default_factory=LinkFaults.none)
     seed: int = 0
     timing: Timing = field(default_factory=Timing)
+    owner: int | None = None  # set in a per-robot fleet file (for_robot): the one robot whose data it holds
 
     def __post_init__(self) -> None:
         validate_fleet_id(self.fleet)
+        if self.owner is not None and self.owner not in self.robots:
+            raise ValueError(f"fleet file is for robot {self.owner}, which is not in the fleet (robots {sorted(self.robots)})")
         if self.algorithm not in ALGORITHMS:
             raise ValueError(f"unknown algorithm {self.algorithm!r}; choose from {', '.join(ALGORITHMS)}")
         self.grid = np.asarray(self.grid, dtype=float)
@@ -94,9 +98,29 @@ class FleetSpec:
             np.asarray(self.robot_ids, dtype=float),
         )
 
+    def for_robot(self, robot_id: int) -> FleetSpec:
+        """The fleet file of one robot host: the shared problem, every robot's neighbour list (a
+        robot's update uses its neighbours' degrees), and the data of ``robot_id`` only.
+
+        The config tag is unchanged (it never depends on the data): robots started from their own
+        per-robot files and from the full file agree.
+        """
+        if robot_id not in self.robots:
+            raise ValueError(f"robot {robot_id} is not in fleet {self.fleet} (robots {list(self.robot_ids)})")
+        if self.owner is not None and self.owner != robot_id:
+            raise ValueError(f"this fleet file holds robot {self.owner}'s data only, not robot {robot_id}'s")
+        empty = np.zeros((0, 2))
+        robots = {
+            i: r if i == robot_id else RobotSpec(i, r.neighbours, empty, np.zeros(0, dtype=int))
+            for i, r in self.robots.items()
+        }
+        return replace(self, robots=robots, owner=robot_id)
+
     # -- JSON --------------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
+        extra: dict[str, Any] = {} if self.owner is None else {"for": self.owner}
         return {
+            **extra,
             "fleet": self.fleet,
             "algorithm": self.algorithm,
             "sigma": self.sigma,
@@ -139,6 +163,7 @@ class FleetSpec:
             faults=LinkFaults(**data.get("faults", {})),
             seed=int(data.get("seed", 0)),
             timing=Timing(**data.get("timing", {})),
+            owner=None if data.get("for") is None else int(data["for"]),
         )
 
     def save(self, path: Path) -> None:
@@ -156,12 +181,27 @@ class FleetSpec:
             raise ValueError(f"{path}: not a valid fleet file ({exc})") from None
 
 
-def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> ConsensusADMM:
-    """The algorithm state machine of one robot, from the fleet file."""
+def build_core(
+    spec: FleetSpec, robot_id: int, *, keep_trace: bool = True
+) -> ConsensusADMM | ContinuousTimeADMM:
+    """The algorithm state machine of one robot, from the fleet file (dispatch on the algorithm)."""
     if robot_id not in spec.robots:
         raise ValueError(f"robot {robot_id} is not in fleet {spec.fleet} (robots {list(spec.robot_ids)})")
+    if spec.owner is not None and spec.owner != robot_id:
+        raise ValueError(f"this fleet file holds robot {spec.owner}'s data only, not robot {robot_id}'s")
     me = spec.robots[robot_id]
     features = spec.basis.features(me.points)
+    if spec.algorithm == "ct-admm":
+        return ContinuousTimeADMM(
+            robot_id,
+            me.neighbours,
+            features,
+            me.labels,
+            n_robots=spec.n_robots,
+            params=CTADMMParams.from_params(spec.params),
+            C=spec.C,
+            keep_trace=keep_trace,
+        )
     return ConsensusADMM(
         robot_id,
         me.neighbours,
@@ -175,7 +215,9 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
     )
 
 
-def restore_core(spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]) -> ConsensusADMM:
+def restore_core(
+    spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]
+) -> ConsensusADMM | ContinuousTimeADMM:
     """A robot restarted after a crash resumes exactly where its checkpoint left it."""
     core = build_core(spec, robot_id)
     core.restore(checkpoint)

@@ -1,11 +1,14 @@
-"""`shapefleet simulate | launch | central | robot | router` -- what a person runs.
+"""`shapefleet simulate | launch | central | prepare | robot | router | collect` -- what a person runs.
 
 Bad input ends with exit code 2 and one line naming the flag or file and what is wrong.
+`--config scenario.toml` gives simulate/launch/central/prepare their flags from a scenario file
+(launcher/config.py); flags on the command line override it.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -59,6 +62,7 @@ def _finite_float(text: str) -> float:
 
 def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     d = Options()
+    p.add_argument("--config", type=Path, metavar="TOML", help="scenario file (docs/scenario-file.md); flags given here override it")
     world = p.add_argument_group("world and data")
     src = world.add_mutually_exclusive_group()
     src.add_argument("--shape", default=d.shape, help=f"built-in shape: {', '.join(scenario.shape_names())} (default {d.shape})")
@@ -97,6 +101,12 @@ def _add_fault_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--retransmit", default="20ms", help="resend the latest frame after this long without progress")
 
 
+def _add_timing_args(g: argparse._ArgumentGroup) -> None:
+    d = Timing()
+    g.add_argument("--dead-after", metavar="DURATION", help=f"a robot gives up a neighbour silent this long, also at start (default {d.dead_after_s:g}s)")
+    g.add_argument("--max-wall", metavar="DURATION", help=f"a robot stops after this long whatever happens (default {d.max_wall_s:g}s)")
+
+
 def _faults(args: argparse.Namespace) -> LinkFaults:
     return LinkFaults(
         delay=parse_duration(args.delay, flag="--delay"),
@@ -108,13 +118,19 @@ def _faults(args: argparse.Namespace) -> LinkFaults:
 
 
 def _options(args: argparse.Namespace, **extra: Any) -> Options:
+    timing_flags = {"retransmit": "retransmit_s", "dead_after": "dead_after_s", "max_wall": "max_wall_s"}
     try:
         faults = _faults(args) if hasattr(args, "delay") else LinkFaults.none()
-        timing = Timing(retransmit_s=parse_duration(args.retransmit, flag="--retransmit")) if hasattr(args, "retransmit") else Timing()
+        timing = Timing(**{
+            field: parse_duration(getattr(args, dest), flag="--" + dest.replace("_", "-"))
+            for dest, field in timing_flags.items()
+            if getattr(args, dest, None) is not None
+        })
     except ValueError as exc:  # the parsers name their flag
         raise UsageError(str(exc)) from None
-    if timing.retransmit_s <= 0:
-        raise UsageError("--retransmit: must be a positive duration")
+    for dest, field in timing_flags.items():
+        if getattr(timing, field) <= 0:
+            raise UsageError(f"--{dest.replace('_', '-')}: must be a positive duration")
     return Options(
         shape=args.shape,
         shape_file=args.shape_file,
@@ -245,7 +261,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_launch(args: argparse.Namespace) -> int:
     """The Zenoh fleet: a router and one process per robot on this machine."""
-    from agents.problem import solve_central
     from launcher.fleet import launch_fleet, parse_crash
 
     try:
@@ -263,30 +278,79 @@ def cmd_launch(args: argparse.Namespace) -> int:
         raise UsageError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
     if not central.solved:
         _infeasible(out, world, spec, central)
-    outcome = launch_fleet(
-        spec,
-        workdir=out / "fleet",
-        crashes=crashes,
-        restart_after=args.restart_after,
-        restart=not args.no_restart,
-        zenoh_port=args.zenoh_port,
-    )
-    extra: dict[str, Any] = {
-        "fleet": spec.fleet,
-        "topology": args.topology,
-        "faults": _fault_dict(spec.faults),
-        "participants": sorted(int(r["id"]) for r in outcome.robots),
-        "absent": sorted(set(spec.robot_ids) - {int(r["id"]) for r in outcome.robots}),
-    }
-    if extra["absent"]:
-        # the survivors solved the problem of *their* data: measure them against that
-        kept = [r for r in world.robots if r.id in extra["participants"]]
-        pts = np.vstack([r.points for r in kept])
-        labels = np.concatenate([r.labels for r in kept])
-        central = solve_central(spec.basis, pts, labels, spec.C)
-        extra["reference"] = "central solution of the participants' data"
+    try:
+        outcome = launch_fleet(
+            spec,
+            workdir=out / "fleet",
+            crashes=crashes,
+            restart_after=args.restart_after,
+            restart=not args.no_restart,
+            zenoh_port=args.zenoh_port,
+        )
+    except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag
+        raise UsageError(str(exc)) from None
+    extra: dict[str, Any] = {"fleet": spec.fleet, "topology": args.topology, "faults": _fault_dict(spec.faults)}
+    central = _participants(world, spec, central, outcome.robots, extra)
     _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
     return 0
+
+
+def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, Any]], extra: dict[str, Any]) -> Any:
+    """Record who took part; with robots absent, the reference is the central solve of the
+    participants' data (they solved the problem of *their* data: measure them against that)."""
+    from agents.problem import solve_central
+
+    extra["participants"] = sorted(int(r["id"]) for r in robots)
+    extra["absent"] = sorted(set(spec.robot_ids) - set(extra["participants"]))
+    if not extra["absent"]:
+        return central
+    kept = [r for r in world.robots if r.id in extra["participants"]]
+    pts = np.vstack([r.points for r in kept])
+    labels = np.concatenate([r.labels for r in kept])
+    extra["reference"] = "central solution of the participants' data"
+    return solve_central(spec.basis, pts, labels, spec.C)
+
+
+ROBOT_ID_ENV = "SHAPEFLEET_ROBOT_ID"
+
+
+def _tls_files(args: argparse.Namespace) -> Any:
+    """TLSFiles of --tls-ca/--tls-cert/--tls-key (each must be a readable file), or None."""
+    from protocol.zenoh_config import TLSFiles
+
+    given = {name: getattr(args, f"tls_{name}") for name in ("ca", "cert", "key")}
+    if all(v is None for v in given.values()):
+        return None
+    for name, path in given.items():
+        if path is not None and not os.access(path, os.R_OK):
+            raise UsageError(f"--tls-{name}: cannot read {path}")
+    if (given["cert"] is None) != (given["key"] is None):
+        raise UsageError("--tls-cert/--tls-key: give both (this node's certificate and its private key) or neither")
+    return TLSFiles(**{k: None if v is None else str(v) for k, v in given.items()})
+
+
+def _robot_id(args: argparse.Namespace, spec: Any) -> int:
+    """--id, else $SHAPEFLEET_ROBOT_ID, else the robot a per-robot fleet file is for."""
+    rid, source = args.id, "--id"
+    if rid is None and os.environ.get(ROBOT_ID_ENV, "").strip():
+        source = ROBOT_ID_ENV
+        try:
+            rid = int(os.environ[ROBOT_ID_ENV])
+        except ValueError:
+            raise UsageError(f"{ROBOT_ID_ENV}: {os.environ[ROBOT_ID_ENV]!r} is not a robot id (an integer)") from None
+    if rid is None:
+        if spec.owner is None:
+            raise UsageError(f"--id: which robot? {args.fleet_file} holds robots {list(spec.robot_ids)} (or set {ROBOT_ID_ENV})")
+        return int(spec.owner)
+    if rid not in spec.robots:
+        raise UsageError(f"{source}: robot {rid} is not in {args.fleet_file} (robots {list(spec.robot_ids)})")
+    if spec.owner is not None and rid != spec.owner:
+        raise UsageError(f"{source}: {args.fleet_file} is robot {spec.owner}'s fleet file (its data only), not robot {rid}'s")
+    return int(rid)
+
+
+def _remote_hint(exc: ValueError) -> str:
+    return str(exc).replace("pass loopback_only=False to allow it", "add --allow-remote for a multi-host deployment")
 
 
 def cmd_robot(args: argparse.Namespace) -> int:
@@ -295,39 +359,105 @@ def cmd_robot(args: argparse.Namespace) -> int:
     import json
     import logging
 
+    import zenoh
+
     from agents.robot import run_robot
     from agents.spec import FleetSpec
-    from protocol.zenoh_config import validate_endpoint
+    from protocol.zenoh_config import robot_config_dict
 
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
     try:
         spec = FleetSpec.load(args.fleet_file)
-        connect = [validate_endpoint(e, loopback_only=not args.allow_remote) for e in args.connect]
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    if args.id not in spec.robots:
-        raise UsageError(f"--id: robot {args.id} is not in {args.fleet_file} (robots {list(spec.robot_ids)})")
-    result = asyncio.run(
-        run_robot(
-            spec,
-            args.id,
-            connect=connect,
-            checkpoint_path=args.checkpoint,
-            result_path=args.result,
-            handle_signals=True,
+    rid = _robot_id(args, spec)
+    tls = _tls_files(args)
+    try:
+        session = robot_config_dict(args.connect, loopback_only=not args.allow_remote, tls=tls)
+    except ValueError as exc:
+        raise UsageError(f"--connect: {_remote_hint(exc)}") from None
+    result_path = None if args.result is None else Path(str(args.result).replace("{id}", str(rid)))
+    try:
+        result = asyncio.run(
+            run_robot(
+                spec,
+                rid,
+                connect=session["connect"]["endpoints"],
+                checkpoint_path=args.checkpoint,
+                result_path=result_path,
+                handle_signals=True,
+                zenoh_config=session,
+            )
         )
-    )
-    if args.result is None:
+    except zenoh.ZError as exc:
+        print(f"shapefleet: robot {rid}: no Zenoh session with {', '.join(args.connect)}: {exc}", file=sys.stderr)
+        return 1
+    if result_path is None:
         print(json.dumps({"result": result}))
     return 0 if result.get("stopped") == "finished" else 1
 
 
 def cmd_router(args: argparse.Namespace) -> int:
+    import zenoh
+
     from launcher.router import run_router
 
     if not 1 <= args.port <= 65535:
         raise UsageError(f"--port: {args.port} is not a TCP port (1-65535)")
-    run_router(args.port, host=args.host, ready_file=args.ready_file)
+    tls = _tls_files(args)
+    if tls is not None and tls.cert is None:
+        raise UsageError("--tls-cert/--tls-key: a TLS router needs its certificate and private key")
+    try:
+        run_router(args.port, host=args.host, ready_file=args.ready_file, loopback_only=not args.allow_remote, tls=tls)
+    except ValueError as exc:
+        raise UsageError(f"--host: {_remote_hint(exc)}") from None
+    except zenoh.ZError as exc:
+        print(f"shapefleet: router: cannot listen on {args.host}:{args.port}: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_prepare(args: argparse.Namespace) -> int:
+    """Write the fleet folder for robots on other hosts (launcher/deploy.py)."""
+    from launcher import deploy
+
+    out, world, spec, central = _prepare(args, "prepare", fleet_id=args.fleet_id)
+    if not central.solved:
+        _infeasible(out, world, spec, central)
+    written = deploy.write_prepared(out, world, spec, topology=args.topology)
+    print(f"fleet {spec.fleet}: {spec.n_robots} robots, {spec.algorithm}, grid {args_grid(spec)}")
+    print(f"wrote {written['fleet']} (every robot's data: for collect), {written['world']}, {out / 'data.csv'}")
+    for i in spec.robot_ids:
+        print(f"robot {i}: copy {written[f'robot-{i}']} to its host, then run there:")
+        print(f"  shapefleet robot --fleet-file fleet.json --connect tcp/ROUTER:7447 --allow-remote --result robot-{i}.json")
+    return 0
+
+
+def cmd_collect(args: argparse.Namespace) -> int:
+    """Gather robot result files into result.json and pictures, as `launch` writes them."""
+    from agents.problem import solve_central
+    from launcher import deploy
+
+    try:
+        wait_s = parse_duration(args.wait, flag="--wait")
+        prepared = deploy.load_prepared(args.fleet_file, args.world)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if not args.results.is_dir():
+        raise UsageError(f"--results: {args.results} is not a folder")
+    world, spec = prepared.world, prepared.spec
+    robots, absent = deploy.read_results(spec, args.results, wait_s=wait_s)
+    if not robots:
+        raise UsageError(f"--results: no result of fleet {spec.fleet} in {args.results} (robot-<id>.json)")
+    for i, why in absent.items():
+        print(f"robot {i}: no result ({deploy.result_file(args.results, i)}: {why})", file=sys.stderr)
+    out = _out_dir(args, "collect")
+    scenario.write_data_csv(out / "data.csv", world.robots)
+    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    extra: dict[str, Any] = {"fleet": spec.fleet, "topology": prepared.topology, "faults": _fault_dict(spec.faults)}
+    central = _participants(world, spec, central, robots, extra)
+    wall = max(float(r.get("wall_s") or 0.0) for r in robots)
+    _finish(out, world, spec, central, robots, wall_s=wall, extra=extra)
     return 0
 
 
@@ -354,29 +484,88 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-restart", action="store_true", help="leave crashed robots dead: the others finish without them")
     g.add_argument("--fleet-id", help="fleet id on the network (default: unique per run)")
     g.add_argument("--zenoh-port", type=int, help="the router's loopback port (default: a free one)")
+    _add_timing_args(g)
     p.set_defaults(func=cmd_launch)
     p = sub.add_parser("central", help="solve the same problem with all data in one place")
     _add_scenario_args(p)
     p.set_defaults(func=cmd_central)
+    p = sub.add_parser("prepare", help="write the fleet files for robots on other hosts (one per robot: its own data)")
+    _add_scenario_args(p)
+    _add_fault_args(p)
+    g = p.add_argument_group("fleet")
+    g.add_argument("--fleet-id", help="fleet id on the network (default: unique per run)")
+    _add_timing_args(g)
+    p.set_defaults(func=cmd_prepare)
     p = sub.add_parser("robot", help="run one robot process from a fleet file")
-    p.add_argument("--fleet-file", type=Path, required=True, help="the fleet file written by launch")
-    p.add_argument("--id", type=int, required=True, help="this robot's id")
-    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--fleet-file", type=Path, required=True, help="the fleet file written by launch or prepare")
+    p.add_argument("--id", type=int, help=f"this robot's id (default: ${ROBOT_ID_ENV}, else the robot a per-robot fleet file is for)")
+    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="router endpoint, e.g. tcp/127.0.0.1:7447 or tls/10.0.0.1:7447")
     p.add_argument("--checkpoint", type=Path, help="checkpoint file: written every round, resumed from on restart")
-    p.add_argument("--result", type=Path, help="write the result JSON here (default: stdout)")
+    p.add_argument("--result", help="write the result JSON here, {id} is replaced by the robot id (default: stdout)")
     p.add_argument("--allow-remote", action="store_true", help="accept non-loopback endpoints (multi-host deployments)")
+    _add_tls_args(p, node="robot")
     p.set_defaults(func=cmd_robot)
-    p = sub.add_parser("router", help="a Zenoh router on a loopback port")
+    p = sub.add_parser("router", help="a Zenoh router (loopback unless --allow-remote)")
     p.add_argument("--port", type=int, default=7447, help="TCP port (default 7447)")
     p.add_argument("--host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
     p.add_argument("--ready-file", type=Path, help="written once the router listens")
+    p.add_argument("--allow-remote", action="store_true", help="listen on a non-loopback address (multi-host deployments)")
+    _add_tls_args(p, node="router")
     p.set_defaults(func=cmd_router)
+    p = sub.add_parser("collect", help="gather robot result files into result.json and pictures")
+    p.add_argument("--fleet-file", type=Path, required=True, help="the full fleet.json written by prepare (world.json beside it)")
+    p.add_argument("--results", type=Path, required=True, metavar="DIR", help="folder of the robots' result files robot-<id>.json")
+    p.add_argument("--world", type=Path, help="world file (default: world.json beside the fleet file, if there)")
+    p.add_argument("--wait", default="0", metavar="DURATION", help="wait up to this long for every robot's result, e.g. 600s (default: do not wait)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/)")
+    p.set_defaults(func=cmd_collect)
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _add_tls_args(p: argparse.ArgumentParser, *, node: str) -> None:
+    g = p.add_argument_group("TLS (tls/ endpoints, docs/deploy.md)")
+    if node == "router":
+        g.add_argument("--tls-cert", type=Path, metavar="PEM", help="the router's certificate (naming the address robots connect to)")
+        g.add_argument("--tls-key", type=Path, metavar="PEM", help="the router's private key")
+        g.add_argument("--tls-ca", type=Path, metavar="PEM", help="the fleet's CA: robots must show a certificate it signed (mutual TLS)")
+    else:
+        g.add_argument("--tls-ca", type=Path, metavar="PEM", help="the fleet's CA, to verify the router")
+        g.add_argument("--tls-cert", type=Path, metavar="PEM", help="this robot's certificate (for a mutual-TLS router)")
+        g.add_argument("--tls-key", type=Path, metavar="PEM", help="this robot's private key")
+
+
+def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return action.choices[command]
+
+
+def _given_on_command_line(command: str, argv: Sequence[str] | None) -> set[str]:
+    """The dests the command line sets (parsed again with every default suppressed)."""
+    parser = build_parser()
+    for action in _subparser(parser, command)._actions:
+        action.default = argparse.SUPPRESS
+    return set(vars(parser.parse_args(argv))) - {"command", "func"}
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """Parse the command line; with --config, the scenario file's values become the defaults."""
+    from launcher import config
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    if getattr(args, "config", None) is None:
+        return args
+    try:
+        scenario_file = config.load_scenario(args.config)
+        defaults = config.defaults_for(_subparser(parser, args.command), scenario_file, _given_on_command_line(args.command, argv))
+    except config.ConfigError as exc:
+        _fail(str(exc))
+    _subparser(parser, args.command).set_defaults(**defaults)
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except (UsageError, scenario.ScenarioError, topology.TopologyError) as exc:

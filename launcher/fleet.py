@@ -57,6 +57,7 @@ __all__ = [
     "parse_crash",
     "launch_fleet",
     "fleet_timing",
+    "time_bound_s",
     "stop_process",
 ]
 
@@ -143,6 +144,14 @@ def fleet_timing(spec: FleetSpec, crashes: list[CrashPlan], *, restart: bool, re
     else:
         dead = min(timing.dead_after_s, NO_RESTART_DEAD_AFTER_S)
     return dataclasses.replace(timing, dead_after_s=dead)
+
+
+def time_bound_s(timing: Any, restarts: int, restart_after: float) -> float:
+    """The launcher's overall bound: every robot's own ``max_wall_s`` plus start-up, restarts,
+    linger and a margin. Past it every robot still running is stopped (SIGTERM: it writes a
+    result saying ``stopped = "signal"``)."""
+    return (timing.max_wall_s + START_ALLOWANCE_S + float(getattr(timing, "linger_s", 1.0))
+            + restarts * (restart_after + START_ALLOWANCE_S) + WALL_MARGIN_S)
 
 
 # --------------------------------------------------------------------------- processes
@@ -351,6 +360,11 @@ class _Fleet:
     def start(self, r: _Robot) -> None:
         if r.log_fh is None:
             r.log_fh = open(r.log_path, "ab")
+        if r.proc is not None:  # a restart: the killed process's pipe has reached its end
+            if r.reader is not None:
+                r.reader.join(2)
+            if r.proc.stdout is not None:
+                r.proc.stdout.close()
         r.generation += 1
         r.proc = _spawn(r.argv, stdout=subprocess.PIPE, stderr=r.log_fh)
         self.started.append(r.proc.pid)
@@ -439,11 +453,10 @@ class _Fleet:
             if rc is None:
                 continue
             r.exit_code = rc
-            stopped = r.status.get("stopped")
             if rc == 0:
                 r.state = "finished"
-            elif stopped is not None:  # max_wall / signal: a result, not converged
-                r.state = "stopped"
+            elif r.status.get("stopped") is not None or r.result_path.exists():
+                r.state = "stopped"  # max_wall / signal: a result, not converged
             else:
                 r.state = "dead"
                 self._say(f"robot {r.id} exited with code {rc} (see {r.log_path})")
@@ -459,11 +472,12 @@ class _Fleet:
 
     # -- display -----------------------------------------------------------------------------
     def table(self, title: str) -> Any:
+        from rich import box
         from rich.table import Table
 
-        t = Table(title=title, title_justify="left")
-        for col in ("robot", "state", "round", "residual", "sent", "received", "lost", "rejected", "restarts"):
-            t.add_column(col, justify="left" if col == "state" else "right")
+        t = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
+        for col in ("robot", "state", "round", "residual", "sent", "recv", "lost", "rejected", "restarts"):
+            t.add_column(col, justify="left" if col == "state" else "right", no_wrap=True)
         colour = {"running": "green", "restarted": "green", "crashed": "yellow", "dead": "red",
                   "finished": "cyan", "stopped": "magenta", "starting": "dim"}
         for r in self.robots.values():
@@ -471,7 +485,7 @@ class _Fleet:
             res = st.get("residual")
             t.add_row(
                 str(r.id), f"[{colour.get(r.state, '')}]{r.state}", str(st.get("round", "-")),
-                "-" if res is None else f"{res:.2e}",
+                "-" if res is None else f"{res:.1e}",
                 *(str(st.get(k, "-")) for k in ("sent", "received", "lost", "rejected")),
                 str(r.restarts),
             )
@@ -554,9 +568,7 @@ def launch_fleet(
     fleet_file = workdir / "fleet.json"
     run_spec.save(fleet_file)
 
-    restarts_total = len(crashes) if restart else 0
-    bound_s = (timing.max_wall_s + START_ALLOWANCE_S + getattr(timing, "linger_s", 1.0)
-               + restarts_total * (restart_after + START_ALLOWANCE_S) + WALL_MARGIN_S)
+    bound_s = time_bound_s(timing, len(crashes) if restart else 0, restart_after)
     show = progress and sys.stdout.isatty()
     console = None
     if show:
@@ -639,9 +651,12 @@ def launch_fleet(
             break
     fleet.reap()
     robots = _collect(fleet)
-    for res in robots:
-        if fleet.robots[res["id"]].state in ("starting", "running", "restarted"):
-            fleet.robots[res["id"]].state = "stopped"
+    have = {res["id"]: res for res in robots}
+    for i, r in fleet.robots.items():  # final word: the result files
+        if i in have:
+            r.state = "finished" if have[i].get("stopped") == "finished" else "stopped"
+        else:
+            r.state = "dead"
     totals = {
         k: sum(int(r.get(f"frames_{k}", 0) or 0) for r in robots)
         for k in ("sent", "received", "lost", "duplicated", "accepted", "rejected")

@@ -82,7 +82,7 @@ def build_result(
         iou = min(ious)
     robot_rows = []
     for r, (c, g) in zip(robots, fs, strict=True):
-        row = {k: v for k, v in r.items() if k not in ("trace", "x")}
+        row = {k: v for k, v in r.items() if k not in ("trace", "x", "round_times")}
         row.update(id=int(r["id"]), c=c.tolist(), gamma=g)
         if central.solved:
             row["function_error"] = basis.function_error(c, g, central.c, central.gamma)

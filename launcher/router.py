@@ -19,7 +19,7 @@ import threading
 import time
 from pathlib import Path
 
-from protocol.zenoh_config import router_config, router_endpoint
+from protocol.zenoh_config import TLSFiles, router_config, router_endpoint
 
 __all__ = ["run_router", "write_json_atomic", "main"]
 
@@ -42,15 +42,19 @@ def run_router(
     ready_file: Path | None = None,
     max_wall_s: float | None = None,
     stream=sys.stdout,
+    loopback_only: bool = True,
+    tls: TLSFiles | None = None,
 ) -> None:
     """Open a Zenoh router listening on ``tcp/host:port``; run until SIGTERM/SIGINT; close.
 
     ``max_wall_s`` (optional) bounds the lifetime, for tests and benchmarks. Must be called from
     the main thread (it installs signal handlers; previous handlers are restored on return).
+    ``loopback_only=False`` lets ``host`` be a LAN address (multi-host deployments); ``tls``
+    listens on ``tls/host:port`` instead (see protocol.zenoh_config.TLSFiles).
     """
     import zenoh
 
-    config = router_config(port, host)  # validates port/host (loopback only)
+    config = router_config(port, host, loopback_only=loopback_only, tls=tls)  # validates port/host
     stop = threading.Event()
 
     def on_signal(signum, _frame):
@@ -62,7 +66,7 @@ def run_router(
         session = zenoh.open(config)
         info = {
             "router": "ready",
-            "endpoint": router_endpoint(port, host),
+            "endpoint": router_endpoint(port, host, "tls" if tls else "tcp"),
             "pid": os.getpid(),
             "zid": str(session.zid()),
         }

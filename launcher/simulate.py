@@ -29,6 +29,7 @@ class _Robot:
     last_publish: float = 0.0
     frames_sent: int = 0
     frames_received: int = 0
+    round_times: dict[int, float] = field(default_factory=lambda: {0: 0.0})
 
 
 @dataclass
@@ -89,6 +90,7 @@ def simulate_fleet(
         for rid, r in robots.items():
             if r.core.ready():
                 r.core.advance()
+                r.round_times[r.core.round] = now
                 publish(rid)
                 advanced = True
         current = min(r.core.round for r in robots.values())
@@ -122,6 +124,7 @@ def simulate_fleet(
             frames_rejected=sum(r.decoder.counts.values()),
             restarts=0,
             trace={k: v.tolist() for k, v in r.core.trace.items()},
+            round_times=r.round_times,
         )
         results.append(res)
     return FleetOutcome(results, time.perf_counter() - started, now, links.stats())

@@ -14,6 +14,7 @@ import networkx as nx
 import numpy as np
 from shapely import Polygon
 
+from agents.ct_admm import CTADMMParams
 from agents.spec import FleetSpec, RobotSpec, Timing
 from launcher import scenario, topology
 from protocol.keys import validate_fleet_id
@@ -45,6 +46,9 @@ class Options:
     relax: float = 1.95
     tol: float = 1e-3
     max_rounds: int = 5000
+    ct_step: float = 1e-3  # ct-admm: Euler step of the flow (s), the paper's sampling period
+    ct_period: float = 1e-2  # ct-admm: communication period T_sp (s)
+    ct_stop_time: float = 10.0  # ct-admm: stop time (s)
     faults: LinkFaults = field(default_factory=LinkFaults.none)
     timing: Timing = field(default_factory=Timing)
     fleet_id: str | None = None
@@ -134,6 +138,14 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         "max_rounds": opts.max_rounds,
         "diameter": max(1, topology.diameter(graph)) if len(ids) > 1 else 0,
     }
+    if opts.algorithm == "ct-admm":
+        for flag, value in (("--ct-step", opts.ct_step), ("--ct-period", opts.ct_period), ("--ct-stop-time", opts.ct_stop_time)):
+            _check_positive(value, flag)
+        params.update(ct_step=opts.ct_step, ct_period=opts.ct_period, ct_stop_time=opts.ct_stop_time)
+        try:
+            CTADMMParams.from_params(params)
+        except ValueError as exc:  # e.g. a period that is not a whole number of steps
+            raise scenario.ScenarioError(f"--ct-period/--ct-step: {exc}") from None
     spec = FleetSpec(
         fleet=opts.fleet_id or f"run-{secrets.token_hex(4)}",
         algorithm=opts.algorithm,

@@ -8,6 +8,12 @@ Every configuration built here
   (``127.0.0.1``, ``::1``, ``localhost``);
 * disables the admin space and shared memory (nothing to leak in ``/dev/shm`` if a robot is killed).
 
+TLS (``tls/`` endpoints, :class:`TLSFiles`): the router listens with its certificate and key; robots
+verify it against the fleet's root CA (``verify_name_on_connect``: the router's certificate must
+name the address robots connect to). With a CA on the router and a certificate + key on each robot,
+the router verifies the robots too (mutual TLS): a robot without a certificate from the fleet's CA
+cannot open a session. A TLS router accepts TLS links only (``transport/link/protocols``).
+
 Latency: frames are small (a few hundred bytes), so batching is the main source of delay; the robot
 shell declares its publisher with ``express=True`` (no batching for that message) rather than
 switching the whole transport to ``lowlatency`` (which must match on both ends and disables QoS).
@@ -21,13 +27,16 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import os
 import re
 import socket
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 __all__ = [
     "DEFAULT_PORT",
+    "TLSFiles",
     "LOOPBACK_HOSTS",
     "free_loopback_port",
     "parse_endpoint",
@@ -60,7 +69,32 @@ CONNECT_TIMEOUT_MS = 10_000
 CONNECT_RETRY = {"period_init_ms": 50, "period_max_ms": 500, "period_increase_factor": 2}
 
 _ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<addr>[^?#]+)$")
-_SUPPORTED_PROTOCOLS = ("tcp",)
+_SUPPORTED_PROTOCOLS = ("tcp", "tls")
+
+
+@dataclass(frozen=True)
+class TLSFiles:
+    """PEM files of one node's TLS link (paths; made absolute when a config is built).
+
+    ``ca``: the fleet's root CA certificate. A robot verifies the router with it; on the router it
+    turns on mutual TLS (robots must present a certificate signed by it).
+    ``cert`` / ``key``: this node's certificate and private key. Required on the router; on a robot
+    both or neither (both: the robot authenticates itself, needed when the router has a CA).
+    """
+
+    ca: str | None = None
+    cert: str | None = None
+    key: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("ca", "cert", "key"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, (str, os.PathLike)) or not str(value)):
+                raise ValueError(f"TLS {name} must be a file path, got {value!r}")
+            if value is not None:
+                object.__setattr__(self, name, os.path.abspath(os.fspath(value)))
+        if (self.cert is None) != (self.key is None):
+            raise ValueError("TLS certificate and private key go together: give both or neither")
 
 
 def _is_loopback(host: str) -> bool:
@@ -127,9 +161,11 @@ def validate_endpoint(endpoint: str, *, loopback_only: bool = True) -> str:
     return endpoint.strip()
 
 
-def router_endpoint(port: int, host: str = "127.0.0.1") -> str:
-    """The tcp endpoint string of a router listening on ``host:port``."""
-    return f"tcp/[{host}]:{port}" if ":" in host else f"tcp/{host}:{port}"
+def router_endpoint(port: int, host: str = "127.0.0.1", protocol: str = "tcp") -> str:
+    """The endpoint string of a router listening on ``host:port`` (``tcp`` or ``tls``)."""
+    if protocol not in _SUPPORTED_PROTOCOLS:
+        raise ValueError(f"protocol {protocol!r} not supported, use one of {_SUPPORTED_PROTOCOLS}")
+    return f"{protocol}/[{host}]:{port}" if ":" in host else f"{protocol}/{host}:{port}"
 
 
 def _merge(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
@@ -142,23 +178,37 @@ def _merge(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def router_config_dict(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True) -> dict[str, Any]:
-    """Router listening on ``tcp/host:port`` only, no scouting, connecting to nobody."""
+def router_config_dict(
+    port: int, host: str = "127.0.0.1", *, loopback_only: bool = True, tls: TLSFiles | None = None
+) -> dict[str, Any]:
+    """Router listening on ``tcp/host:port`` (``tls/host:port`` with ``tls``) only, no scouting,
+    connecting to nobody."""
     if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
         raise ValueError(f"router port must be an int in 1..65535, got {port!r}")
-    endpoint = validate_endpoint(router_endpoint(port, host), loopback_only=loopback_only)
-    return _merge(
-        _COMMON,
-        {
-            "mode": "router",
-            "listen": {"endpoints": [endpoint]},
-            "connect": {"endpoints": []},
-        },
-    )
+    endpoint = validate_endpoint(router_endpoint(port, host, "tls" if tls else "tcp"), loopback_only=loopback_only)
+    extra: dict[str, Any] = {
+        "mode": "router",
+        "listen": {"endpoints": [endpoint]},
+        "connect": {"endpoints": []},
+    }
+    if tls is not None:
+        if tls.cert is None:
+            raise ValueError("a TLS router needs its certificate and private key")
+        link: dict[str, Any] = {"listen_certificate": tls.cert, "listen_private_key": tls.key}
+        if tls.ca is not None:  # mutual TLS: robots must show a certificate signed by this CA
+            link.update(root_ca_certificate=tls.ca, enable_mtls=True)
+        extra["transport"] = {"link": {"protocols": ["tls"], "tls": link}}
+    return _merge(_COMMON, extra)
 
 
-def robot_config_dict(connect: Iterable[str], *, loopback_only: bool = True) -> dict[str, Any]:
-    """Robot session: client of the router endpoint(s) in ``connect``; listens nowhere."""
+def robot_config_dict(
+    connect: Iterable[str], *, loopback_only: bool = True, tls: TLSFiles | None = None
+) -> dict[str, Any]:
+    """Robot session: client of the router endpoint(s) in ``connect``; listens nowhere.
+
+    ``tls``: required for ``tls/`` endpoints (its ``ca`` verifies the router; ``cert`` + ``key``
+    authenticate the robot to a mutual-TLS router), refused for ``tcp/`` ones.
+    """
     if isinstance(connect, str):
         raise ValueError(f"connect must be a list of endpoints, got the string {connect!r}; wrap it in a list")
     endpoints = [validate_endpoint(e, loopback_only=loopback_only) for e in connect]
@@ -166,19 +216,27 @@ def robot_config_dict(connect: Iterable[str], *, loopback_only: bool = True) -> 
         raise ValueError("connect must name at least one router endpoint, e.g. ['tcp/127.0.0.1:7447']")
     if len(set(endpoints)) != len(endpoints):
         raise ValueError(f"connect lists an endpoint twice: {endpoints}")
-    return _merge(
-        _COMMON,
-        {
-            "mode": "client",
-            "connect": {
-                "endpoints": endpoints,
-                "timeout_ms": CONNECT_TIMEOUT_MS,
-                "exit_on_failure": True,
-                "retry": dict(CONNECT_RETRY),
-            },
-            "listen": {"endpoints": []},
+    protocols = {parse_endpoint(e)[0] for e in endpoints}
+    extra: dict[str, Any] = {
+        "mode": "client",
+        "connect": {
+            "endpoints": endpoints,
+            "timeout_ms": CONNECT_TIMEOUT_MS,
+            "exit_on_failure": True,
+            "retry": dict(CONNECT_RETRY),
         },
-    )
+        "listen": {"endpoints": []},
+    }
+    if "tls" in protocols:
+        if tls is None or tls.ca is None:
+            raise ValueError("a tls/ endpoint needs the fleet's root CA certificate to verify the router")
+        link: dict[str, Any] = {"root_ca_certificate": tls.ca, "verify_name_on_connect": True}
+        if tls.cert is not None:
+            link.update(connect_certificate=tls.cert, connect_private_key=tls.key, enable_mtls=True)
+        extra["transport"] = {"link": {"tls": link}}
+    elif tls is not None:
+        raise ValueError(f"TLS files given but no tls/ endpoint to use them on: {endpoints}")
+    return _merge(_COMMON, extra)
 
 
 # Sub-trees that are ``null`` in zenoh's default config: they must be inserted whole.
@@ -210,14 +268,14 @@ def to_zenoh_config(d: Mapping[str, Any]):
     return conf
 
 
-def router_config(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True):
+def router_config(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True, tls: TLSFiles | None = None):
     """``zenoh.Config`` of :func:`router_config_dict`."""
-    return to_zenoh_config(router_config_dict(port, host, loopback_only=loopback_only))
+    return to_zenoh_config(router_config_dict(port, host, loopback_only=loopback_only, tls=tls))
 
 
-def robot_config(connect: Iterable[str], *, loopback_only: bool = True):
+def robot_config(connect: Iterable[str], *, loopback_only: bool = True, tls: TLSFiles | None = None):
     """``zenoh.Config`` of :func:`robot_config_dict`."""
-    return to_zenoh_config(robot_config_dict(connect, loopback_only=loopback_only))
+    return to_zenoh_config(robot_config_dict(connect, loopback_only=loopback_only, tls=tls))
 
 
 def free_loopback_port(host: str = "127.0.0.1") -> int:

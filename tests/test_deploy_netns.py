@@ -183,3 +183,12 @@ def test_walk_through_on_three_machines(tmp_path, machines_ok, simulate_result, 
     for key in ("function_error", "consensus_error", "train_accuracy", "iou"):
         assert result["metrics"][key] == pytest.approx(simulate_result["metrics"][key], abs=1e-9)
     assert [h["round"] for h in result["history"]] == [h["round"] for h in simulate_result["history"]]
+
+
+def test_every_marked_block_of_the_doc_is_run_by_these_tests():
+    """A block added to docs/deploy.md with a test marker must be run here or in test_tls.py."""
+    run_here = {"certs", "prepare", "copy-fleet", "copy-certs", "router", "router-tls", "robot", "robot-tls", "fetch", "collect"}
+    assert set(doc.blocks()) == run_here
+    for name, text in doc.blocks().items():
+        if name.startswith(("router", "robot")):  # started in the background: one command, exec'ed
+            assert text.lstrip().startswith("shapefleet ") and "\n" not in text.replace("\\\n", ""), name

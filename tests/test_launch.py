@@ -269,6 +269,7 @@ def test_crash_and_restart_from_checkpoint(tmp_path):
     by_id = {r["id"]: r for r in out.robots}
     assert min(by_id[1]["trace"]) <= out.crashes[0].round  # resumed from its last checkpoint
     assert [by_id[i]["restarts"] for i in (0, 1, 2)] == [0, 1, 0]
+    assert set(out.states.values()) == {"finished"}
     assert all(r["neighbours_dropped"] == [] for r in out.robots)
     assert max_function_error(spec, central, out.robots) < 1e-3
     # the fleet file given to the robots keeps them waiting long enough for the restart
@@ -460,6 +461,25 @@ def test_ctrl_c_stops_every_process(tmp_path):
     for i in spec.robot_ids:
         res = json.loads((tmp_path / "fleet" / f"robot-{i}.json").read_text())
         assert res["stopped"] == "signal" and res["rounds"] > 0
+
+
+def test_progress_table_shows_every_robot(tmp_path):
+    """The live table (drawn only on a terminal): one row per robot with its state and counters."""
+    from rich.console import Console
+
+    from launcher.fleet import _Fleet
+
+    _world, spec, _central = _run(fleet_id="launch-table")
+    fleet = _Fleet(spec, tmp_path, tmp_path / "fleet.json", "tcp/127.0.0.1:7447", [], True, 1.0, [], None)
+    fleet.robots[0].status = {"round": 41, "residual": 0.0123, "sent": 50, "received": 99, "lost": 7, "rejected": 2}
+    fleet.robots[0].state = "running"
+    fleet.robots[1].state, fleet.robots[1].restarts = "restarted", 1
+    fleet.robots[2].state = "dead"
+    console = Console(record=True, width=100)
+    console.print(fleet.table("fleet launch-table"))
+    text = console.export_text()
+    for word in ("fleet launch-table", "running", "restarted", "dead", "41", "1.2e-02", "99"):
+        assert word in text, text
 
 
 def test_port_in_use_is_named(tmp_path):

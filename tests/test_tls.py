@@ -1,0 +1,198 @@
+"""Zenoh TLS between router and robots: the configs, the CLI's checks, and a fleet on loopback.
+
+The integration test follows docs/deploy.md with its own commands (certificates made by the doc's
+openssl block, router and robots started by the doc's TLS blocks) on 127.0.0.1, and runs impostors
+beside the fleet: a robot that trusts another CA, one whose certificate another CA signed, one with
+no certificate and one speaking plain TCP. None of them gets a session; the fleet converges to the
+in-process simulator's iterates, bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from launcher.cli import main
+from protocol.zenoh_config import TLSFiles, free_loopback_port, robot_config, robot_config_dict, router_config, router_config_dict
+from tests import deploy_doc as doc
+
+ROBOTS = ("robot0", "robot1")
+CONNECT_BOUND_S = 45.0  # a robot gives up after the 10 s connect time-out, plus start-up on a busy machine
+
+
+def _files(tmp: Path) -> TLSFiles:
+    for name in ("ca.pem", "r.pem", "r.key"):
+        (tmp / name).write_text("x")
+    return TLSFiles(ca=str(tmp / "ca.pem"), cert=str(tmp / "r.pem"), key=str(tmp / "r.key"))
+
+
+# -- configs --------------------------------------------------------------------------------------
+def test_tls_router_config(tmp_path):
+    tls = _files(tmp_path)
+    d = router_config_dict(7447, "10.0.0.1", loopback_only=False, tls=tls)
+    assert d["listen"]["endpoints"] == ["tls/10.0.0.1:7447"]
+    link = d["transport"]["link"]
+    assert link["protocols"] == ["tls"]  # plain TCP refused
+    assert link["tls"] == {
+        "listen_certificate": tls.cert,
+        "listen_private_key": tls.key,
+        "root_ca_certificate": tls.ca,
+        "enable_mtls": True,
+    }
+    assert d["scouting"]["multicast"]["enabled"] is False and d["scouting"]["gossip"]["enabled"] is False
+    server_only = router_config_dict(7447, tls=TLSFiles(cert=tls.cert, key=tls.key))
+    assert "enable_mtls" not in server_only["transport"]["link"]["tls"]
+    assert json.loads(router_config(7447, tls=tls).get_json("transport/link/tls/enable_mtls")) is True
+    with pytest.raises(ValueError, match="certificate and private key"):
+        router_config_dict(7447, tls=TLSFiles(ca=tls.ca))
+    with pytest.raises(ValueError, match="not a loopback"):
+        router_config_dict(7447, "10.0.0.1", tls=tls)
+
+
+def test_tls_robot_config(tmp_path):
+    tls = _files(tmp_path)
+    d = robot_config_dict(["tls/10.0.0.1:7447"], loopback_only=False, tls=tls)
+    assert d["transport"]["link"]["tls"] == {
+        "root_ca_certificate": tls.ca,
+        "verify_name_on_connect": True,
+        "connect_certificate": tls.cert,
+        "connect_private_key": tls.key,
+        "enable_mtls": True,
+    }
+    assert d["scouting"]["multicast"]["enabled"] is False
+    only_ca = robot_config_dict(["tls/127.0.0.1:7447"], tls=TLSFiles(ca=tls.ca))
+    assert only_ca["transport"]["link"]["tls"] == {"root_ca_certificate": tls.ca, "verify_name_on_connect": True}
+    conf = robot_config(["tls/127.0.0.1:7447"], tls=tls)
+    assert json.loads(conf.get_json("transport/link/tls/root_ca_certificate")) == tls.ca
+    with pytest.raises(ValueError, match="root CA"):
+        robot_config_dict(["tls/127.0.0.1:7447"])
+    with pytest.raises(ValueError, match="no tls/ endpoint"):
+        robot_config_dict(["tcp/127.0.0.1:7447"], tls=tls)
+    with pytest.raises(ValueError, match="not a loopback"):
+        robot_config_dict(["tls/10.0.0.1:7447"], tls=tls)
+    with pytest.raises(ValueError, match="give both or neither"):
+        TLSFiles(ca=tls.ca, cert=tls.cert)
+
+
+def test_tls_paths_are_made_absolute(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    tls = TLSFiles(ca="ca.pem", cert="c.pem", key="c.key")
+    assert tls.ca == str(tmp_path / "ca.pem") and tls.key == str(tmp_path / "c.key")
+
+
+# -- CLI checks -------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def fleet_file(tmp_path_factory) -> Path:
+    tmp = tmp_path_factory.mktemp("fleetfile")
+    from launcher.world import Options, build_world
+
+    _, spec = build_world(Options(robots=2, fleet_id="tls-cli"))
+    spec.save(tmp / "fleet.json")
+    return tmp / "fleet.json"
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["robot", "--id", "0", "--connect", "tls/127.0.0.1:7447"], "--connect: a tls/ endpoint needs the fleet's root CA"),
+        (["robot", "--id", "0", "--connect", "tls/127.0.0.1:7447", "--tls-ca", "missing.pem"], "--tls-ca: cannot read missing.pem"),
+        (["robot", "--id", "0", "--connect", "tcp/127.0.0.1:7447", "--tls-ca", "FLEET"], "--connect: TLS files given but no tls/ endpoint"),
+        (["robot", "--id", "0", "--connect", "tls/127.0.0.1:7447", "--tls-ca", "FLEET", "--tls-cert", "FLEET"], "--tls-cert/--tls-key: give both"),
+        (["robot", "--id", "0", "--connect", "tls/10.0.0.1:7447", "--tls-ca", "FLEET"], "not a loopback address"),
+        (["router", "--port", "7447", "--tls-ca", "FLEET"], "a TLS router needs its certificate and private key"),
+        (["router", "--port", "7447", "--host", "10.0.0.1"], "--host: "),
+    ],
+    ids=["no-ca", "missing-file", "tls-files-on-tcp", "cert-without-key", "remote-without-flag", "router-ca-only", "router-remote"],
+)
+def test_cli_refuses_bad_tls_input(fleet_file, args, needle, capsys, monkeypatch):
+    monkeypatch.chdir(fleet_file.parent)
+    args = [str(fleet_file) if a == "FLEET" else a for a in args]
+    if args[0] == "robot":
+        args += ["--fleet-file", str(fleet_file)]
+    with pytest.raises(SystemExit) as exc:  # refused before any session is opened
+        main(args)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], err
+
+
+# -- a fleet with TLS on loopback, and impostors ------------------------------------------------------
+def _have_openssl() -> None:
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command to make certificates (the doc's way)")
+
+
+@pytest.mark.integration
+def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
+    from agents.spec import FleetSpec
+    from launcher.simulate import simulate_fleet
+
+    _have_openssl()
+    port = free_loopback_port()
+    env = doc.environment(tmp_path, ROUTER_IP="127.0.0.1", ROUTER_PORT=str(port))
+    hub, rogue = tmp_path / "hub", tmp_path / "rogue"
+    for d in (hub, rogue):
+        d.mkdir()
+        doc.run("certs", d, env)  # rogue: the same commands make another CA
+    shutil.copy(doc.SCENARIO, hub / "scenario.toml")
+    doc.run("prepare", hub, env)
+    doc.run("copy-fleet", hub, env)
+    doc.run("copy-certs", hub, env)
+
+    good, bad = hub / "certs", rogue / "certs"
+    impostors = {
+        "trusts-another-ca": ["--tls-ca", bad / "ca.pem", "--tls-cert", good / "robot-0.pem", "--tls-key", good / "robot-0.key"],
+        "foreign-certificate": ["--tls-ca", good / "ca.pem", "--tls-cert", bad / "robot-0.pem", "--tls-key", bad / "robot-0.key"],
+        "no-certificate": ["--tls-ca", good / "ca.pem"],
+        "plain-tcp": [],
+    }
+    started: list[subprocess.Popen] = []
+    try:
+        router = doc.start("router-tls", hub, env)
+        started.append(router)
+        lines = doc.Lines(router)
+        assert lines.wait_for('"ready"', 30), f"router not ready: {lines.seen}"
+        fleet = []
+        for host in ROBOTS:
+            cwd = doc.host_dir(tmp_path, host)
+            fleet.append(doc.start("robot-tls", cwd, env, log=cwd / "robot.log"))
+            started.append(fleet[-1])
+        fakes = {}
+        t0 = time.monotonic()
+        for name, extra in impostors.items():
+            d = tmp_path / "impostors" / name
+            d.mkdir(parents=True)
+            shutil.copy(hub / "fleet" / "robot-0" / "fleet.json", d / "fleet.json")
+            proto = "tcp" if name == "plain-tcp" else "tls"
+            argv = ["shapefleet", "robot", "--fleet-file", "fleet.json", "--connect", f"{proto}/127.0.0.1:{port}",
+                    "--result", "result.json", *map(str, extra)]
+            fakes[name] = doc.spawn(argv, d, env, log=d / "robot.log")
+            started.append(fakes[name])
+        codes = doc.wait_all(fleet, 120)
+        logs = {h: (doc.host_dir(tmp_path, h) / "robot.log").read_text()[-2000:] for h in ROBOTS}
+        assert codes == [0, 0], f"robot exit codes {codes}; logs {logs}"
+        fake_codes = dict(zip(fakes, doc.wait_all(list(fakes.values()), max(5.0, CONNECT_BOUND_S - (time.monotonic() - t0))), strict=True))
+    finally:
+        for proc in reversed(started):
+            doc.stop(proc)
+
+    for name, code in fake_codes.items():
+        d = tmp_path / "impostors" / name
+        log = (d / "robot.log").read_text()
+        assert code == 1, f"{name}: exit {code}, log {log[-1500:]}"
+        assert "no Zenoh session" in log, f"{name}: {log[-1500:]}"
+        assert not (d / "result.json").exists()
+
+    spec = FleetSpec.load(hub / "fleet" / "fleet.json")
+    want = {r["id"]: r for r in simulate_fleet(spec).robots}
+    for k, host in enumerate(ROBOTS):
+        got = json.loads((doc.host_dir(tmp_path, host) / "result.json").read_text())
+        assert got["converged"] and got["rounds"] == want[k]["rounds"]
+        assert got["x"] == list(want[k]["x"]) and got["gamma"] == want[k]["gamma"]
+        assert got["frames_rejected"]["total"] == 0
