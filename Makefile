@@ -15,13 +15,15 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: install
-	$(VENV)/bin/shapefleet simulate
+	$(VENV)/bin/shapefleet launch
 
 test: install
 	$(PY) -m pytest -q
 
 bench: install
-	$(PY) benchmarks/run.py
+	$(PY) benchmarks/rounds.py
+	$(PY) benchmarks/zenoh_fleet.py
+	$(PY) benchmarks/ct_delay.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -8,6 +8,7 @@ Bad input ends with exit code 2 and one line naming the flag or file and what is
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -88,6 +89,9 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     algo.add_argument("--relax", type=_finite_float, default=d.relax, help=f"ADMM over-relaxation in (0, 2) (default {d.relax})")
     algo.add_argument("--tol", type=_finite_float, default=d.tol, help=f"stop when every robot's relative residual is below (default {d.tol:g})")
     algo.add_argument("--max-rounds", type=_positive_int("--max-rounds"), default=d.max_rounds, help=f"round cap (default {d.max_rounds})")
+    algo.add_argument("--ct-step", default=f"{d.ct_step * 1e3:g}ms", help="ct-admm: integration step of the flow (default 1ms, the paper's)")
+    algo.add_argument("--ct-period", default=f"{d.ct_period * 1e3:g}ms", help="ct-admm: communication period T_sp (default 10ms, the paper's)")
+    algo.add_argument("--ct-stop-time", default=f"{d.ct_stop_time:g}s", help="ct-admm: stop time of the flow (default 10s, the paper's)")
     p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/)")
 
 
@@ -126,6 +130,10 @@ def _options(args: argparse.Namespace, **extra: Any) -> Options:
             for dest, field in timing_flags.items()
             if getattr(args, dest, None) is not None
         })
+        ct = {
+            name: parse_duration(getattr(args, f"ct_{name}"), flag=f"--ct-{name.replace('_', '-')}")
+            for name in ("step", "period", "stop_time")
+        }
     except ValueError as exc:  # the parsers name their flag
         raise UsageError(str(exc)) from None
     for dest, field in timing_flags.items():
@@ -153,6 +161,9 @@ def _options(args: argparse.Namespace, **extra: Any) -> Options:
         relax=args.relax,
         tol=args.tol,
         max_rounds=args.max_rounds,
+        ct_step=ct["step"],
+        ct_period=ct["period"],
+        ct_stop_time=ct["stop_time"],
         faults=faults,
         timing=timing,
         **extra,
@@ -187,12 +198,31 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     result = report.build_result(world, spec.basis, central, robots, algorithm=spec.algorithm, C=spec.C, wall_s=wall_s, extra=extra)
     report.write_json(out / "result.json", result)
     report.plot_shapes(out / "shapes.png", world, spec.basis, result)
+    written = ["result.json", "data.csv", "shapes.png"]
     if result["history"]:
         report.plot_convergence(out / "convergence.png", result["history"])
+        written.append("convergence.png")
+    first = next((r for r in robots if r.get("trace")), None)
+    if spec.algorithm == "ct-admm" and first is not None:
+        from launcher.trajectory import plot_trajectory, trajectory_from_trace
+
+        period = float(spec.params["ct_period"])
+        reference = np.append(central.x, central.gamma) if central.solved else None
+        plot_trajectory(out / "trajectory.png", *trajectory_from_trace(first["trace"], period), reference=reference)
+        written.append("trajectory.png")
     console = Console()
     console.print(report.summary_table(result))
-    console.print(f"wrote {out}/result.json, data.csv, shapes.png" + (", convergence.png" if result["history"] else ""))
+    console.print(f"wrote {out}/: {', '.join(written)}")
     return result
+
+
+def _round_budget(spec: Any) -> int:
+    """Rounds the run may take: the cap, or for ct-admm the stop time in periods."""
+    if spec.algorithm == "ct-admm":
+        from agents.ct_admm import CTADMMParams
+
+        return CTADMMParams.from_params(spec.params).rounds
+    return int(spec.params["max_rounds"])
 
 
 def _prepare(args: argparse.Namespace, mode: str, **extra: Any) -> tuple[Path, World, Any, Any]:
@@ -248,7 +278,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         TimeElapsedColumn(),
         transient=True,
     ) as bar:
-        task = bar.add_task(f"{spec.n_robots} robots, {spec.algorithm}", total=spec.params["max_rounds"], residual="-")
+        task = bar.add_task(f"{spec.n_robots} robots, {spec.algorithm}", total=_round_budget(spec), residual="-")
 
         def progress(rnd: int, residual: float) -> None:
             bar.update(task, completed=rnd, residual=f"{residual:.2e}")
@@ -261,7 +291,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_launch(args: argparse.Namespace) -> int:
     """The Zenoh fleet: a router and one process per robot on this machine."""
-    from launcher.fleet import launch_fleet, parse_crash
+    from launcher.fleet import LaunchError, launch_fleet, parse_crash
 
     try:
         crashes = [parse_crash(text) for text in args.crash]
@@ -289,7 +319,18 @@ def cmd_launch(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag
         raise UsageError(str(exc)) from None
-    extra: dict[str, Any] = {"fleet": spec.fleet, "topology": args.topology, "faults": _fault_dict(spec.faults)}
+    except LaunchError as exc:  # the machine, not the input: say it in one line, exit 1
+        print(f"shapefleet: launch failed: {exc} (logs in {out / 'fleet'})", file=sys.stderr)
+        return 1
+    if not outcome.robots:
+        print(f"shapefleet: launch failed: no robot produced a result (logs in {out / 'fleet'})", file=sys.stderr)
+        return 1
+    extra: dict[str, Any] = {
+        "fleet": spec.fleet,
+        "topology": args.topology,
+        "faults": _fault_dict(spec.faults),
+        "crashes": [dataclasses.asdict(c) for c in outcome.crashes],
+    }
     central = _participants(world, spec, central, outcome.robots, extra)
     _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
     return 0
@@ -461,6 +502,19 @@ def cmd_collect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_gridstudy(args: argparse.Namespace) -> int:
+    """The paper's Fig. 5: the same data on its grid and on a coarser, shifted one."""
+    from launcher.gridstudy import run_grid_study
+
+    options = _options(args)
+    if args.bad_grid is not None:
+        scenario.parse_grid(args.bad_grid)
+    run_grid_study(
+        _out_dir(args, "gridstudy"), options=options, good_grid=args.grid, bad_grid=args.bad_grid or "4x2", stop_time=options.ct_stop_time
+    )
+    return 0
+
+
 def _fault_dict(faults: LinkFaults) -> dict[str, float]:
     from dataclasses import asdict
 
@@ -496,6 +550,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--fleet-id", help="fleet id on the network (default: unique per run)")
     _add_timing_args(g)
     p.set_defaults(func=cmd_prepare)
+    p = sub.add_parser("gridstudy", help="the paper's Fig. 5: a coarse, shifted grid leaves the hard margin infeasible")
+    _add_scenario_args(p)
+    p.add_argument("--bad-grid", metavar="NXxNY", help="the coarse grid, shifted by half a cell (default 4x2)")
+    p.set_defaults(func=cmd_gridstudy)
     p = sub.add_parser("robot", help="run one robot process from a fleet file")
     p.add_argument("--fleet-file", type=Path, required=True, help="the fleet file written by launch or prepare")
     p.add_argument("--id", type=int, help=f"this robot's id (default: ${ROBOT_ID_ENV}, else the robot a per-robot fleet file is for)")

@@ -39,7 +39,9 @@ __all__ = ["SECTIONS", "ConfigError", "Scenario", "load_scenario", "defaults_for
 SECTIONS: dict[str, tuple[str, ...]] = {
     "world": ("shape", "shape-file", "data", "robots", "points", "seed", "standoff", "range", "offset", "noise"),
     "model": ("grid", "grid-bounds", "sigma", "C"),
-    "algorithm": ("topology", "comm-range", "algorithm", "rho", "relax", "tol", "max-rounds"),
+    "algorithm": (
+        "topology", "comm-range", "algorithm", "rho", "relax", "tol", "max-rounds", "ct-step", "ct-period", "ct-stop-time",
+    ),
     "faults": ("delay", "jitter", "loss", "duplicate", "reorder", "retransmit"),
     "fleet": ("fleet-id", "dead-after", "max-wall"),
     "launch": ("crash", "restart-after", "no-restart", "zenoh-port"),
@@ -49,7 +51,7 @@ SECTION_OF = {key: section for section, keys in SECTIONS.items() for key in keys
 # TOML types each key accepts (besides what the flag's own parser then checks)
 _INT = ("robots", "points", "seed", "max-rounds", "zenoh-port")
 _FLOAT = ("standoff", "range", "offset", "noise", "sigma", "C", "comm-range", "rho", "relax", "tol", "restart-after")
-_DURATION = ("delay", "jitter", "retransmit", "dead-after", "max-wall")
+_DURATION = ("delay", "jitter", "retransmit", "dead-after", "max-wall", "ct-step", "ct-period", "ct-stop-time")
 _PROBABILITY = ("loss", "duplicate", "reorder")
 _BOOL = ("no-restart",)
 _LIST = ("crash",)

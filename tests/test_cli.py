@@ -120,3 +120,29 @@ def test_infeasible_grid_is_said_in_words(tmp_path):
     assert (tmp_path / "o" / "shapes.png").exists()
     result = json.loads((tmp_path / "o" / "result.json").read_text())
     assert result["central"]["status"] == "infeasible" and not result["converged"]
+
+
+def test_ct_admm_writes_the_trajectory(tmp_path):
+    out = tmp_path / "ct"
+    proc = run_cli("simulate", "--algorithm", "ct-admm", "--ct-stop-time", "2s", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((out / "result.json").read_text())
+    assert result["algorithm"] == "ct-admm" and result["rounds"] == 200  # 2 s of 10 ms periods
+    assert (out / "trajectory.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [(["--ct-period", "10.5ms"], "whole number of steps"), (["--ct-step", "fast"], "--ct-step"), (["--ct-stop-time", "-1s"], "--ct-stop-time")],
+)
+def test_ct_admm_bad_flags(tmp_path, args, needle):
+    proc = run_cli("simulate", "--algorithm", "ct-admm", "--out", str(tmp_path / "o"), *args)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert needle in proc.stderr.strip().splitlines()[-1]
+
+
+def test_gridstudy_says_the_shifted_grid_is_infeasible(tmp_path):
+    proc = run_cli("gridstudy", "--out", str(tmp_path / "g"), "--ct-stop-time", "1s")
+    assert proc.returncode == 0, proc.stderr
+    assert "INFEASIBLE" in proc.stdout and "feasible" in proc.stdout
+    assert (tmp_path / "g" / "grid_study.png").stat().st_size > 0

@@ -254,6 +254,19 @@ def test_eight_robots_lossy_same_iterates(tmp_path):
     assert all(r["frames_lost"] > 0 for r in out.robots)
 
 
+@bound(60)
+def test_ct_admm_over_zenoh_with_delay_and_loss(tmp_path):
+    """Issue 4: the continuous-time ADMM over the Zenoh fleet with 20 ms delay and 20 % loss
+    samples exactly the neighbour values the in-process flow does, round for round."""
+    faults = LinkFaults(loss=0.2, delay=0.020)
+    _world, spec, _central = _run(algorithm="ct-admm", max_rounds=150, faults=faults, fleet_id="launch-ct")
+    want = _simulate(spec)
+    out = _launch(spec, tmp_path)
+    _assert_same_iterates(out.robots, want)
+    assert all(r["frames_lost"] > 0 for r in out.robots)
+    assert all(r["algorithm"] == "ct-admm" for r in out.robots)
+
+
 # ----------------------------------------------------------------------------- 4.-5. crashes
 
 
