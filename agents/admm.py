@@ -17,25 +17,21 @@ Stopping: a robot estimates its distance to the fixed point from its residual r 
 change of its own values and disagreement with its neighbours) and the contraction seen over the
 last rounds, error ~ r / (1 - rate); tol is a bound on that estimate, in the units of the function
 error. Slowly contracting fleets (long rings, many robots) thus run longer instead of stopping
-early on a small per-round change. Each round carries D+1 flag bits. Bit 0 says "my estimate is below tol"; bit t of
-round k+1 is the AND of bit t-1 of round k over the robot and its neighbours. Bit D (D >= graph
-diameter) is therefore the AND over *all* robots of bit 0 from D rounds earlier: every robot
-sees the same value in the same round, so all stop together with the same iterates.
+early on a small per-round change. The fleet-wide agreement to stop, the frames and the inbox
+are the shared round protocol of `agents/rounds.py`.
 
 No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from agents.problem import MarginQP
-from protocol.frames import StateUpdate
-
-_TINY = 1e-12
+from agents.rounds import RoundCore, from_bytes, relative_gap, to_bytes
 
 
 @dataclass(frozen=True)
@@ -43,9 +39,9 @@ class ADMMParams:
     """Penalty, over-relaxation and stopping rule (the same on every robot)."""
 
     rho: float = 15.0
-    relax: float = 1.8
+    relax: float = 1.95
     tol: float = 1e-3  # bound on the estimated relative function error at the stop
-    max_rounds: int = 1000
+    max_rounds: int = 5000
     diameter: int = 1
 
     def __post_init__(self) -> None:
@@ -83,18 +79,10 @@ class _Edge:
         self.lam = self.lam + self.rho * (h_low - self.z)
 
     def state(self) -> list[bytes | None]:
-        return [_raw(self.z), _raw(self.lam)]
+        return [to_bytes(self.z), to_bytes(self.lam)]
 
     def load(self, state: list[bytes]) -> None:
-        self.z, self.lam = _arr(state[0]), _arr(state[1])
-
-
-def _raw(a: np.ndarray | None) -> bytes | None:
-    return None if a is None else np.asarray(a, "<f8").tobytes()
-
-
-def _arr(b: bytes | None) -> np.ndarray | None:
-    return None if b is None else np.frombuffer(b, "<f8").copy()
+        self.z, self.lam = from_bytes(state[0]), from_bytes(state[1])
 
 
 #: rounds per window of the contraction estimate; the estimate needs two full windows
@@ -120,23 +108,6 @@ def error_estimate(residuals: list[float]) -> float:
     return recent / (1.0 - rate)
 
 
-@dataclass
-class _Inbox:
-    """Neighbour values for the current round and the next (a neighbour may be one ahead)."""
-
-    values: dict[int, dict[int, np.ndarray]] = field(default_factory=dict)
-    flags: dict[int, dict[int, int]] = field(default_factory=dict)
-
-    def put(self, rnd: int, sender: int, values: np.ndarray, flags: int) -> None:
-        self.values.setdefault(rnd, {})[sender] = values
-        self.flags.setdefault(rnd, {})[sender] = flags
-
-    def forget_before(self, rnd: int) -> None:
-        for table in (self.values, self.flags):
-            for old in [r for r in table if r < rnd]:
-                del table[old]
-
-
 def edge_penalty(rho: float, my_degree: int, their_degree: int) -> float:
     """The ADMM penalty of one edge, the same at both ends.
 
@@ -147,13 +118,7 @@ def edge_penalty(rho: float, my_degree: int, their_degree: int) -> float:
     return rho / max(my_degree, their_degree, 1)
 
 
-def _relative_gap(v: np.ndarray, w: np.ndarray) -> float:
-    """Distance of two (x, gamma) measured like the fleet's function error, relative to v."""
-    dx = float(np.linalg.norm(v[:-1] - w[:-1])) / max(float(np.linalg.norm(v[:-1])), _TINY)
-    return dx + abs(float(v[-1] - w[-1])) / max(1.0, abs(float(v[-1])))
-
-
-class ConsensusADMM:
+class ConsensusADMM(RoundCore):
     """One robot's decentralized ADMM; drive it with receive / ready / advance."""
 
     algorithm = "admm"
@@ -171,12 +136,15 @@ class ConsensusADMM:
         neighbour_degrees: dict[int, int] | None = None,
         keep_trace: bool = True,
     ) -> None:
-        if robot_id in neighbours:
-            raise ValueError(f"robot {robot_id} lists itself as a neighbour")
-        self.robot_id = robot_id
-        self.neighbours = tuple(sorted(neighbours))
+        super().__init__(
+            robot_id,
+            neighbours,
+            features.shape[1] + 1,
+            diameter=params.diameter,
+            round_cap=params.max_rounds,
+            keep_trace=keep_trace,
+        )
         self.params = params
-        self.dim = features.shape[1] + 1
         self._features = features
         self._labels = labels
         self._C = C
@@ -187,180 +155,44 @@ class ConsensusADMM:
             for j in self.neighbours
         }
         self._qp = self._build_qp()
-        self._inbox = _Inbox()
-        self.dropped: list[int] = []
-        self.round = 0
-        self.finished = False
-        self.residual = float("inf")
         self._residuals: list[float] = []  # the last 2 * RATE_WINDOW, for the error estimate
-        self._flags = 0
-        self._prev_flags = 0
-        self._prev_values: np.ndarray | None = None
-        self._keep_trace = keep_trace
-        self.trace: dict[int, np.ndarray] = {}
         self._values = self._local_step()
         self._record()
         if not self.neighbours:  # alone: round 0 already solved the whole problem
             self.finished = True
             self.residual = 0.0
 
-    # -- the interface the shells drive -------------------------------------------------------
-    def outgoing(self) -> StateUpdate:
-        """What to publish now: this round's values, last round's piggybacked for recovery."""
-        return StateUpdate(
-            sender=self.robot_id,
-            round=self.round,
-            values=self._values.copy(),
-            flags=self._flags,
-            prev_values=None if self._prev_values is None else self._prev_values.copy(),
-            prev_flags=self._prev_flags,
-        )
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "error_estimate": error_estimate(self._residuals)}
 
-    def receive(self, update: StateUpdate) -> None:
-        """Keep a neighbour's exact values for the rounds still needed; ignore the rest."""
-        j = update.sender
-        if j not in self._edges:
-            return
-        if update.round in (self.round, self.round + 1):
-            self._inbox.put(update.round, j, update.values, update.flags)
-        if update.prev_values is not None and update.round - 1 in (self.round, self.round + 1):
-            self._inbox.put(update.round - 1, j, update.prev_values, update.prev_flags)
-
-    def missing(self) -> tuple[int, ...]:
-        """Neighbours whose value for the current round has not arrived."""
-        have = self._inbox.values.get(self.round, {})
-        return tuple(j for j in self.neighbours if j not in have)
-
-    def ready(self) -> bool:
-        """True when the next round can be computed."""
-        return not self.finished and not self.missing()
-
-    def advance(self) -> StateUpdate:
-        """Consume every neighbour's round-k values; compute round k+1."""
-        if self.finished:
-            raise RuntimeError(f"robot {self.robot_id} has finished; nothing to advance")
-        missing = self.missing()
-        if missing:
-            raise RuntimeError(f"robot {self.robot_id} round {self.round}: waiting for {missing}")
+    # -- one round ----------------------------------------------------------------------------
+    def _step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
         p = self.params
-        theirs = self._inbox.values[self.round]
-        their_flags = self._inbox.flags[self.round]
-        mine = self._values
-        primal = 0.0
         # round 0 holds each robot's own solution and no edge history: start z at the midpoint
         relax = p.relax if self.round > 0 else 1.0
         for j, edge in self._edges.items():
-            vj = theirs[j]
-            low, high = (mine, vj) if self.robot_id < j else (vj, mine)
+            low, high = (mine, theirs[j]) if self.robot_id < j else (theirs[j], mine)
             edge.update(low, high, relax)
-            primal = max(primal, _relative_gap(mine, vj))
-        dual = 0.0 if self._prev_values is None else _relative_gap(mine, self._prev_values)
+        primal = relative_gap(mine, np.array(list(theirs.values()))) if theirs else 0.0
+        dual = 0.0 if self._prev_values is None else relative_gap(mine, self._prev_values)
         self.residual = max(primal, dual)
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW :]
-        self._flags, self._prev_flags = self._next_flags(their_flags), self._flags
-        self._prev_values = mine
-        self._values = self._primal_step()
-        self.round += 1
-        self._inbox.forget_before(self.round)
-        self._record()
-        if self._flags >> p.diameter & 1 or self.round >= p.max_rounds:
-            self.finished = True
-        return self.outgoing()
+        below = error_estimate(self._residuals) < p.tol
+        return self._primal_step(), below
 
-    def drop_neighbour(self, j: int) -> None:
-        """Continue without a neighbour that died for good.
-
-        Removing the edge with its dual keeps sum_l lambda = 0 over the remaining robots, so
-        they converge to the solution of *their* data rather than a biased point.
-        """
-        if j not in self._edges:
-            return
+    def _forget_edge(self, j: int) -> None:
+        """Removing the edge with its dual keeps sum_l lambda = 0 over the remaining robots, so
+        they converge to the solution of *their* data rather than a biased point."""
         del self._edges[j]
-        self.neighbours = tuple(n for n in self.neighbours if n != j)
-        self.dropped.append(j)
-        for table in (self._inbox.values, self._inbox.flags):
-            for per_round in table.values():
-                per_round.pop(j, None)
         self._qp = self._build_qp()
 
-    @property
-    def converged(self) -> bool:
-        """Stopped by the residual rule (not by the round cap)."""
-        return self.finished and bool(self._flags >> self.params.diameter & 1)
+    def _save_state(self) -> dict[str, Any]:
+        return {"edges": {j: e.state() for j, e in self._edges.items()}, "residuals": list(self._residuals)}
 
-    @property
-    def values(self) -> np.ndarray:
-        """The current (x, gamma)."""
-        return self._values.copy()
-
-    def status(self) -> dict[str, Any]:
-        return {
-            "robot": self.robot_id,
-            "round": self.round,
-            "residual": self.residual,
-            "error_estimate": error_estimate(self._residuals),
-            "finished": self.finished,
-            "converged": self.converged,
-        }
-
-    def result(self) -> dict[str, Any]:
-        """x and gamma of this robot; the shell adds its counters, the launcher the c's."""
-        return {
-            "id": self.robot_id,
-            "algorithm": self.algorithm,
-            "x": self._values[:-1].tolist(),
-            "gamma": float(self._values[-1]),
-            "rounds": self.round,
-            "converged": self.converged,
-            "residual": self.residual,
-            "neighbours": list(self.neighbours),
-            "dropped": list(self.dropped),
-        }
-
-    # -- checkpoint ---------------------------------------------------------------------------
-    def checkpoint(self) -> dict[str, Any]:
-        """Everything needed to resume exactly (msgpack-able: floats as raw '<f8' bytes)."""
-        return {
-            "algorithm": self.algorithm,
-            "robot": self.robot_id,
-            "round": self.round,
-            "finished": self.finished,
-            "residual": self.residual,
-            "residuals": list(self._residuals),
-            "flags": self._flags,
-            "prev_flags": self._prev_flags,
-            "values": _raw(self._values),
-            "prev_values": _raw(self._prev_values),
-            "edges": {j: e.state() for j, e in self._edges.items()},
-            "dropped": list(self.dropped),
-            "inbox": [
-                [rnd, j, _raw(v), self._inbox.flags[rnd][j]]
-                for rnd, per in self._inbox.values.items()
-                for j, v in per.items()
-            ],
-        }
-
-    def restore(self, state: dict[str, Any]) -> None:
-        """Resume from `checkpoint()` output (the same robot, data and parameters)."""
-        if state.get("algorithm") != self.algorithm or state.get("robot") != self.robot_id:
-            raise ValueError("checkpoint belongs to another robot or algorithm")
-        for j in state["dropped"]:
-            self.drop_neighbour(int(j))
-        self.round = int(state["round"])
-        self.finished = bool(state["finished"])
-        self.residual = float(state["residual"])
-        self._residuals = [float(r) for r in state["residuals"]]
-        self._flags = int(state["flags"])
-        self._prev_flags = int(state["prev_flags"])
-        self._values = _arr(state["values"])
-        self._prev_values = _arr(state["prev_values"])
+    def _load_state(self, state: dict[str, Any]) -> None:
         for j, edge_state in state["edges"].items():
             self._edges[int(j)].load(edge_state)
-        self._inbox = _Inbox()
-        for rnd, j, v, flags in state["inbox"]:
-            self._inbox.put(int(rnd), int(j), _arr(v), int(flags))
-        self.trace = {}
-        self._record()
+        self._residuals = [float(r) for r in state["residuals"]]
 
     # -- internals ----------------------------------------------------------------------------
     def _build_qp(self) -> MarginQP:
@@ -389,15 +221,3 @@ class ConsensusADMM:
             q += edge.sign * edge.lam - edge.rho * edge.z
         sol = self._qp.solve(q)
         return np.append(sol.x, sol.gamma)
-
-    def _next_flags(self, their_flags: dict[int, int]) -> int:
-        below = error_estimate(self._residuals) < self.params.tol
-        combined = self._flags
-        for f in their_flags.values():
-            combined &= f
-        mask = (1 << (self.params.diameter + 1)) - 1
-        return ((combined << 1) | int(below)) & mask
-
-    def _record(self) -> None:
-        if self._keep_trace:
-            self.trace[self.round] = self._values.copy()

@@ -32,14 +32,13 @@ No I/O, no clock, no randomness: time is round * period, frames in (`receive`), 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 
-from protocol.frames import StateUpdate
+from agents.rounds import RoundCore, from_bytes, relative_gap, to_bytes
 
-_TINY = 1e-12
 #: Parameters of a fleet file that belong to the discrete ADMM: its penalty `rho` is not the
 #: flow's (that one is `ct_rho`), and relaxation has no meaning here.
 _ADMM_ONLY = ("rho", "rho_gamma", "relax")
@@ -136,40 +135,7 @@ class CTADMMParams:
         return cls(**kwargs)
 
 
-def _raw(a: np.ndarray | None) -> bytes | None:
-    return None if a is None else np.asarray(a, "<f8").tobytes()
-
-
-def _arr(b: bytes | None) -> np.ndarray | None:
-    return None if b is None else np.frombuffer(b, "<f8").copy()
-
-
-def _relative_gap(v: np.ndarray, w: np.ndarray) -> float:
-    """Distance of (x, gamma) to w (one vector or a row per neighbour, the largest counts),
-    measured like the fleet's function error, relative to v."""
-    d = np.atleast_2d(w) - v
-    dx = np.sqrt(np.einsum("ij,ij->i", d[:, :-1], d[:, :-1])) / max(float(np.sqrt(v[:-1] @ v[:-1])), _TINY)
-    return float(np.max(dx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))))
-
-
-@dataclass
-class _Inbox:
-    """Neighbour values for the current round and the next (a neighbour may be one ahead)."""
-
-    values: dict[int, dict[int, np.ndarray]] = field(default_factory=dict)
-    flags: dict[int, dict[int, int]] = field(default_factory=dict)
-
-    def put(self, rnd: int, sender: int, values: np.ndarray, flags: int) -> None:
-        self.values.setdefault(rnd, {})[sender] = values
-        self.flags.setdefault(rnd, {})[sender] = flags
-
-    def forget_before(self, rnd: int) -> None:
-        for table in (self.values, self.flags):
-            for old in [r for r in table if r < rnd]:
-                del table[old]
-
-
-class ContinuousTimeADMM:
+class ContinuousTimeADMM(RoundCore):
     """One robot's sampled continuous-time ADMM; drive it with receive / ready / advance."""
 
     algorithm = "ct-admm"
@@ -186,18 +152,21 @@ class ContinuousTimeADMM:
         C: float | None = None,
         keep_trace: bool = True,
     ) -> None:
-        if robot_id in neighbours:
-            raise ValueError(f"robot {robot_id} lists itself as a neighbour")
         features = np.asarray(features, dtype=float)
         labels = np.asarray(labels, dtype=float)
         if features.ndim != 2 or len(features) != len(labels) or len(labels) == 0:
             raise ValueError(f"features {features.shape} and labels {labels.shape} do not match")
         if C is not None and not (math.isfinite(C) and C > 0):
             raise ValueError(f"C must be a positive number or None, got {C!r}")
-        self.robot_id = robot_id
-        self.neighbours = tuple(sorted(neighbours))
+        super().__init__(
+            robot_id,
+            neighbours,
+            features.shape[1] + 1,
+            diameter=params.diameter,
+            round_cap=params.rounds,
+            keep_trace=keep_trace,
+        )
         self.params = params
-        self.dim = features.shape[1] + 1
         self._A = labels[:, None] * np.hstack([features, np.ones((len(features), 1))])
         self._n_robots = n_robots
         # per-robot bound on the margin duals: C of the centralized problem, rescaled because
@@ -205,116 +174,10 @@ class ContinuousTimeADMM:
         self._u_min = -math.inf if C is None else -float(C) * n_robots * params.beta
         self._sign = {j: (1.0 if robot_id < j else -1.0) for j in self.neighbours}
         self._lam = {j: np.zeros(self.dim) for j in self.neighbours}  # low end's consensus dual
-        self._v = np.zeros(self.dim)
         self._y = np.zeros(len(self._A))
         self._mu = np.zeros(len(self._A))
         self._build_metric()
-        self._inbox = _Inbox()
-        self.dropped: list[int] = []
-        self.round = 0
-        self.finished = False
-        self.residual = math.inf
-        self._flags = 0
-        self._prev_flags = 0
-        self._prev_values: np.ndarray | None = None
-        self._keep_trace = keep_trace
-        self.trace: dict[int, np.ndarray] = {}
         self._record()
-
-    # -- the interface the shells drive -------------------------------------------------------
-    def outgoing(self) -> StateUpdate:
-        """What to publish now: this round's sample, last round's piggybacked for recovery."""
-        return StateUpdate(
-            sender=self.robot_id,
-            round=self.round,
-            values=self._v.copy(),
-            flags=self._flags,
-            prev_values=None if self._prev_values is None else self._prev_values.copy(),
-            prev_flags=self._prev_flags,
-        )
-
-    def receive(self, update: StateUpdate) -> None:
-        """Keep a neighbour's exact samples for the rounds still needed; ignore the rest."""
-        j = update.sender
-        if j not in self._lam:
-            return
-        if update.values.shape != (self.dim,):
-            raise ValueError(f"robot {j} sent {update.values.shape[0]} values, expected {self.dim}")
-        if update.round in (self.round, self.round + 1):
-            self._inbox.put(update.round, j, update.values, update.flags)
-        if update.prev_values is not None and update.round - 1 in (self.round, self.round + 1):
-            self._inbox.put(update.round - 1, j, update.prev_values, update.prev_flags)
-
-    def missing(self) -> tuple[int, ...]:
-        """Neighbours whose sample for the current round has not arrived."""
-        have = self._inbox.values.get(self.round, {})
-        return tuple(j for j in self.neighbours if j not in have)
-
-    def ready(self) -> bool:
-        """True when the next period can be integrated (every neighbour's exact sample is here)."""
-        return not self.finished and not self.missing()
-
-    def advance(self) -> StateUpdate:
-        """Consume every neighbour's round-k sample; integrate one period; publish round k+1."""
-        if self.finished:
-            raise RuntimeError(f"robot {self.robot_id} has finished; nothing to advance")
-        missing = self.missing()
-        if missing:
-            raise RuntimeError(f"robot {self.robot_id} round {self.round}: waiting for {missing}")
-        p = self.params
-        theirs = self._inbox.values.get(self.round, {})
-        their_flags = self._inbox.flags.get(self.round, {})
-        mine = self._v.copy()
-        # consensus PI: integral part from the two exact samples (both ends compute the same
-        # number, so lam_lj = -lam_jl stays exact); proportional part pulls to the midpoints
-        pull = np.zeros(self.dim)
-        step = p.consensus_gain * p.rho_c * 0.5
-        for j in self.neighbours:
-            vj = theirs[j]
-            low, high = (mine, vj) if self.robot_id < j else (vj, mine)
-            self._lam[j] = self._lam[j] + step * (low - high)
-            pull += self._sign[j] * self._lam[j] - p.rho_c * (0.5 * (mine + vj))
-        gap = _relative_gap(mine, np.array([theirs[j] for j in self.neighbours])) if self.neighbours else 0.0
-        # no previous sample, no evidence of rest: round 0 never counts as converged
-        change = math.inf if self._prev_values is None else _relative_gap(mine, self._prev_values)
-        settle = 1.0 - self._target(self.round * p.steps_per_round)
-        self.residual = max(gap, change * max(p.ref_time, p.period) / p.period, settle)
-        self._flags, self._prev_flags = self._next_flags(their_flags), self._flags
-        self._prev_values = mine
-        self._integrate(pull)
-        self.round += 1
-        self._inbox.forget_before(self.round)
-        self._record()
-        if self._flags >> p.diameter & 1 or self.round >= p.rounds:
-            self.finished = True
-        return self.outgoing()
-
-    def drop_neighbour(self, j: int) -> None:
-        """Continue without a neighbour that died for good.
-
-        Removing the edge with its dual keeps the remaining duals summing to zero, so the others
-        converge to the solution of *their* data; the metric is rebuilt for the new degree.
-        """
-        if j not in self._lam:
-            return
-        del self._lam[j]
-        del self._sign[j]
-        self.neighbours = tuple(n for n in self.neighbours if n != j)
-        self.dropped.append(j)
-        for table in (self._inbox.values, self._inbox.flags):
-            for per_round in table.values():
-                per_round.pop(j, None)
-        self._build_metric()
-
-    @property
-    def converged(self) -> bool:
-        """Stopped by the residual rule (not by the stop time)."""
-        return self.finished and bool(self._flags >> self.params.diameter & 1)
-
-    @property
-    def values(self) -> np.ndarray:
-        """The current (x, gamma)."""
-        return self._v.copy()
 
     @property
     def time(self) -> float:
@@ -326,77 +189,47 @@ class ContinuousTimeADMM:
         """Largest |margin dual|: grows without bound when the hard margin is infeasible."""
         return float(np.max(np.abs(self._mu))) if len(self._mu) else 0.0
 
-    def status(self) -> dict[str, Any]:
-        return {
-            "robot": self.robot_id,
-            "round": self.round,
-            "residual": self.residual,
-            "finished": self.finished,
-            "converged": self.converged,
-        }
-
     def result(self) -> dict[str, Any]:
-        """x and gamma of this robot; the shell adds its counters, the launcher the c's."""
+        return {**super().result(), "time_s": self.time, "dual_norm": self.dual_norm}
+
+    # -- one period ---------------------------------------------------------------------------
+    def _step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
+        p = self.params
+        # consensus PI: integral part from the two exact samples (both ends compute the same
+        # number, so lam_lj = -lam_jl stays exact); proportional part pulls to the midpoints
+        pull = np.zeros(self.dim)
+        step = p.consensus_gain * p.rho_c * 0.5
+        for j in self.neighbours:
+            vj = theirs[j]
+            low, high = (mine, vj) if self.robot_id < j else (vj, mine)
+            self._lam[j] = self._lam[j] + step * (low - high)
+            pull += self._sign[j] * self._lam[j] - p.rho_c * (0.5 * (mine + vj))
+        gap = relative_gap(mine, np.array([theirs[j] for j in self.neighbours])) if self.neighbours else 0.0
+        # no previous sample, no evidence of rest: round 0 never counts as converged
+        change = math.inf if self._prev_values is None else relative_gap(mine, self._prev_values)
+        settle = 1.0 - self._target(self.round * p.steps_per_round)
+        self.residual = max(gap, change * max(p.ref_time, p.period) / p.period, settle)
+        return self._integrate(mine, pull), self.residual < p.tol
+
+    def _forget_edge(self, j: int) -> None:
+        """Removing the edge with its dual keeps the remaining duals summing to zero, so the others
+        converge to the solution of *their* data; the metric is rebuilt for the new degree."""
+        del self._lam[j]
+        del self._sign[j]
+        self._build_metric()
+
+    def _save_state(self) -> dict[str, Any]:
         return {
-            "id": self.robot_id,
-            "algorithm": self.algorithm,
-            "x": self._v[:-1].tolist(),
-            "gamma": float(self._v[-1]),
-            "rounds": self.round,
-            "converged": self.converged,
-            "residual": self.residual,
-            "neighbours": list(self.neighbours),
-            "dropped": list(self.dropped),
-            "time_s": self.time,
-            "dual_norm": self.dual_norm,
+            "slack": to_bytes(self._y),
+            "duals": to_bytes(self._mu),
+            "edges": {j: to_bytes(lam) for j, lam in self._lam.items()},
         }
 
-    # -- checkpoint ---------------------------------------------------------------------------
-    def checkpoint(self) -> dict[str, Any]:
-        """Everything needed to resume exactly (msgpack-able: floats as raw '<f8' bytes)."""
-        return {
-            "algorithm": self.algorithm,
-            "robot": self.robot_id,
-            "round": self.round,
-            "finished": self.finished,
-            "residual": self.residual,
-            "flags": self._flags,
-            "prev_flags": self._prev_flags,
-            "values": _raw(self._v),
-            "prev_values": _raw(self._prev_values),
-            "slack": _raw(self._y),
-            "duals": _raw(self._mu),
-            "edges": {j: _raw(lam) for j, lam in self._lam.items()},
-            "dropped": list(self.dropped),
-            "inbox": [
-                [rnd, j, _raw(v), self._inbox.flags[rnd][j]]
-                for rnd, per in self._inbox.values.items()
-                for j, v in per.items()
-            ],
-        }
-
-    def restore(self, state: dict[str, Any]) -> None:
-        """Resume from `checkpoint()` output (the same robot, data and parameters)."""
-        if state.get("algorithm") != self.algorithm or state.get("robot") != self.robot_id:
-            raise ValueError("checkpoint belongs to another robot or algorithm")
-        for j in state["dropped"]:
-            self.drop_neighbour(int(j))
-        self.round = int(state["round"])
-        self.finished = bool(state["finished"])
-        self.residual = float(state["residual"])
-        self._flags = int(state["flags"])
-        self._prev_flags = int(state["prev_flags"])
-        self._v = _arr(state["values"])
-        self._prev_values = _arr(state["prev_values"])
-        self._y = _arr(state["slack"])
-        self._mu = _arr(state["duals"])
+    def _load_state(self, state: dict[str, Any]) -> None:
+        self._y = from_bytes(state["slack"])
+        self._mu = from_bytes(state["duals"])
         for j, lam in state["edges"].items():
-            self._lam[int(j)] = _arr(lam)
-        self._inbox = _Inbox()
-        for rnd, j, v, flags in state["inbox"]:
-            self._inbox.put(int(rnd), int(j), _arr(v), int(flags))
-        self.trace = {}
-        self._record()
+            self._lam[int(j)] = from_bytes(lam)
 
     # -- internals ----------------------------------------------------------------------------
     def _build_metric(self) -> None:
@@ -437,7 +270,7 @@ class ContinuousTimeADMM:
         t = (first + np.arange(count)) * p.step
         return -np.expm1(-t / p.ref_time)
 
-    def _integrate(self, pull: np.ndarray) -> None:
+    def _integrate(self, v: np.ndarray, pull: np.ndarray) -> np.ndarray:
         """One period of forward-Euler steps with the neighbours' samples held.
 
         Per step: the slack's exact projected step, the margin duals' PI output u, the primal
@@ -451,7 +284,7 @@ class ContinuousTimeADMM:
         low = self._u_min * inv_rho
         A, G, B = self._A, self._G, self._B
         offset = self._Pinv_eta @ pull
-        v, y, mu = self._v, self._y, self._mu
+        y, mu = self._y, self._mu
         av = A @ v
         for s in self._targets(self.round * p.steps_per_round, p.steps_per_round):
             shifted = av - s + mu * inv_rho
@@ -465,16 +298,5 @@ class ContinuousTimeADMM:
             mu = mu + dual_step * (av - s - y)
         if not (np.all(np.isfinite(v)) and np.all(np.isfinite(mu))):
             raise FloatingPointError(f"robot {self.robot_id}: the flow left the finite numbers at round {self.round}")
-        self._v, self._y, self._mu = v, y, mu
-
-    def _next_flags(self, their_flags: dict[int, int]) -> int:
-        below = self.residual < self.params.tol
-        combined = self._flags
-        for f in their_flags.values():
-            combined &= f
-        mask = (1 << (self.params.diameter + 1)) - 1
-        return ((combined << 1) | int(below)) & mask
-
-    def _record(self) -> None:
-        if self._keep_trace:
-            self.trace[self.round] = self._v.copy()
+        self._y, self._mu = y, mu
+        return v

@@ -1,0 +1,265 @@
+"""The round protocol every per-robot algorithm shares, as a sans-IO base class.
+
+A robot's algorithm advances in rounds. Round k's frame carries the robot's vector v^k and its
+stop flags, with round k-1 piggybacked so that a receiver that lost that frame recovers the exact
+value (a stale substitute would bias the answer). Advancing from k to k+1 needs the exact v_j^k of
+every neighbour; neighbours are therefore at most one round apart, and the inbox keeps rounds k
+and k+1 only.
+
+Stopping: each round carries D+1 flag bits. Bit 0 says "my own stopping test passed"; bit t of
+round k+1 is the AND of bit t-1 of round k over the robot and its neighbours. Bit D (D >= graph
+diameter) is thus the AND over *all* robots of bit 0 from D rounds earlier: every robot sees the
+same value in the same round, so all stop together.
+
+Subclasses implement the mathematics in `_step` (one round) and say what else a checkpoint holds;
+they never see frames, inboxes or flags.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from protocol.frames import StateUpdate
+
+_TINY = 1e-12
+
+
+def to_bytes(a: np.ndarray | None) -> bytes | None:
+    """A float vector as raw little-endian float64 (checkpoints are msgpack)."""
+    return None if a is None else np.asarray(a, "<f8").tobytes()
+
+
+def from_bytes(b: bytes | None) -> np.ndarray | None:
+    return None if b is None else np.frombuffer(b, "<f8").copy()
+
+
+def relative_gap(v: np.ndarray, w: np.ndarray) -> float:
+    """Distance of (x, gamma) to w (one vector or a row per neighbour, the largest counts),
+    measured like the fleet's function error, relative to v."""
+    d = np.atleast_2d(w) - v
+    dx = np.sqrt(np.einsum("ij,ij->i", d[:, :-1], d[:, :-1])) / max(float(np.sqrt(v[:-1] @ v[:-1])), _TINY)
+    return float(np.max(dx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))))
+
+
+@dataclass
+class _Inbox:
+    """Neighbour values for the current round and the next (a neighbour may be one ahead)."""
+
+    values: dict[int, dict[int, np.ndarray]] = field(default_factory=dict)
+    flags: dict[int, dict[int, int]] = field(default_factory=dict)
+
+    def put(self, rnd: int, sender: int, values: np.ndarray, flags: int) -> None:
+        self.values.setdefault(rnd, {})[sender] = values
+        self.flags.setdefault(rnd, {})[sender] = flags
+
+    def forget_before(self, rnd: int) -> None:
+        for table in (self.values, self.flags):
+            for old in [r for r in table if r < rnd]:
+                del table[old]
+
+    def forget_sender(self, sender: int) -> None:
+        for table in (self.values, self.flags):
+            for per_round in table.values():
+                per_round.pop(sender, None)
+
+
+class RoundCore:
+    """Frames in (`receive`), frames out (`outgoing`, `advance`); the maths is in `_step`."""
+
+    algorithm = ""
+
+    def __init__(
+        self,
+        robot_id: int,
+        neighbours: tuple[int, ...],
+        dim: int,
+        *,
+        diameter: int,
+        round_cap: int,
+        keep_trace: bool,
+    ) -> None:
+        if robot_id in neighbours:
+            raise ValueError(f"robot {robot_id} lists itself as a neighbour")
+        if not 0 <= diameter <= 62:
+            raise ValueError(f"diameter must be in [0, 62] (flag bits), got {diameter}")
+        self.robot_id = robot_id
+        self.neighbours = tuple(sorted(neighbours))
+        self.dim = dim
+        self.round = 0
+        self.finished = False
+        self.residual = math.inf
+        self.dropped: list[int] = []
+        self.trace: dict[int, np.ndarray] = {}
+        self._diameter = diameter
+        self._round_cap = round_cap
+        self._keep_trace = keep_trace
+        self._inbox = _Inbox()
+        self._values = np.zeros(dim)
+        self._prev_values: np.ndarray | None = None
+        self._flags = 0
+        self._prev_flags = 0
+
+    # -- the interface the shells drive -------------------------------------------------------
+    def outgoing(self) -> StateUpdate:
+        """What to publish now: this round's values, last round's piggybacked for recovery."""
+        return StateUpdate(
+            sender=self.robot_id,
+            round=self.round,
+            values=self._values.copy(),
+            flags=self._flags,
+            prev_values=None if self._prev_values is None else self._prev_values.copy(),
+            prev_flags=self._prev_flags,
+        )
+
+    def receive(self, update: StateUpdate) -> None:
+        """Keep a neighbour's exact values for the rounds still needed; ignore the rest."""
+        j = update.sender
+        if j not in self.neighbours:
+            return
+        if update.values.shape != (self.dim,):
+            raise ValueError(f"robot {j} sent {update.values.shape[0]} values, expected {self.dim}")
+        if update.round in (self.round, self.round + 1):
+            self._inbox.put(update.round, j, update.values, update.flags)
+        if update.prev_values is not None and update.round - 1 in (self.round, self.round + 1):
+            self._inbox.put(update.round - 1, j, update.prev_values, update.prev_flags)
+
+    def missing(self) -> tuple[int, ...]:
+        """Neighbours whose value for the current round has not arrived."""
+        have = self._inbox.values.get(self.round, {})
+        return tuple(j for j in self.neighbours if j not in have)
+
+    def ready(self) -> bool:
+        """True when the next round can be computed."""
+        return not self.finished and not self.missing()
+
+    def advance(self) -> StateUpdate:
+        """Consume every neighbour's round-k values; compute round k+1."""
+        if self.finished:
+            raise RuntimeError(f"robot {self.robot_id} has finished; nothing to advance")
+        missing = self.missing()
+        if missing:
+            raise RuntimeError(f"robot {self.robot_id} round {self.round}: waiting for {missing}")
+        theirs = {j: self._inbox.values[self.round][j] for j in self.neighbours}
+        their_flags = self._inbox.flags.get(self.round, {})
+        mine = self._values
+        new_values, below = self._step(mine, theirs)
+        combined = self._flags
+        for f in their_flags.values():
+            combined &= f
+        mask = (1 << (self._diameter + 1)) - 1
+        self._flags, self._prev_flags = ((combined << 1) | int(below)) & mask, self._flags
+        self._prev_values = mine
+        self._values = new_values
+        self.round += 1
+        self._inbox.forget_before(self.round)
+        self._record()
+        if self._flags >> self._diameter & 1 or self.round >= self._round_cap:
+            self.finished = True
+        return self.outgoing()
+
+    def drop_neighbour(self, j: int) -> None:
+        """Continue without a neighbour that died for good (the subclass drops its edge state)."""
+        if j not in self.neighbours:
+            return
+        self.neighbours = tuple(n for n in self.neighbours if n != j)
+        self.dropped.append(j)
+        self._inbox.forget_sender(j)
+        self._forget_edge(j)
+
+    @property
+    def converged(self) -> bool:
+        """Stopped by the stopping rule (not by the round cap)."""
+        return self.finished and bool(self._flags >> self._diameter & 1)
+
+    @property
+    def values(self) -> np.ndarray:
+        """The current (x, gamma)."""
+        return self._values.copy()
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "robot": self.robot_id,
+            "round": self.round,
+            "residual": self.residual,
+            "finished": self.finished,
+            "converged": self.converged,
+        }
+
+    def result(self) -> dict[str, Any]:
+        """x and gamma of this robot; the shell adds its counters, the launcher the c's."""
+        return {
+            "id": self.robot_id,
+            "algorithm": self.algorithm,
+            "x": self._values[:-1].tolist(),
+            "gamma": float(self._values[-1]),
+            "rounds": self.round,
+            "converged": self.converged,
+            "residual": self.residual,
+            "neighbours": list(self.neighbours),
+            "dropped": list(self.dropped),
+        }
+
+    # -- checkpoint ---------------------------------------------------------------------------
+    def checkpoint(self) -> dict[str, Any]:
+        """Everything needed to resume exactly (msgpack-able: floats as raw '<f8' bytes)."""
+        return {
+            "algorithm": self.algorithm,
+            "robot": self.robot_id,
+            "round": self.round,
+            "finished": self.finished,
+            "residual": self.residual,
+            "flags": self._flags,
+            "prev_flags": self._prev_flags,
+            "values": to_bytes(self._values),
+            "prev_values": to_bytes(self._prev_values),
+            "dropped": list(self.dropped),
+            "inbox": [
+                [rnd, j, to_bytes(v), self._inbox.flags[rnd][j]]
+                for rnd, per in self._inbox.values.items()
+                for j, v in per.items()
+            ],
+            "state": self._save_state(),
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Resume from `checkpoint()` output (the same robot, data and parameters)."""
+        if state.get("algorithm") != self.algorithm or state.get("robot") != self.robot_id:
+            raise ValueError("checkpoint belongs to another robot or algorithm")
+        for j in state["dropped"]:
+            self.drop_neighbour(int(j))
+        self.round = int(state["round"])
+        self.finished = bool(state["finished"])
+        self.residual = float(state["residual"])
+        self._flags = int(state["flags"])
+        self._prev_flags = int(state["prev_flags"])
+        self._values = from_bytes(state["values"])
+        self._prev_values = from_bytes(state["prev_values"])
+        self._inbox = _Inbox()
+        for rnd, j, v, flags in state["inbox"]:
+            self._inbox.put(int(rnd), int(j), from_bytes(v), int(flags))
+        self._load_state(state["state"])
+        self.trace = {}
+        self._record()
+
+    # -- what a subclass provides -------------------------------------------------------------
+    def _step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
+        """One round of the algorithm from the exact round-k values: (v^{k+1}, my stop test)."""
+        raise NotImplementedError
+
+    def _forget_edge(self, j: int) -> None:
+        """Drop the state of the edge to a neighbour that died for good."""
+        raise NotImplementedError
+
+    def _save_state(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def _load_state(self, state: dict[str, Any]) -> None:
+        raise NotImplementedError
+
+    def _record(self) -> None:
+        if self._keep_trace:
+            self.trace[self.round] = self._values.copy()
