@@ -121,7 +121,7 @@ def test_a_data_source_on_the_command_line_replaces_the_files(tmp_path):
 
 def test_relative_paths_are_relative_to_the_file(tmp_path, monkeypatch):
     (tmp_path / "conf").mkdir()
-    path = write(tmp_path / "conf", '[world]\ndata = "../data.csv"\n')
+    write(tmp_path / "conf", '[world]\ndata = "../data.csv"\n')
     monkeypatch.chdir(tmp_path)
     assert parse_args(["central", "--config", "conf/scenario.toml"]).data == str(tmp_path / "conf" / ".." / "data.csv")
 

@@ -167,7 +167,7 @@ def test_the_compose_flow_on_local_folders(tmp_path, monkeypatch):
 
     assert main(local(SERVICES["prepare"])) == 0
     full = FleetSpec.load(volumes["fleet"] / "fleet.json")
-    for name, service in ROBOTS.items():
+    for service in ROBOTS.values():
         monkeypatch.setenv("SHAPEFLEET_ROBOT_ID", service["environment"]["SHAPEFLEET_ROBOT_ID"])
         args = build_parser().parse_args(local(service))
         spec = FleetSpec.load(args.fleet_file)
