@@ -47,7 +47,7 @@ import msgpack
 import numpy as np
 
 from protocol.frames import Decoded, FrameDecoder, StateUpdate, encode_state
-from protocol.keys import fleet_prefix, state_key
+from protocol.keys import alive_key, alive_wildcard, state_key
 from protocol.links import LinkLayer
 from protocol.zenoh_config import robot_config, to_zenoh_config
 
@@ -87,15 +87,6 @@ def _finite(obj: Any) -> Any:
     if isinstance(obj, (list, tuple)):
         return [_finite(v) for v in obj]
     return obj
-
-
-def alive_key(fleet: str, robot: int) -> str:
-    """Liveliness token of a robot (declared once its subscriptions are in place)."""
-    return f"{fleet_prefix(fleet)}/robot/{int(robot)}/alive"
-
-
-def alive_wildcard(fleet: str) -> str:
-    return f"{fleet_prefix(fleet)}/robot/*/alive"
 
 
 # --------------------------------------------------------------------------- atomic files

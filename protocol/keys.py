@@ -72,6 +72,15 @@ def status_wildcard(fleet: str) -> str:
     return f"{fleet_prefix(fleet)}/robot/*/status"
 
 
+def alive_key(fleet: str, robot: int) -> str:
+    """Liveliness token of a robot, declared once its subscriptions are in place."""
+    return f"{fleet_prefix(fleet)}/robot/{validate_robot_id(robot)}/alive"
+
+
+def alive_wildcard(fleet: str) -> str:
+    return f"{fleet_prefix(fleet)}/robot/*/alive"
+
+
 def robot_from_key(key: str) -> int | None:
     """Robot id of a state or status key, or None if ``key`` is not one.
 
