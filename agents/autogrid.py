@@ -56,6 +56,7 @@ from agents.admm import ADMMParams, ConsensusADMM
 from agents.kernel import GridBasis
 from agents.problem import InfeasibleError, MarginQP
 from agents.rounds import RoundCore, from_bytes, to_bytes
+from protocol.frames import StateUpdate
 
 #: sigma = (diagonal of the data's bounding box) / SIGMA_DIVISOR
 SIGMA_DIVISOR = 8.0
@@ -83,7 +84,7 @@ class AutoGridParams:
     rho: float = 15.0
     relax: float = 1.95
     tol: float = 1e-3
-    hard_rounds: int = 1500  # no convergence within this many rounds: hard margin infeasible
+    hard_rounds: int = 3000  # no convergence within this many rounds: hard margin infeasible
     soft_rounds: int = 3000
     soft_C: float = 1e3
     C: float | None = None  # a number: soft margin from the start (no hard attempt)
@@ -139,7 +140,9 @@ def lattice_box(bounds: tuple[float, float, float, float], sigma: float) -> tupl
     return (x0 - sigma, x1 + sigma, y0 - sigma, y1 + sigma)
 
 
-def lattice(box: tuple[float, float, float, float], h0: float, level: int) -> np.ndarray:
+def lattice(
+    box: tuple[float, float, float, float], h0: float, level: int, *, with_shape: bool = False
+) -> np.ndarray | tuple[np.ndarray, tuple[int, int]]:
     """Nodes of the level-`level` lattice (spacing h0 / 2^level) centred on `box`, row-major.
 
     Level L+1 contains level L: its node 2i is node i of level L.
@@ -152,7 +155,8 @@ def lattice(box: tuple[float, float, float, float], h0: float, level: int) -> np
         centre = 0.5 * (lo + hi)
         axes.append(centre + (np.arange(n) - (n - 1) / 2.0) * (h0 / 2**level))
     gx, gy = np.meshgrid(axes[0], axes[1])
-    return np.column_stack([gx.ravel(), gy.ravel()])
+    nodes = np.column_stack([gx.ravel(), gy.ravel()])
+    return (nodes, gx.shape) if with_shape else nodes
 
 
 def refine_grid(
@@ -167,24 +171,37 @@ def refine_grid(
 ) -> tuple[np.ndarray, int]:
     """The refined grid from f alone: (old grid + chosen nodes, the lattice level used).
 
-    Candidates are the nodes of the first level > `level` with nodes in the band |f| < band not
-    already in the grid (within a quarter spacing); the closest to the zero level set come first
-    (ties by lattice index), at most len(grid) of them and within the budget. Returns the grid
+    Candidates are the nodes of the first level > `level` that are not already in the grid
+    (within a quarter spacing) and lie near the zero level set: in the margin band |f| < band,
+    or next to a lattice neighbour where f has the other sign (the outline crosses that cell
+    edge, whatever the steepness of f). The closest to the zero level set (smallest |f|) come
+    first, ties by lattice index; at most len(grid) of them, within the budget. Returns the grid
     unchanged when there is nothing to add.
     """
     room = min(params.max_points - len(grid), len(grid))
     if room <= 0:
         return grid, level
     for lv in range(level + 1, params.max_level + 1):
-        nodes = lattice(box, h0, lv)
+        nodes, shape = lattice(box, h0, lv, with_shape=True)
         near = _min_distance(nodes, grid) < 0.25 * h0 / 2**lv
         f = basis.decision(nodes, c, gamma)
-        pick = np.flatnonzero(~near & (np.abs(f) < params.band))
+        pick = np.flatnonzero(~near & ((np.abs(f) < params.band) | _crossing(f.reshape(shape)).ravel()))
         if len(pick) == 0:
             continue
         order = pick[np.lexsort((pick, np.abs(f[pick])))][:room]
         return np.vstack([grid, nodes[np.sort(order)]]), lv
     return grid, level
+
+
+def _crossing(f: np.ndarray) -> np.ndarray:
+    """Nodes with a 4-neighbour of the other sign (the zero level set passes next to them)."""
+    s = f > 0
+    out = np.zeros_like(s)
+    out[:, 1:] |= s[:, 1:] != s[:, :-1]
+    out[:, :-1] |= s[:, 1:] != s[:, :-1]
+    out[1:, :] |= s[1:, :] != s[:-1, :]
+    out[:-1, :] |= s[1:, :] != s[:-1, :]
+    return out
 
 
 def _min_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -268,6 +285,8 @@ class AdaptiveGridCore(RoundCore):
         self._sub: _WarmADMM | None = None
         self._sub_converged = False
         self._best_norm2: float | None = None
+        self._refinements = 0
+        self._admm_rounds = 0
         self._final: np.ndarray | None = None  # (x, gamma) agreed by the fleet
         self._final_flags = 0
         self._enter_bounds()
@@ -395,7 +414,6 @@ class AdaptiveGridCore(RoundCore):
             agreed_from=int(self._values[-1]),
         )
         self._final = agreed
-        refinements = len({h["size"] for h in self.grid_history}) - 1
         helps = True
         if self._mode == "hard":
             self.margin = "hard"
@@ -403,7 +421,7 @@ class AdaptiveGridCore(RoundCore):
                 helps = False
             self._best_norm2 = norm2 if self._best_norm2 is None else min(norm2, self._best_norm2)
         new_grid, level = self.grid, self._level
-        if helps and refinements < self.params.max_refinements:
+        if helps and self._refinements < self.params.max_refinements:
             c = self._basis.c_from_x(x)
             new_grid, level = refine_grid(self.grid, self._basis, c, gamma, self._box, self._h0, self._level, self.params)
         if len(new_grid) == len(self.grid):
@@ -411,6 +429,7 @@ class AdaptiveGridCore(RoundCore):
             return
         c_old = self._basis.c_from_x(x)
         self._level = level
+        self._refinements += 1
         new_basis = GridBasis(new_grid, self.sigma)
         warm = np.append(new_basis.x_from_c(np.append(c_old, np.zeros(len(new_grid) - len(self.grid)))), gamma)
         if self._mode == "soft" and self.params.C is None:
@@ -465,8 +484,6 @@ class AdaptiveGridCore(RoundCore):
             new = min([mine, *theirs.values()], key=lambda v: v[-1])
             self._left -= 1
         else:  # ADMM: hand the neighbours' exact round values to the sub-machine
-            from protocol.frames import StateUpdate
-
             sub = self._sub
             for j, v in theirs.items():
                 sub.receive(StateUpdate(j, sub.round, self._unpad(v), int(their_flags.get(j, 0)), None))
@@ -556,7 +573,8 @@ class AdaptiveGridCore(RoundCore):
             "warm": to_bytes(self._warm),
             "sub": sub,
             "sub_converged": self._sub_converged,
-            "admm_rounds": getattr(self, "_admm_rounds", 0),
+            "admm_rounds": self._admm_rounds,
+            "refinements": self._refinements,
             "best_norm2": self._best_norm2,
             "final": to_bytes(self._final),
             "history": [
@@ -579,6 +597,7 @@ class AdaptiveGridCore(RoundCore):
         self._phase_start = int(state["phase_start"])
         self._sub_converged = bool(state["sub_converged"])
         self._admm_rounds = int(state["admm_rounds"])
+        self._refinements = int(state["refinements"])
         self._best_norm2 = state["best_norm2"]
         self._final = from_bytes(state["final"])
         self.grid_history = [
@@ -608,6 +627,8 @@ class AdaptiveGridCore(RoundCore):
         self._values = from_bytes(state["values"])
         self._flags = int(state["flags"])
         self.finished = bool(state["finished"])
+        self.trace = {}
+        self._record()
 
 
 def core_params_dict(params: AutoGridParams) -> dict[str, Any]:
