@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -28,3 +34,28 @@ def max_function_error(spec, central, robots) -> float:
     return max(
         b.function_error(b.c_from_x(np.asarray(r["x"])), r["gamma"], central.c, central.gamma) for r in robots
     )
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def start_router(folder: Path, port: int, *, max_wall_s: float) -> subprocess.Popen:
+    """A router subprocess on a loopback port, returned once it listens (bounded wait).
+
+    The caller stops it by its PID (launcher.fleet.stop_process) in a `finally`.
+    """
+    ready = folder / "ready.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "launcher.router", "--port", str(port), "--ready-file", str(ready),
+         "--max-wall-s", str(max_wall_s)],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+    )
+    deadline = time.monotonic() + 20
+    while not ready.exists():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            from launcher.fleet import stop_process
+
+            stop_process(proc)
+            raise AssertionError(f"router did not become ready: {proc.stderr.read().decode()}")
+        time.sleep(0.02)
+    return proc

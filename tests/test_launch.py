@@ -38,7 +38,7 @@ from protocol.frames import StateUpdate, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
 from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint  # noqa: E402
-from tests.conftest import make_run, max_function_error  # noqa: E402
+from tests.conftest import make_run, max_function_error, start_router  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
@@ -115,19 +115,8 @@ def bounded_and_clean(request, tmp_path):
 def shared_router(tmp_path_factory):
     """One router several fleets (and test clients) connect to."""
     port = free_loopback_port()
-    folder = tmp_path_factory.mktemp("shared-router")
-    ready = folder / "ready.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "launcher.router", "--port", str(port), "--ready-file", str(ready),
-         "--max-wall-s", "240"],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=str(ROOT)),
-    )
+    proc = start_router(tmp_path_factory.mktemp("shared-router"), port, max_wall_s=240)
     try:
-        deadline = time.monotonic() + 20
-        while not ready.exists():
-            assert proc.poll() is None, proc.stderr.read().decode()
-            assert time.monotonic() < deadline, "router did not become ready"
-            time.sleep(0.02)
         yield router_endpoint(port)
     finally:
         stop_process(proc)

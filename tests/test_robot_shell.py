@@ -15,7 +15,6 @@ import asyncio
 import functools
 import io
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -36,6 +35,7 @@ from protocol.frames import StateUpdate, config_tag, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
 from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint  # noqa: E402
+from tests.conftest import start_router  # noqa: E402
 
 pytestmark = pytest.mark.integration
 TEST_TIMEOUT_S = 40.0
@@ -232,19 +232,8 @@ def _stop(proc: subprocess.Popen) -> None:
 @pytest.fixture(scope="module")
 def router(tmp_path_factory):
     port = free_loopback_port()
-    ready = tmp_path_factory.mktemp("router") / "ready.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "launcher.router", "--port", str(port), "--ready-file", str(ready),
-         "--max-wall-s", "300"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        env=dict(os.environ, PYTHONPATH=str(ROOT)),
-    )
+    proc = start_router(tmp_path_factory.mktemp("router"), port, max_wall_s=300)
     try:
-        deadline = time.monotonic() + 15
-        while not ready.exists():
-            assert proc.poll() is None, proc.stderr.read().decode()
-            assert time.monotonic() < deadline, "router did not become ready"
-            time.sleep(0.02)
         yield router_endpoint(port)
     finally:
         _stop(proc)
