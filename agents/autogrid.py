@@ -47,7 +47,7 @@ x in the first M, zeros up to `max_points`, gamma at index -2 and one meta slot 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -221,7 +221,7 @@ class _WarmADMM(ConsensusADMM):
         super().__init__(*args, **kwargs)
 
     def _local_step(self) -> np.ndarray:
-        if self._start is not None:
+        if self._start is not None and self.neighbours:  # a lone robot solves it all at round 0
             return self._start.copy()
         return super()._local_step()
 
@@ -630,7 +630,3 @@ class AdaptiveGridCore(RoundCore):
         self.trace = {}
         self._record()
 
-
-def core_params_dict(params: AutoGridParams) -> dict[str, Any]:
-    """The parameters as plain JSON (for a fleet file's params)."""
-    return asdict(params)
