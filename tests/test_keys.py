@@ -114,3 +114,12 @@ def test_robot_from_key_total(key):
         key,
         key.removesuffix("status") + "state",
     )
+
+
+def test_alive_keys_live_beside_the_state_keys():
+    from protocol.keys import alive_key, alive_wildcard
+
+    assert alive_key("f-1", 7) == "shapefleet/f-1/robot/7/alive"
+    assert alive_wildcard("f-1") == "shapefleet/f-1/robot/*/alive"
+    with pytest.raises(ValueError):
+        alive_key("f-1", -1)
