@@ -30,6 +30,27 @@ def gaussian_kernel(a: np.ndarray, b: np.ndarray, sigma: float) -> np.ndarray:
     return np.exp(-sq / (2.0 * sigma * sigma))
 
 
+def padded_bounds(points: np.ndarray, pad: float, min_pad: float) -> tuple[float, float, float, float]:
+    """The points' bounding box (x0, x1, y0, y1) widened on each side by `pad` times its size,
+    at least `min_pad`: the default region of the grid."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    margin = np.maximum(pad * (high - low), min_pad)
+    low, high = low - margin, high + margin
+    return (float(low[0]), float(high[0]), float(low[1]), float(high[1]))
+
+
+def lattice(nx: int, ny: int, bounds: tuple[float, float, float, float]) -> np.ndarray:
+    """nx*ny points at the cell centres of an nx-by-ny split of `bounds`; x varies fastest.
+
+    Cell centres keep every point strictly inside the region (the lattice the paper draws).
+    """
+    x0, x1, y0, y1 = bounds
+    xs = x0 + (np.arange(nx) + 0.5) * ((x1 - x0) / nx)
+    ys = y0 + (np.arange(ny) + 0.5) * ((y1 - y0) / ny)
+    gx, gy = np.meshgrid(xs, ys)
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
 class GridBasis:
     """The function space spanned by kernels on the shared grid, with its preconditioning."""
 

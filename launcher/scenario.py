@@ -25,6 +25,8 @@ import shapely
 from shapely import affinity
 from shapely.geometry import Point, Polygon
 
+from agents.kernel import lattice, padded_bounds
+
 # ---------------------------------------------------------------------------------------------
 # errors
 
@@ -560,10 +562,7 @@ def default_bounds(points: np.ndarray, pad: float = 0.15) -> tuple[float, float,
         )
     if not np.all(np.isfinite(points)) or not (math.isfinite(pad) and pad >= 0):
         raise ScenarioError("default_bounds needs finite points and a non-negative pad")
-    low, high = points.min(axis=0), points.max(axis=0)
-    margin = np.maximum(pad * (high - low), MIN_PAD)
-    low, high = low - margin, high + margin
-    return (float(low[0]), float(high[0]), float(low[1]), float(high[1]))
+    return padded_bounds(points, pad, MIN_PAD)
 
 
 def make_grid(nx: int, ny: int, bounds: tuple[float, float, float, float]) -> np.ndarray:
@@ -575,11 +574,7 @@ def make_grid(nx: int, ny: int, bounds: tuple[float, float, float, float]) -> np
     """
     nx = _positive_int(nx, f"--grid: {nx!r} points along x is not a positive integer")
     ny = _positive_int(ny, f"--grid: {ny!r} points along y is not a positive integer")
-    x0, x1, y0, y1 = _check_bounds(bounds)
-    xs = x0 + (np.arange(nx) + 0.5) * ((x1 - x0) / nx)
-    ys = y0 + (np.arange(ny) + 0.5) * ((y1 - y0) / ny)
-    gx, gy = np.meshgrid(xs, ys)
-    return np.column_stack([gx.ravel(), gy.ravel()])
+    return lattice(nx, ny, _check_bounds(bounds))
 
 
 def _check_bounds(bounds: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
