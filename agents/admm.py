@@ -39,6 +39,7 @@ class ADMMParams:
     """Penalty, over-relaxation and stopping rule (the same on every robot)."""
 
     rho: float = 15.0
+    gamma_penalty: float = 3.0  # the offset's consensus penalty relative to x's (see edge_penalty)
     relax: float = 1.95
     tol: float = 1e-3  # bound on the estimated relative function error at the stop
     max_rounds: int = 5000
@@ -47,6 +48,8 @@ class ADMMParams:
     def __post_init__(self) -> None:
         if not self.rho > 0:
             raise ValueError(f"rho must be positive, got {self.rho}")
+        if not self.gamma_penalty > 0:
+            raise ValueError(f"gamma_penalty must be positive, got {self.gamma_penalty}")
         if not 0 < self.relax < 2:
             raise ValueError(f"over-relaxation must be in (0, 2), got {self.relax}")
         if not self.tol > 0:
@@ -65,9 +68,9 @@ class _Edge:
     the invariant sum(lambda) = 0 that makes the fleet reach the centralized solution.
     """
 
-    def __init__(self, dim: int, mine_is_low: bool, rho: float) -> None:
+    def __init__(self, dim: int, mine_is_low: bool, rho: np.ndarray) -> None:
         self.sign = 1.0 if mine_is_low else -1.0
-        self.rho = rho  # fixed for the run: both ends must always use the same value
+        self.rho = rho  # per variable, fixed for the run: both ends always use the same values
         self.z = np.zeros(dim)  # the edge's consensus value
         self.lam = np.zeros(dim)  # the low end's multiplier
 
@@ -108,14 +111,19 @@ def error_estimate(residuals: list[float]) -> float:
     return recent / (1.0 - rate)
 
 
-def edge_penalty(rho: float, my_degree: int, their_degree: int) -> float:
-    """The ADMM penalty of one edge, the same at both ends.
+def edge_penalty(params: ADMMParams, dim: int, my_degree: int, their_degree: int) -> np.ndarray:
+    """The ADMM penalty of one edge, per variable of (x, gamma), the same at both ends.
 
     Dividing by the larger of the two degrees (Metropolis-style) keeps the value symmetric and a
     robot's total proximal weight sum_j rho_lj at most `rho`, whatever the graph; measured over
     3 to 16 robots and several topologies, the best `rho` then hardly moves (benchmarks/).
+    The offset gamma has no curvature of its own in the objective, only the margins pin it: a
+    stiffer consensus on it (`gamma_penalty` = 3) cut the rounds to 1e-3 by about a quarter over
+    the benchmark's fleets (1 and 5 were both slower).
     """
-    return rho / max(my_degree, their_degree, 1)
+    rho = np.full(dim, params.rho / max(my_degree, their_degree, 1))
+    rho[-1] *= params.gamma_penalty
+    return rho
 
 
 class ConsensusADMM(RoundCore):
@@ -151,7 +159,7 @@ class ConsensusADMM(RoundCore):
         self._n_robots = n_robots
         degrees = neighbour_degrees or {}
         self._edges = {
-            j: _Edge(self.dim, robot_id < j, edge_penalty(params.rho, len(self.neighbours), degrees.get(j, 1)))
+            j: _Edge(self.dim, robot_id < j, edge_penalty(params, self.dim, len(self.neighbours), degrees.get(j, 1)))
             for j in self.neighbours
         }
         self._qp = self._build_qp()
@@ -204,12 +212,12 @@ class ConsensusADMM(RoundCore):
             C=self._C,
         )
 
-    def _prox_weight(self) -> float:
-        return float(sum(e.rho for e in self._edges.values()))
+    def _prox_weight(self) -> np.ndarray:
+        return sum((e.rho for e in self._edges.values()), np.zeros(self.dim))
 
     def _local_step(self) -> np.ndarray:
         """Round 0: the robot's own max-margin solution, a warm start of the right magnitude."""
-        self._qp.set_prox(0.0)
+        self._qp.set_prox(np.zeros(self.dim))
         try:
             return self._primal_step()
         finally:

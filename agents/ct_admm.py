@@ -41,7 +41,7 @@ from agents.rounds import RoundCore, from_bytes, relative_gap, to_bytes
 
 #: Parameters of a fleet file that belong to the discrete ADMM: its penalty `rho` is not the
 #: flow's (that one is `ct_rho`), and relaxation has no meaning here.
-_ADMM_ONLY = ("rho", "rho_gamma", "relax")
+_ADMM_ONLY = ("rho", "gamma_penalty", "relax")
 
 
 @dataclass(frozen=True)

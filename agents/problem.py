@@ -69,7 +69,7 @@ class MarginQP:
         labels: np.ndarray,
         *,
         x_weight: float,
-        prox_weight: float,
+        prox_weight: float | np.ndarray,
         C: float | None,
     ) -> None:
         self.dim = features.shape[1] + 1
@@ -91,14 +91,15 @@ class MarginQP:
             self._x_l = np.concatenate([np.full(self.dim, -np.inf), np.zeros(n)])
             self._x_u = np.full(size, np.inf)
 
-    def _p_matrix(self, prox: float) -> np.ndarray:
+    def _p_matrix(self, prox: float | np.ndarray) -> np.ndarray:
+        """x_weight on x, plus a proximal weight per variable of (x, gamma) (a scalar for all)."""
         p_diag = np.zeros(self._size)
-        p_diag[: self.dim - 1] = self._x_weight + prox
-        p_diag[self.dim - 1] = prox
+        p_diag[: self.dim] = prox
+        p_diag[: self.dim - 1] += self._x_weight
         return np.asfortranarray(np.diag(p_diag))
 
-    def set_prox(self, prox: float) -> None:
-        """Change the proximal weight (e.g. 0 for a robot's own solve); the constraints stay."""
+    def set_prox(self, prox: float | np.ndarray) -> None:
+        """Change the proximal weights (e.g. 0 for a robot's own solve); the constraints stay."""
         self._P = self._p_matrix(prox)
 
     def solve(self, q: np.ndarray) -> QPSolution:
