@@ -18,6 +18,19 @@ rounds, through the same frames (D = the `diameter` parameter, >= the graph diam
    unit, so multiplying all coordinates by s multiplies sigma, the box and every grid point by
    s and leaves every kernel value k(d, g) = exp(-|d - g|^2 / (2 sigma^2)) -- hence every QP,
    every iterate and the learned function f(s p) -- unchanged: the rule is scale-free.
+   Unless sigma is given (or `validate_divisors` is empty, then sigma = diag / sigma_divisor),
+   sigma is chosen by a held-out sweep first, for each candidate diag / d, d in
+   `validate_divisors` (default 4, 6, 8, 12, 16), in order:
+     VALIDATE (ADMM rounds, <= `validate_rounds`): every robot holds out its own pairs
+       i % holdout_every == holdout_every - 1; the fleet solves the soft margin (C = soft_C,
+       tol = `validate_tol`) on the candidate's coarse lattice from the remaining pairs;
+     TALLY (D rounds): every robot counts its held-out errors (y f <= 0), held-out pairs and
+       hinge loss into its own slots (one block of slots per quantity, slot = robot id) of a
+       zero vector; a max-consensus gives every robot every slot bit for bit, and the sums
+       are identical everywhere.
+   The rule, the same everywhere: fewest held-out errors, ties -> the larger sigma
+   (`choose_sigma`); `sigma_reason` says why. Then the run below uses all data. Each
+   candidate is proportional to diag and errors are signs, so the choice is scale-free too.
 3. VOTE (D rounds, hard margin only): each robot checks that its own data is separable on the
    grid (its local hard-margin QP); a max-consensus on "infeasible" tells every robot.
 4. ADMM: `ConsensusADMM` runs as a sub-machine (its round counter offset by the phase start),
@@ -41,7 +54,7 @@ rounds, through the same frames (D = the `diameter` parameter, >= the graph diam
 
 Frames have a fixed length per fleet, so every vector is padded to `max_points` + 2 entries:
 x in the first M, zeros up to `max_points`, gamma at index -2 and one meta slot at index -1
-(the vote, or the flooded vector's robot id). No I/O, no clock.
+(the vote, or the flooded vector's robot id); in TALLY the whole vector is the slots. No I/O, no clock.
 """
 
 from __future__ import annotations
@@ -66,6 +79,8 @@ SPACING_RATIO = 1.5
 _NO_DATA = -1e300
 
 BOUNDS, VOTE, ADMM, FLOOD, DONE = "bounds", "vote", "admm", "flood", "done"
+#: the sigma sweep: a soft-margin ADMM on a training part per candidate, then a tally of held-out errors
+VALIDATE, TALLY = "validate", "tally"
 
 
 @dataclass(frozen=True)
@@ -89,6 +104,14 @@ class AutoGridParams:
     soft_C: float = 1e3
     C: float | None = None  # a number: soft margin from the start (no hard attempt)
     max_total_rounds: int = 50_000
+    # sigma by held-out validation (only when sigma is None): candidates diag / d for d in
+    # validate_divisors (empty: the fixed rule diag / sigma_divisor); every robot holds out its
+    # pairs i with i % holdout_every == holdout_every - 1; each candidate is a soft-margin ADMM
+    # (C = soft_C) on its coarse lattice, stopped at validate_tol or validate_rounds
+    validate_divisors: tuple[float, ...] = (4.0, 6.0, 8.0, 12.0, 16.0)
+    holdout_every: int = 5
+    validate_tol: float = 1e-2
+    validate_rounds: int = 1000
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 62:
@@ -103,6 +126,10 @@ class AutoGridParams:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number or None, got {value!r}")
+        if any(not (math.isfinite(d) and d > 0) for d in self.validate_divisors):
+            raise ValueError(f"validate_divisors must be positive numbers, got {self.validate_divisors!r}")
+        if self.holdout_every < 2 or self.validate_rounds < 1:
+            raise ValueError("holdout_every must be >= 2 and validate_rounds >= 1")
         if not 0 < self.relax < 2:
             raise ValueError(f"relax must be in (0, 2), got {self.relax}")
 
@@ -110,6 +137,16 @@ class AutoGridParams:
     def dim(self) -> int:
         """Length of every frame vector of this fleet."""
         return self.max_points + 2
+
+    @property
+    def validates(self) -> bool:
+        """True when sigma is chosen by the held-out sweep."""
+        return self.sigma is None and len(self.validate_divisors) > 0
+
+    @property
+    def tally_slots(self) -> int:
+        """Robot ids must be below this: the tally vector has 3 blocks of one slot per id."""
+        return self.dim // 3
 
 
 # -- the shared, deterministic rules (pure functions of agreed numbers) ---------------------------
@@ -193,6 +230,27 @@ def refine_grid(
     return grid, level
 
 
+def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridParams) -> tuple[float, str]:
+    """The sweep's rule, the same on every robot: fewest held-out errors, ties -> the larger sigma.
+
+    `records` are the fleet-wide tallies (identical everywhere); returns (sigma, reason).
+    """
+    best = min(records, key=lambda r: (r["errors"], -r["sigma"]))
+    held = best["held_out"]
+    ties = [r for r in records if r["errors"] == best["errors"]]
+    table = ", ".join(f"diag/{r['divisor']:g}: {r['errors']}" for r in records)
+    why = (
+        f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: fewest held-out errors "
+        f"({best['errors']}/{held}) of {len(records)} candidates"
+        + (f" (tied with {len(ties) - 1}, the larger sigma wins)" if len(ties) > 1 else "")
+        + f"; held-out errors {table}; every robot held out every {params.holdout_every}th pair, "
+        f"each candidate a soft-margin ADMM (C = {params.soft_C:g}) on its coarse lattice, errors "
+        f"summed exactly by max-consensus over one slot per robot id; diag = {diag:.6g} = diagonal "
+        "of the data's bounding box (scale-free: every candidate is proportional to diag)"
+    )
+    return float(best["sigma"]), why
+
+
 def _crossing(f: np.ndarray) -> np.ndarray:
     """Nodes with a 4-neighbour of the other sign (the zero level set passes next to them)."""
     s = f > 0
@@ -260,6 +318,11 @@ class AdaptiveGridCore(RoundCore):
             start_grid = np.asarray(start_grid, dtype=float).reshape(-1, 2)
             if not 1 <= len(start_grid) <= params.max_points:
                 raise ValueError(f"start grid has {len(start_grid)} points, budget is {params.max_points}")
+        if params.validates and not 0 <= robot_id < params.tally_slots:
+            raise ValueError(
+                f"robot id {robot_id}: the sigma sweep tallies one slot per id, ids must be in "
+                f"[0, {params.tally_slots}) (raise max_points)"
+            )
         self.params = params
         self._points = points
         self._labels = labels
@@ -289,6 +352,11 @@ class AdaptiveGridCore(RoundCore):
         self._admm_rounds = 0
         self._final: np.ndarray | None = None  # (x, gamma) agreed by the fleet
         self._final_flags = 0
+        # the sigma sweep: which pairs are held out, the candidate being solved, the tallies
+        self._held = (np.arange(len(labels)) % params.holdout_every) == params.holdout_every - 1
+        self._cand = 0
+        self._diag = 0.0
+        self.sigma_validation: list[dict[str, Any]] = []
         self._enter_bounds()
         self._settle()
         self._record()
@@ -320,7 +388,17 @@ class AdaptiveGridCore(RoundCore):
     def _finish_bounds(self) -> None:
         nx0, nx1, ny0, ny1 = (float(t) for t in self._values[:4])
         self.bounds = (-nx0, nx1, -ny0, ny1)
+        x0, x1, y0, y1 = self.bounds
+        self._diag = math.hypot(x1 - x0, y1 - y0)
+        if self.params.validates and self._diag > 0:
+            self._cand = 0
+            self._enter_validate()
+            return
         self.sigma, self.sigma_reason = scale_from_bounds(self.bounds, self.params)
+        self._start_final()
+
+    def _start_final(self) -> None:
+        """The run on all data at the agreed sigma: first grid, then vote/ADMM/flood/refine."""
         self._box = lattice_box(self.bounds, self.sigma)
         self._h0 = self.params.spacing_ratio * self.sigma
         if self._start_grid is not None:
@@ -332,6 +410,78 @@ class AdaptiveGridCore(RoundCore):
                     self._h0 *= 2.0
                     grid = lattice(self._box, self._h0, 0)
         self._set_grid(grid, warm=None)
+
+    # -- the sigma sweep ----------------------------------------------------------------------
+    def _coarse_lattice(self, sigma: float) -> tuple[tuple[float, float, float, float], float, np.ndarray]:
+        box = lattice_box(self.bounds, sigma)
+        h0 = self.params.spacing_ratio * sigma
+        grid = lattice(box, h0, 0)
+        while len(grid) > self.params.max_points:  # keep the budget: coarsen (still scale-free)
+            h0 *= 2.0
+            grid = lattice(box, h0, 0)
+        return box, h0, grid
+
+    def _validation_setup(self) -> None:
+        """sigma, grid, basis and training features of candidate self._cand (no phase change)."""
+        self.sigma = self._diag / self.params.validate_divisors[self._cand]
+        _, _, grid = self._coarse_lattice(self.sigma)
+        self.grid = grid
+        self._basis = GridBasis(grid, self.sigma)
+        train = self._points[~self._held]
+        self._features = self._basis.features(train) if len(train) else np.zeros((0, len(grid)))
+        self._warm = None
+
+    def _enter_validate(self) -> None:
+        self._validation_setup()
+        self._enter_admm("soft", validation=True)
+
+    def _finish_validate(self) -> None:
+        sub = self._sub
+        rounds = self.round - self._phase_start
+        v = sub.values
+        c = self._basis.c_from_x(v[:-1])
+        held_pts, held_y = self._points[self._held], self._labels[self._held]
+        if len(held_y):
+            yf = held_y * self._basis.decision(held_pts, c, float(v[-1]))
+            errors, hinge = float(np.sum(yf <= 0)), float(np.sum(np.maximum(0.0, 1.0 - yf)))
+        else:
+            errors, hinge = 0.0, 0.0
+        self._sub_converged = sub.converged
+        self._admm_rounds = rounds
+        self._sub = None
+        b = self.params.tally_slots
+        t = np.zeros(self.dim)
+        t[self.robot_id] = errors
+        t[b + self.robot_id] = float(len(held_y))
+        t[2 * b + self.robot_id] = hinge
+        self.phase, self._left, self._phase_start = TALLY, self.params.diameter, self.round
+        self._values, self._flags = t, 0
+
+    def _finish_tally(self) -> None:
+        # every robot holds the same vector bit for bit (a max of floats rounds nothing), so
+        # these sums -- in the same order everywhere -- are identical on every robot
+        b = self.params.tally_slots
+        v = self._values
+        d = self.params.validate_divisors[self._cand]
+        self.sigma_validation.append(
+            {
+                "divisor": float(d),
+                "sigma": self.sigma,
+                "grid_points": len(self.grid),
+                "errors": int(round(float(np.sum(v[:b])))),
+                "held_out": int(round(float(np.sum(v[b : 2 * b])))),
+                "hinge": float(np.sum(v[2 * b : 3 * b])),
+                "rounds": self._admm_rounds,
+                "converged": self._sub_converged,
+            }
+        )
+        self._cand += 1
+        if self._cand < len(self.params.validate_divisors):
+            self._enter_validate()
+            return
+        self.sigma, self.sigma_reason = choose_sigma(self.sigma_validation, self._diag, self.params)
+        self._mode = self.margin
+        self._start_final()
 
     def _set_grid(self, grid: np.ndarray, warm: np.ndarray | None) -> None:
         self.grid = grid
@@ -361,14 +511,17 @@ class AdaptiveGridCore(RoundCore):
         else:
             self._enter_admm("hard")
 
-    def _enter_admm(self, mode: str) -> None:
+    def _enter_admm(self, mode: str, *, validation: bool = False) -> None:
         p = self.params
         C = (p.C if p.C is not None else p.soft_C) if mode == "soft" else None
+        labels = self._labels
+        if validation:
+            C, labels = p.soft_C, self._labels[~self._held]
         sub_params = ADMMParams(
             rho=p.rho,
             relax=p.relax,
-            tol=p.tol,
-            max_rounds=p.hard_rounds if mode == "hard" else p.soft_rounds,
+            tol=p.validate_tol if validation else p.tol,
+            max_rounds=p.validate_rounds if validation else (p.hard_rounds if mode == "hard" else p.soft_rounds),
             diameter=p.diameter,
         )
         self._mode = mode
@@ -376,7 +529,7 @@ class AdaptiveGridCore(RoundCore):
             self.robot_id,
             self.neighbours,
             self._features,
-            self._labels,
+            labels,
             n_robots=self._n_robots,
             params=sub_params,
             C=C,
@@ -384,7 +537,7 @@ class AdaptiveGridCore(RoundCore):
             keep_trace=False,
             start=self._warm,
         )
-        self.phase, self._phase_start = ADMM, self.round
+        self.phase, self._phase_start = (VALIDATE if validation else ADMM), self.round
         v = self._sub.values
         self._values, self._flags = self._pad(v[:-1], v[-1]), 0
 
@@ -459,10 +612,17 @@ class AdaptiveGridCore(RoundCore):
     def _settle(self) -> None:
         """Leave every phase that is already complete (length-0 phases when D = 0, a lone robot)."""
         while not self.finished:
-            if self.phase in (BOUNDS, VOTE, FLOOD) and self._left == 0:
-                {BOUNDS: self._finish_bounds, VOTE: self._finish_vote, FLOOD: self._finish_flood}[self.phase]()
+            if self.phase in (BOUNDS, VOTE, FLOOD, TALLY) and self._left == 0:
+                {
+                    BOUNDS: self._finish_bounds,
+                    VOTE: self._finish_vote,
+                    FLOOD: self._finish_flood,
+                    TALLY: self._finish_tally,
+                }[self.phase]()
             elif self.phase == ADMM and self._sub.finished:
                 self._finish_admm()
+            elif self.phase == VALIDATE and self._sub.finished:
+                self._finish_validate()
             else:
                 return
 
@@ -477,7 +637,7 @@ class AdaptiveGridCore(RoundCore):
         their_flags = self._inbox.flags.get(self.round, {})
         mine = self._values
         flags = 0
-        if self.phase in (BOUNDS, VOTE):
+        if self.phase in (BOUNDS, VOTE, TALLY):
             new = np.max(np.vstack([mine, *theirs.values()]), axis=0)
             self._left -= 1
         elif self.phase == FLOOD:
@@ -547,6 +707,7 @@ class AdaptiveGridCore(RoundCore):
             "bounds": None if self.bounds is None else list(self.bounds),
             "sigma": self.sigma,
             "sigma_reason": self.sigma_reason,
+            "sigma_validation": [dict(r) for r in self.sigma_validation],
             "margin": self.margin,
             "message": self.message,
             "grid_history": [{k: v for k, v in h.items()} for h in self.grid_history],
@@ -565,6 +726,11 @@ class AdaptiveGridCore(RoundCore):
             "phase_start": self._phase_start,
             "bounds": None if self.bounds is None else list(self.bounds),
             "h0": self._h0,
+            "sigma": self.sigma,
+            "sigma_reason": self.sigma_reason,
+            "diag": self._diag,
+            "cand": self._cand,
+            "sigma_validation": [dict(r) for r in self.sigma_validation],
             "level": self._level,
             "grid": to_bytes(None if self.grid is None else self.grid.ravel()),
             "margin": self.margin,
@@ -585,8 +751,13 @@ class AdaptiveGridCore(RoundCore):
 
     def _load_state(self, state: dict[str, Any]) -> None:
         self.bounds = None if state["bounds"] is None else tuple(float(b) for b in state["bounds"])
-        if self.bounds is not None:
-            self.sigma, self.sigma_reason = scale_from_bounds(self.bounds, self.params)
+        self.sigma = None if state["sigma"] is None else float(state["sigma"])
+        self.sigma_reason = state["sigma_reason"]
+        self._diag = float(state["diag"])
+        self._cand = int(state["cand"])
+        self.sigma_validation = [dict(r) for r in state["sigma_validation"]]
+        validating = state["phase"] in (VALIDATE, TALLY)
+        if self.bounds is not None and not validating and self.sigma is not None:
             self._box = lattice_box(self.bounds, self.sigma)
         self._h0 = float(state["h0"])
         self._level = int(state["level"])
@@ -606,15 +777,18 @@ class AdaptiveGridCore(RoundCore):
         ]
         grid = from_bytes(state["grid"])
         self._sub = None
-        if grid is not None:
+        if validating:
+            self._validation_setup()
+        elif grid is not None:
             self.grid = grid.reshape(-1, 2)
             self._basis = GridBasis(self.grid, self.sigma)
             self._features = self._basis.features(self._points) if len(self._points) else np.zeros((0, len(self.grid)))
         self._warm = from_bytes(state["warm"])
         self.phase = state["phase"]
         if state["sub"] is not None:
-            self._enter_admm(self._mode)  # rebuild the sub-machine, then resume it exactly
-            self.phase = ADMM
+            phase = self.phase
+            self._enter_admm(self._mode, validation=phase == VALIDATE)  # rebuild, then resume exactly
+            self.phase = phase
             self._sub.restore(state["sub"])
             self._phase_start = int(state["phase_start"])
         if self.phase == DONE:

@@ -71,6 +71,7 @@ def robots_of(spec):
 def fast_params(spec, **kw):
     kw.setdefault("tol", 1e-4)
     kw.setdefault("max_points", 120)
+    kw.setdefault("validate_divisors", ())  # the fixed rule diag / 8 unless a test sweeps sigma
     return AutoGridParams(diameter=spec.params["diameter"], **kw)
 
 
@@ -317,3 +318,78 @@ def test_loss_delay_and_reordering_change_nothing():
         assert a.round == b.round and np.array_equal(a.grid, b.grid)
         assert np.array_equal(a.function()[1], b.function()[1])
     assert all(np.array_equal(c.function()[1], clean[0].function()[1]) for c in clean)
+
+
+# -- sigma by held-out validation (issue 6) ------------------------------------------------------
+
+
+def _sweep_params(spec, **kw):
+    return AutoGridParams(
+        diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0, **kw
+    )
+
+
+@pytest.fixture(scope="module")
+def sweep_runs():
+    world, spec = build_world(Options(fleet_id="t", shape="star", points=25))
+    params = _sweep_params(spec)
+    assert params.validates and params.validate_divisors == (4.0, 6.0, 8.0, 12.0, 16.0)
+    robots = robots_of(spec)
+    plain = run_fleet(make_cores(robots, params))
+    scaled = run_fleet(make_cores(robots, params, scale=1000.0))
+    return world, robots, params, plain, scaled
+
+
+def test_sigma_sweep_is_identical_on_every_robot(sweep_runs):
+    world, _, params, cores, _ = sweep_runs
+    first = cores[0]
+    val = first.sigma_validation
+    assert [r["divisor"] for r in val] == list(params.validate_divisors)
+    held = sum(int(np.sum(np.arange(len(r.labels)) % 5 == 4)) for r in world.robots)
+    assert all(r["held_out"] == held for r in val)  # the exact fleet-wide sum
+    for core in cores:
+        assert core.converged and core.sigma == first.sigma  # bit for bit
+        assert core.sigma_validation == val and core.sigma_reason == first.sigma_reason
+        assert np.array_equal(core.function()[1], first.function()[1])
+    # the rule: fewest held-out errors, ties -> the larger sigma
+    fewest = min(r["errors"] for r in val)
+    assert first.sigma == max(r["sigma"] for r in val if r["errors"] == fewest)
+    diag = float(np.hypot(*np.ptp(world.points, axis=0)))
+    assert any(first.sigma == pytest.approx(diag / d, rel=1e-12) for d in params.validate_divisors)
+    res = first.result()
+    assert "fewest held-out errors" in res["sigma_reason"] and f"({fewest}/{held})" in res["sigma_reason"]
+    assert res["sigma_validation"] == val and res["sigma"] == first.sigma
+    # the final run is on all data at the chosen sigma, within tol of the central solve
+    grid, c, gamma = first.function()
+    basis = GridBasis(grid, first.sigma)
+    central = solve_central(basis, world.points, world.labels, None if first.margin == "hard" else params.soft_C)
+    assert basis.function_error(c, gamma, central.c, central.gamma) < 1e-2
+
+
+def test_sigma_sweep_is_scale_free(sweep_runs):
+    _, _, _, plain, scaled = sweep_runs
+    a, b = plain[0], scaled[0]
+    assert b.sigma == pytest.approx(1000.0 * a.sigma, rel=1e-12)  # the same choice, x1000
+    assert [(r["divisor"], r["errors"], r["held_out"]) for r in a.sigma_validation] == [
+        (r["divisor"], r["errors"], r["held_out"]) for r in b.sigma_validation
+    ]
+    for ra, rb in zip(a.sigma_validation, b.sigma_validation):
+        assert rb["sigma"] == pytest.approx(1000.0 * ra["sigma"], rel=1e-12)
+        assert rb["hinge"] == pytest.approx(ra["hinge"], rel=1e-6, abs=1e-6)
+    assert all(k.sigma == b.sigma for k in scaled)
+    np.testing.assert_allclose(b.grid, 1000.0 * a.grid, rtol=1e-9, atol=1e-9 * 1000.0 * a.sigma)
+
+
+def test_checkpoint_during_the_sigma_sweep_resumes_bit_for_bit(sweep_runs):
+    _, robots, params, ref, _ = sweep_runs
+    cores = make_cores(robots, params)
+    _lockstep(cores, 400)  # inside the second candidate's ADMM
+    assert cores[0].phase == "validate" and len(cores[0].sigma_validation) == 1
+    blobs = [msgpack.packb(c.checkpoint(), use_bin_type=True) for c in cores]
+    resumed = make_cores(robots, params)
+    for c, b in zip(resumed, blobs):
+        c.restore(msgpack.unpackb(b, raw=False, strict_map_key=False))
+    run_fleet(resumed)
+    for a, b in zip(ref, resumed):
+        assert a.round == b.round and a.sigma == b.sigma and a.sigma_validation == b.sigma_validation
+        assert np.array_equal(a.function()[1], b.function()[1])
