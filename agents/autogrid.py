@@ -628,13 +628,7 @@ class AdaptiveGridCore(RoundCore):
 
     # -- the round ----------------------------------------------------------------------------
     def advance(self):  # noqa: ANN201 -- a StateUpdate, as RoundCore.advance
-        if self.finished:
-            raise RuntimeError(f"robot {self.robot_id} has finished; nothing to advance")
-        missing = self.missing()
-        if missing:
-            raise RuntimeError(f"robot {self.robot_id} round {self.round}: waiting for {missing}")
-        theirs = {j: self._inbox.values[self.round][j] for j in self.neighbours}
-        their_flags = self._inbox.flags.get(self.round, {})
+        theirs, their_flags = self._take_round()
         mine = self._values
         flags = 0
         if self.phase in (BOUNDS, VOTE, TALLY):

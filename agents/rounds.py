@@ -136,15 +136,19 @@ class RoundCore:
         """True when the next round can be computed."""
         return not self.finished and not self.missing()
 
-    def advance(self) -> StateUpdate:
-        """Consume every neighbour's round-k values; compute round k+1."""
+    def _take_round(self) -> tuple[dict[int, np.ndarray], dict[int, int]]:
+        """Every neighbour's exact round-k values and flags; refuses to run ahead of them."""
         if self.finished:
             raise RuntimeError(f"robot {self.robot_id} has finished; nothing to advance")
         missing = self.missing()
         if missing:
             raise RuntimeError(f"robot {self.robot_id} round {self.round}: waiting for {missing}")
         theirs = {j: self._inbox.values[self.round][j] for j in self.neighbours}
-        their_flags = self._inbox.flags.get(self.round, {})
+        return theirs, self._inbox.flags.get(self.round, {})
+
+    def advance(self) -> StateUpdate:
+        """Consume every neighbour's round-k values; compute round k+1."""
+        theirs, their_flags = self._take_round()
         mine = self._values
         new_values, below = self._step(mine, theirs)
         combined = self._flags
