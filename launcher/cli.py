@@ -516,9 +516,7 @@ def cmd_gridstudy(args: argparse.Namespace) -> int:
 
 
 def _fault_dict(faults: LinkFaults) -> dict[str, float]:
-    from dataclasses import asdict
-
-    return asdict(faults)
+    return dataclasses.asdict(faults)
 
 
 # -- entry point ------------------------------------------------------------------------------

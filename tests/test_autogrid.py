@@ -64,6 +64,16 @@ def run_fleet(cores, limit=40_000):
     raise AssertionError("fleet did not finish")
 
 
+def _resume_from_checkpoints(cores, robots, params):
+    """Restart every robot from a msgpack round trip of its checkpoint and run to the end."""
+    blobs = [msgpack.packb(c.checkpoint(), use_bin_type=True) for c in cores]
+    resumed = make_cores(robots, params)
+    for c, b in zip(resumed, blobs):
+        c.restore(msgpack.unpackb(b, raw=False, strict_map_key=False))
+    run_fleet(resumed)
+    return resumed
+
+
 def robots_of(spec):
     return {i: (r.neighbours, r.points, r.labels) for i, r in spec.robots.items()}
 
@@ -212,11 +222,7 @@ def test_checkpoint_in_every_phase_resumes_bit_for_bit(small_run, when):
     cores = make_cores(robots, params)
     _lockstep(cores, stop)
     assert cores[0].phase == when.split("-")[0]
-    blobs = [msgpack.packb(c.checkpoint(), use_bin_type=True) for c in cores]
-    resumed = make_cores(robots, params)
-    for c, b in zip(resumed, blobs):
-        c.restore(msgpack.unpackb(b, raw=False, strict_map_key=False))
-    run_fleet(resumed)
+    resumed = _resume_from_checkpoints(cores, robots, params)
     for a, b in zip(ref, resumed):
         assert a.round == b.round and a.grid_history == b.grid_history
         assert np.array_equal(a.function()[1], b.function()[1])
@@ -385,11 +391,7 @@ def test_checkpoint_during_the_sigma_sweep_resumes_bit_for_bit(sweep_runs):
     cores = make_cores(robots, params)
     _lockstep(cores, 400)  # inside the second candidate's ADMM
     assert cores[0].phase == "validate" and len(cores[0].sigma_validation) == 1
-    blobs = [msgpack.packb(c.checkpoint(), use_bin_type=True) for c in cores]
-    resumed = make_cores(robots, params)
-    for c, b in zip(resumed, blobs):
-        c.restore(msgpack.unpackb(b, raw=False, strict_map_key=False))
-    run_fleet(resumed)
+    resumed = _resume_from_checkpoints(cores, robots, params)
     for a, b in zip(ref, resumed):
         assert a.round == b.round and a.sigma == b.sigma and a.sigma_validation == b.sigma_validation
         assert np.array_equal(a.function()[1], b.function()[1])
