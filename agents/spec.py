@@ -7,6 +7,7 @@ processes). It is plain JSON on disk, so a robot on another host needs only this
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
@@ -16,13 +17,16 @@ from typing import Any
 import numpy as np
 
 from agents.admm import ADMMParams, ConsensusADMM
+from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.kernel import GridBasis
 from protocol.frames import config_tag as make_config_tag
 from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults
 
-ALGORITHMS = ("admm", "ct-admm")
+ALGORITHMS = ("admm", "ct-admm", "autogrid")
+#: algorithms whose grid and sigma are fixed by the launcher (autogrid's fleet chooses its own)
+FIXED_GRID_ALGORITHMS = ("admm", "ct-admm")
 
 
 @dataclass(frozen=True)
@@ -47,11 +51,17 @@ class RobotSpec:
 
 @dataclass
 class FleetSpec:
-    """Everything every robot must agree on, plus each robot's own part."""
+    """Everything every robot must agree on, plus each robot's own part.
+
+    For ``admm`` and ``ct-admm`` ``grid`` and ``sigma`` are the shared basis. For ``autogrid``
+    the fleet chooses them: ``grid`` is the optional *start* grid (empty, shape (0, 2): the
+    fleet's own lattice) and ``sigma`` a fixed width or None (chosen by the fleet); each robot's
+    result then holds the final grid and sigma.
+    """
 
     fleet: str
     algorithm: str
-    sigma: float
+    sigma: float | None
     C: float | None
     grid: np.ndarray
     robots: dict[int, RobotSpec]
@@ -67,7 +77,9 @@ class FleetSpec:
             raise ValueError(f"fleet file is for robot {self.owner}, which is not in the fleet (robots {sorted(self.robots)})")
         if self.algorithm not in ALGORITHMS:
             raise ValueError(f"unknown algorithm {self.algorithm!r}; choose from {', '.join(ALGORITHMS)}")
-        self.grid = np.asarray(self.grid, dtype=float)
+        self.grid = np.asarray(self.grid, dtype=float).reshape(-1, 2)
+        if self.algorithm in FIXED_GRID_ALGORITHMS and (self.sigma is None or len(self.grid) == 0):
+            raise ValueError(f"{self.algorithm} needs a grid and a sigma (only autogrid chooses them itself)")
 
     @property
     def robot_ids(self) -> tuple[int, ...]:
@@ -77,13 +89,39 @@ class FleetSpec:
     def n_robots(self) -> int:
         return len(self.robots)
 
+    @property
+    def fixed_grid(self) -> bool:
+        """True when grid and sigma are the shared basis (not chosen by the fleet)."""
+        return self.algorithm in FIXED_GRID_ALGORITHMS
+
     @cached_property
     def basis(self) -> GridBasis:
+        if not self.fixed_grid:
+            raise ValueError("an autogrid fleet chooses its own grid and sigma: each robot's result holds them")
         return GridBasis(self.grid, self.sigma)
+
+    @cached_property
+    def autogrid_params(self) -> AutoGridParams:
+        """The autogrid robots' parameters: ``params`` filtered by AutoGridParams' fields.
+
+        ``sigma`` and ``C`` come from the fleet file's own fields; the ADMM keys rho, relax, tol
+        and diameter are the same names; ``max_rounds`` (the admm round cap) stands for
+        ``max_total_rounds`` (the cap over every phase) unless that is given; other keys (e.g.
+        ct-admm's) are ignored. ValueError names a bad value.
+        """
+        names = {f.name for f in dataclasses.fields(AutoGridParams)}
+        given = dict(self.params)
+        if "max_rounds" in given and "max_total_rounds" not in given:
+            given["max_total_rounds"] = given["max_rounds"]
+        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if k in names}
+        kw.update(sigma=self.sigma, C=self.C)
+        return AutoGridParams(**kw)
 
     @property
     def dim(self) -> int:
-        """Length of the vector robots exchange: (x, gamma)."""
+        """Length of the vector robots exchange: (x, gamma), or autogrid's padded frame."""
+        if not self.fixed_grid:
+            return self.autogrid_params.dim
         return len(self.grid) + 1
 
     @cached_property
@@ -91,7 +129,7 @@ class FleetSpec:
         """Fingerprint of the shared problem: robots configured differently reject each other."""
         return make_config_tag(
             self.algorithm,
-            self.sigma,
+            -1.0 if self.sigma is None else self.sigma,
             -1.0 if self.C is None else self.C,
             self.grid,
             json.dumps(self.params, sort_keys=True),
@@ -155,7 +193,7 @@ class FleetSpec:
         return cls(
             fleet=data["fleet"],
             algorithm=data["algorithm"],
-            sigma=float(data["sigma"]),
+            sigma=None if data["sigma"] is None else float(data["sigma"]),
             C=None if data["C"] is None else float(data["C"]),
             grid=np.asarray(data["grid"], dtype=float),
             robots=robots,
@@ -181,15 +219,34 @@ class FleetSpec:
             raise ValueError(f"{path}: not a valid fleet file ({exc})") from None
 
 
-def build_core(
-    spec: FleetSpec, robot_id: int, *, keep_trace: bool = True
-) -> ConsensusADMM | ContinuousTimeADMM:
-    """The algorithm state machine of one robot, from the fleet file (dispatch on the algorithm)."""
+Core = ConsensusADMM | ContinuousTimeADMM | AdaptiveGridCore
+
+
+def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Core:
+    """The algorithm state machine of one robot, from the fleet file (dispatch on the algorithm).
+
+    ``keep_trace`` (every round's exchanged vector, for the launcher's convergence history) is
+    ignored for autogrid: its vectors change meaning from phase to phase and have
+    ``max_points + 2`` entries over thousands of rounds; its result reports the grids instead.
+    """
     if robot_id not in spec.robots:
         raise ValueError(f"robot {robot_id} is not in fleet {spec.fleet} (robots {list(spec.robot_ids)})")
     if spec.owner is not None and spec.owner != robot_id:
         raise ValueError(f"this fleet file holds robot {spec.owner}'s data only, not robot {robot_id}'s")
     me = spec.robots[robot_id]
+    degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
+    if spec.algorithm == "autogrid":
+        return AdaptiveGridCore(
+            robot_id,
+            me.neighbours,
+            me.points,
+            me.labels,
+            n_robots=spec.n_robots,
+            params=spec.autogrid_params,
+            start_grid=spec.grid if len(spec.grid) else None,
+            neighbour_degrees=degrees,
+            keep_trace=False,
+        )
     features = spec.basis.features(me.points)
     if spec.algorithm == "ct-admm":
         return ContinuousTimeADMM(
@@ -210,14 +267,12 @@ def build_core(
         n_robots=spec.n_robots,
         params=ADMMParams(**spec.params),
         C=spec.C,
-        neighbour_degrees={j: len(spec.robots[j].neighbours) for j in me.neighbours},
+        neighbour_degrees=degrees,
         keep_trace=keep_trace,
     )
 
 
-def restore_core(
-    spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]
-) -> ConsensusADMM | ContinuousTimeADMM:
+def restore_core(spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]) -> Core:
     """A robot restarted after a crash resumes exactly where its checkpoint left it."""
     core = build_core(spec, robot_id)
     core.restore(checkpoint)
