@@ -45,7 +45,7 @@ def main() -> None:
     for delay_ms in (0, 10, 20, 50):
         loss = 0.2 if delay_ms else 0.0
         faults = LinkFaults(delay=delay_ms / 1e3, loss=loss)
-        world, spec = build_world(Options(fleet_id="bench", algorithm="ct-admm", faults=faults, tol=1e-9))
+        world, spec = build_world(Options(fleet_id="bench", preset="paper", algorithm="ct-admm", faults=faults, tol=1e-9))
         central = solve_central(spec.basis, world.points, world.labels)
         out = simulate_fleet(spec)
         k = first_round_below(spec, central, out.robots)

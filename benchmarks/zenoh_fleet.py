@@ -40,7 +40,7 @@ if str(ROOT) not in sys.path:
 from agents.spec import Timing  # noqa: E402
 from launcher.fleet import launch_fleet  # noqa: E402
 from launcher.simulate import simulate_fleet  # noqa: E402
-from launcher.world import Options, build_world  # noqa: E402
+from launcher.world import DEFAULT_MAX_ROUNDS, Options, build_world  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
 
 FAULTS = LinkFaults(delay=0.020, jitter=0.010, loss=0.3, duplicate=0.05, reorder=0.1)
@@ -87,7 +87,7 @@ def _fault_text(f: LinkFaults) -> str:
 def run(scenario: str, robots: int, faults: LinkFaults, *, tol: float, max_rounds: int, max_wall_s: float,
         retransmit_s: float = 0.02) -> Row:
     timing = Timing(retransmit_s=retransmit_s, dead_after_s=10.0, max_wall_s=max_wall_s, linger_s=1.0)
-    _world, spec = build_world(Options(robots=robots, tol=tol, max_rounds=max_rounds, faults=faults, timing=timing,
+    _world, spec = build_world(Options(robots=robots, preset="paper", tol=tol, max_rounds=max_rounds, faults=faults, timing=timing,
                                        fleet_id=f"bench-{scenario.replace(' ', '-')}-{robots}-{int(time.time() * 1e3) % 100000}"))
     sim = simulate_fleet(spec)
     want = {r["id"]: r for r in sim.robots}
@@ -156,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.quick:
         conv.append(("to convergence", LOSS50))
     for name, faults in conv:
-        rows.append(run(name, 3, faults, tol=args.tol, max_rounds=Options().max_rounds, max_wall_s=args.max_wall))
+        rows.append(run(name, 3, faults, tol=args.tol, max_rounds=DEFAULT_MAX_ROUNDS, max_wall_s=args.max_wall))
         print(table(rows[-1:]).splitlines()[-1], flush=True)
 
     text = "\n".join([

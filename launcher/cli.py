@@ -19,9 +19,18 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from agents.spec import ALGORITHMS, Timing
+from agents.spec import Timing
 from launcher import scenario, topology
-from launcher.world import Options, World, build_world
+from launcher.world import (
+    ALGORITHM_CHOICES,
+    DEFAULT_MAX_ROUNDS,
+    PAPER_GRID,
+    PAPER_SIGMA,
+    PRESETS,
+    Options,
+    World,
+    build_world,
+)
 from protocol.links import LinkFaults, parse_duration, parse_probability
 
 EXIT_BAD_INPUT = 2
@@ -61,6 +70,23 @@ def _finite_float(text: str) -> float:
     return value
 
 
+def _autogrid_default(name: str) -> Any:
+    from agents.autogrid import AutoGridParams
+
+    return next(f.default for f in dataclasses.fields(AutoGridParams) if f.name == name)
+
+
+def _max_grid_points(value: Any) -> int:
+    """--max-grid-points: an integer of at least 4 (the core's smallest budget)."""
+    try:
+        n = int(str(value).strip())
+    except ValueError:
+        raise UsageError(f"--max-grid-points: {value!r} is not an integer") from None
+    if n < 4:
+        raise UsageError(f"--max-grid-points: {value!r} must be at least 4")
+    return n
+
+
 def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     d = Options()
     p.add_argument("--config", type=Path, metavar="TOML", help="scenario file (docs/scenario-file.md); flags given here override it")
@@ -76,19 +102,48 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     world.add_argument("--range", dest="lidar_range", type=_finite_float, default=d.lidar_range, help=f"LiDAR range (default {d.lidar_range})")
     world.add_argument("--offset", type=_finite_float, default=d.offset, help=f"distance of labelled points from a LiDAR hit (default {d.offset})")
     world.add_argument("--noise", type=_finite_float, default=d.noise, help=f"LiDAR range noise std (default {d.noise})")
-    model = p.add_argument_group("model")
-    model.add_argument("--grid", default=d.grid, help=f"grid points NXxNY (default {d.grid}, the paper's)")
-    model.add_argument("--grid-bounds", metavar="X0,X1,Y0,Y1", help="grid region (default: the data's bounding box, padded)")
-    model.add_argument("--sigma", type=_finite_float, default=d.sigma, help=f"Gaussian kernel width (default {d.sigma}, the paper's)")
+    model = p.add_argument_group("model (default: the fleet chooses grid and sigma itself)")
+    model.add_argument(
+        "--grid", metavar="NXxNY",
+        help=f"fixed grid of NXxNY points (default: automatic; the paper's is {PAPER_GRID}). "
+        "With --algorithm autogrid: the start grid the fleet refines",
+    )
+    model.add_argument(
+        "--grid-bounds", metavar="X0,X1,Y0,Y1",
+        help="region of the --grid points (default: the data's bounding box, padded)",
+    )
+    model.add_argument(
+        "--sigma", type=_finite_float,
+        help=f"Gaussian kernel width (default: chosen by the fleet; the paper's is {PAPER_SIGMA:g}). "
+        "With --algorithm autogrid: kept fixed",
+    )
     model.add_argument("--C", type=_finite_float, default=None, help="soft margin with this penalty (default: hard margin, the paper's)")
+    model.add_argument(
+        "--preset", metavar="NAME",
+        help=f"'paper' = --grid {PAPER_GRID} --sigma {PAPER_SIGMA:g} --algorithm admm, the paper's fixed setting "
+        "(flags given as well override it)",
+    )
+    model.add_argument(
+        "--max-grid-points", metavar="N", default=str(d.max_grid_points),
+        help=f"autogrid: budget of grid points, at least 4 (default {d.max_grid_points}); frames carry N + 2 numbers",
+    )
     algo = p.add_argument_group("fleet and algorithm")
     algo.add_argument("--topology", default=d.topology, help=f"{' | '.join(topology.TOPOLOGIES)} (default {d.topology})")
     algo.add_argument("--comm-range", type=_finite_float, help="link robots within this distance (geometric topology)")
-    algo.add_argument("--algorithm", default=d.algorithm, choices=ALGORITHMS, help=f"(default {d.algorithm})")
+    algo.add_argument(
+        "--algorithm", default=d.algorithm, choices=ALGORITHM_CHOICES,
+        help="auto (default): admm when --grid and --sigma are given, else autogrid; autogrid: the fleet agrees on "
+        "its data's box, chooses sigma by a held-out vote and refines its grid; admm / ct-admm: fixed grid, "
+        f"the paper's ({PAPER_GRID}, sigma {PAPER_SIGMA:g}) unless --grid/--sigma say otherwise",
+    )
     algo.add_argument("--rho", type=_finite_float, default=d.rho, help=f"ADMM penalty (default {d.rho})")
     algo.add_argument("--relax", type=_finite_float, default=d.relax, help=f"ADMM over-relaxation in (0, 2) (default {d.relax})")
     algo.add_argument("--tol", type=_finite_float, default=d.tol, help=f"stop when every robot's relative residual is below (default {d.tol:g})")
-    algo.add_argument("--max-rounds", type=_positive_int("--max-rounds"), default=d.max_rounds, help=f"round cap (default {d.max_rounds})")
+    algo.add_argument(
+        "--max-rounds", type=_positive_int("--max-rounds"), default=d.max_rounds,
+        help=f"round cap (default {DEFAULT_MAX_ROUNDS}; autogrid: the cap over all its phases, default "
+        f"{_autogrid_default('max_total_rounds')})",
+    )
     algo.add_argument("--ct-step", default=f"{d.ct_step * 1e3:g}ms", help="ct-admm: integration step of the flow (default 1ms, the paper's)")
     algo.add_argument("--ct-period", default=f"{d.ct_period * 1e3:g}ms", help="ct-admm: communication period T_sp (default 10ms, the paper's)")
     algo.add_argument("--ct-stop-time", default=f"{d.ct_stop_time:g}s", help="ct-admm: stop time of the flow (default 10s, the paper's)")
@@ -154,6 +209,8 @@ def _options(args: argparse.Namespace, **extra: Any) -> Options:
         grid_bounds=args.grid_bounds,
         sigma=args.sigma,
         C=args.C,
+        preset=_preset(args.preset),
+        max_grid_points=_max_grid_points(args.max_grid_points),
         topology=args.topology,
         comm_range=args.comm_range,
         algorithm=args.algorithm,
@@ -168,6 +225,12 @@ def _options(args: argparse.Namespace, **extra: Any) -> Options:
         timing=timing,
         **extra,
     )
+
+
+def _preset(name: str | None) -> str | None:
+    if name is not None and name not in PRESETS:
+        raise UsageError(f"--preset: {name!r} is not a preset (choose from {', '.join(PRESETS)})")
+    return name
 
 
 def _out_dir(args: argparse.Namespace, mode: str) -> Path:
@@ -191,13 +254,21 @@ def _out_dir(args: argparse.Namespace, mode: str) -> Path:
 
 # -- jobs -------------------------------------------------------------------------------------
 def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[str, Any]], *, wall_s: float, extra: dict[str, Any]) -> dict[str, Any]:
+    """result.json, the pictures and the summary of a run. `central` is the reference of a
+    fixed-grid run; an autogrid run (central None) is measured per robot on its final grid."""
     from rich.console import Console
 
     from launcher import report
 
-    result = report.build_result(world, spec.basis, central, robots, algorithm=spec.algorithm, C=spec.C, wall_s=wall_s, extra=extra)
+    bases = None
+    if spec.fixed_grid:
+        result = report.build_result(world, spec.basis, central, robots, algorithm=spec.algorithm, C=spec.C, wall_s=wall_s, extra=extra)
+    else:
+        references = _autogrid_references(world, spec, robots, extra)
+        bases = {i: ref.basis for i, ref in references.items()}
+        result = report.build_autogrid_result(world, robots, references, wall_s=wall_s, extra=extra)
     report.write_json(out / "result.json", result)
-    report.plot_shapes(out / "shapes.png", world, spec.basis, result)
+    report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None, result, bases=bases)
     written = ["result.json", "data.csv", "shapes.png"]
     if result["history"]:
         report.plot_convergence(out / "convergence.png", result["history"])
@@ -212,8 +283,23 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
         written.append("trajectory.png")
     console = Console()
     console.print(report.summary_table(result))
+    if not spec.fixed_grid and result.get("sigma_reason"):
+        console.print(f"sigma: {result['sigma_reason']}", soft_wrap=True)
     console.print(f"wrote {out}/: {', '.join(written)}")
     return result
+
+
+def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], extra: dict[str, Any]) -> dict[int, Any]:
+    """Each autogrid robot's reference: the central solve on its final grid and sigma, of all
+    data -- or, with robots absent (`launch`), of the participants' data."""
+    from launcher import report
+
+    kept = world.robots
+    if extra.get("absent"):
+        kept = [r for r in world.robots if r.id in extra["participants"]]
+    pts = np.vstack([r.points for r in kept])
+    labels = np.concatenate([r.labels for r in kept])
+    return report.autogrid_references(robots, pts, labels, C=spec.C, soft_C=spec.autogrid_params.soft_C)
 
 
 def _round_budget(spec: Any) -> int:
@@ -222,16 +308,20 @@ def _round_budget(spec: Any) -> int:
         from agents.ct_admm import CTADMMParams
 
         return CTADMMParams.from_params(spec.params).rounds
+    if spec.algorithm == "autogrid":
+        return spec.autogrid_params.max_total_rounds
     return int(spec.params["max_rounds"])
 
 
-def _prepare(args: argparse.Namespace, mode: str, **extra: Any) -> tuple[Path, World, Any, Any]:
+def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None, **extra: Any) -> tuple[Path, World, Any, Any]:
+    """The world, the fleet file, the run folder and -- for a fixed grid -- the central solve
+    (an autogrid fleet's grid exists only after its run: central is None then)."""
     from agents.problem import solve_central
 
-    world, spec = build_world(_options(args, **extra))
+    world, spec = build_world(options or _options(args, **extra))
     out = _out_dir(args, mode)
     scenario.write_data_csv(out / "data.csv", world.robots)
-    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
     return out, world, spec, central
 
 
@@ -246,14 +336,28 @@ def _infeasible(out: Path, world: World, spec: Any, central: Any) -> NoReturn:
 
 
 def args_grid(spec: Any) -> str:
+    if not spec.fixed_grid:
+        start = f", start grid {len(spec.grid)} points" if len(spec.grid) else ""
+        return f"automatic (at most {spec.autogrid_params.max_points} points{start})"
     xs = np.unique(np.round(spec.grid[:, 0], 9))
     ys = np.unique(np.round(spec.grid[:, 1], 9))
     return f"{len(xs)}x{len(ys)}"
 
 
 def cmd_central(args: argparse.Namespace) -> int:
+    """All data in one QP on a fixed grid. Without --grid / --sigma: the paper's (said so); the
+    automatic grid and sigma are the fleet's own choice, made by simulate / launch."""
     t0 = time.perf_counter()
-    out, world, spec, central = _prepare(args, "central")
+    options = _options(args)
+    missing = [flag for flag, value in (("--grid", options.grid), ("--sigma", options.sigma)) if value is None]
+    if missing and options.preset is None:
+        print(
+            f"central: no {' / '.join(missing)} given: solving on the paper's setting (--preset paper: grid "
+            f"{PAPER_GRID}, sigma {PAPER_SIGMA:g}); the automatic grid and sigma are chosen by the fleet "
+            "(shapefleet simulate / launch)"
+        )
+    options = dataclasses.replace(options, preset=options.preset or "paper", algorithm="admm")
+    out, world, spec, central = _prepare(args, "central", options=options)
     if not central.solved:
         _infeasible(out, world, spec, central)
     robot = {"id": 0, "x": central.x.tolist(), "gamma": central.gamma, "rounds": 0, "converged": True}
@@ -268,7 +372,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "simulate")
-    if not central.solved:
+    if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     with Progress(
         TextColumn("[bold]{task.description}"),
@@ -306,7 +410,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
     unknown = [c.robot for c in crashes if c.robot not in spec.robots]
     if unknown:
         raise UsageError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
-    if not central.solved:
+    if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     try:
         outcome = launch_fleet(
@@ -343,6 +447,10 @@ def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, 
 
     extra["participants"] = sorted(int(r["id"]) for r in robots)
     extra["absent"] = sorted(set(spec.robot_ids) - set(extra["participants"]))
+    if not spec.fixed_grid:  # measured per robot on its own grid (_autogrid_references)
+        if extra["absent"]:
+            extra["reference"] = "central solution of the participants' data"
+        return None
     if not extra["absent"]:
         return central
     kept = [r for r in world.robots if r.id in extra["participants"]]
@@ -463,7 +571,7 @@ def cmd_prepare(args: argparse.Namespace) -> int:
     from launcher import deploy
 
     out, world, spec, central = _prepare(args, "prepare", fleet_id=args.fleet_id)
-    if not central.solved:
+    if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     written = deploy.write_prepared(out, world, spec, topology=args.topology)
     print(f"fleet {spec.fleet}: {spec.n_robots} robots, {spec.algorithm}, grid {args_grid(spec)}")
@@ -494,7 +602,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
         print(f"robot {i}: no result ({deploy.result_file(args.results, i)}: {why})", file=sys.stderr)
     out = _out_dir(args, "collect")
     scenario.write_data_csv(out / "data.csv", world.robots)
-    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
     extra: dict[str, Any] = {"fleet": spec.fleet, "topology": prepared.topology, "faults": _fault_dict(spec.faults)}
     central = _participants(world, spec, central, robots, extra)
     wall = max(float(r.get("wall_s") or 0.0) for r in robots)
@@ -510,7 +618,11 @@ def cmd_gridstudy(args: argparse.Namespace) -> int:
     if args.bad_grid is not None:
         scenario.parse_grid(args.bad_grid)
     run_grid_study(
-        _out_dir(args, "gridstudy"), options=options, good_grid=args.grid, bad_grid=args.bad_grid or "4x2", stop_time=options.ct_stop_time
+        _out_dir(args, "gridstudy"),
+        options=options,
+        good_grid=args.grid or PAPER_GRID,
+        bad_grid=args.bad_grid or "4x2",
+        stop_time=options.ct_stop_time,
     )
     return 0
 

@@ -38,7 +38,7 @@ __all__ = ["SECTIONS", "ConfigError", "Scenario", "load_scenario", "defaults_for
 
 SECTIONS: dict[str, tuple[str, ...]] = {
     "world": ("shape", "shape-file", "data", "robots", "points", "seed", "standoff", "range", "offset", "noise"),
-    "model": ("grid", "grid-bounds", "sigma", "C"),
+    "model": ("grid", "grid-bounds", "sigma", "C", "preset", "max-grid-points"),
     "algorithm": (
         "topology", "comm-range", "algorithm", "rho", "relax", "tol", "max-rounds", "ct-step", "ct-period", "ct-stop-time",
     ),
@@ -49,7 +49,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
 SECTION_OF = {key: section for section, keys in SECTIONS.items() for key in keys}
 
 # TOML types each key accepts (besides what the flag's own parser then checks)
-_INT = ("robots", "points", "seed", "max-rounds", "zenoh-port")
+_INT = ("robots", "points", "seed", "max-rounds", "zenoh-port", "max-grid-points")
 _FLOAT = ("standoff", "range", "offset", "noise", "sigma", "C", "comm-range", "rho", "relax", "tol", "restart-after")
 _DURATION = ("delay", "jitter", "retransmit", "dead-after", "max-wall", "ct-step", "ct-period", "ct-stop-time")
 _PROBABILITY = ("loss", "duplicate", "reorder")
@@ -132,6 +132,13 @@ def _check_value(where: str, key: str, value: Any) -> None:
             scenario.parse_grid(value)
         elif key == "grid-bounds":
             scenario.parse_bounds(value)
+        elif key == "preset":
+            from launcher.world import PRESETS
+
+            if value not in PRESETS:
+                raise ValueError(f"{value!r} is not a preset (choose from {', '.join(PRESETS)})")
+        elif key == "max-grid-points" and value < 4:
+            raise ValueError(f"{value!r} must be at least 4")
         elif key == "topology" and value not in topology.TOPOLOGIES:
             raise ValueError(f"{value!r} is not one of {', '.join(topology.TOPOLOGIES)}")
         elif key == "fleet-id":

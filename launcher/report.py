@@ -2,19 +2,24 @@
 
 Shared by `simulate`, `launch` and `central`, so every run's folder reads the same way.
 The schema of result.json is documented in docs/result-schema.md.
+
+A fixed-grid run (admm, ct-admm, central) is measured on the fleet file's basis (`build_result`).
+An autogrid fleet chose its own grid and sigma: each robot is measured on *its* final grid and
+sigma against the centralized solve there (`autogrid_references`, `build_autogrid_result`).
 """
 
 from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from agents.kernel import GridBasis
-from agents.problem import CentralSolution
+from agents.problem import CentralSolution, solve_central
 from launcher import scenario
 from launcher.world import World
 
@@ -117,6 +122,136 @@ def build_result(
     return result
 
 
+# -- autogrid: every robot measured on its own final grid and sigma -----------------------------
+#: what autogrid adds at the top level of result.json, taken from robot 0's result
+AUTOGRID_FIELDS = ("sigma_reason", "sigma_validation", "grid_history", "margin", "message")
+
+
+@dataclass(frozen=True)
+class Reference:
+    """What one autogrid robot is measured against: the central solve on its grid and sigma."""
+
+    basis: GridBasis
+    central: CentralSolution
+    C: float | None  # the penalty of the problem the robot solved (None: hard margin)
+
+
+def has_function(robot: dict[str, Any]) -> bool:
+    """An autogrid robot that finished holds its grid, sigma and (c, gamma)."""
+    return robot.get("grid") is not None and robot.get("c") is not None and robot.get("sigma") is not None
+
+
+def robot_C(robot: dict[str, Any], C: float | None, soft_C: float) -> float | None:
+    """The margin penalty of the answer: the hard margin, or the soft one it fell back to."""
+    if robot.get("margin") != "soft":
+        return None
+    return C if C is not None else soft_C
+
+
+def autogrid_references(
+    robots: list[dict[str, Any]], points: np.ndarray, labels: np.ndarray, *, C: float | None, soft_C: float
+) -> dict[int, Reference]:
+    """Per robot id with a function: the central solve of (points, labels) on its final grid and
+    sigma, with its margin's penalty. Robots that agree share one solve."""
+    solved: dict[tuple[bytes, float, float | None], Reference] = {}
+    out: dict[int, Reference] = {}
+    for r in robots:
+        if not has_function(r):
+            continue
+        grid = np.asarray(r["grid"], dtype=float).reshape(-1, 2)
+        key = (grid.tobytes(), float(r["sigma"]), robot_C(r, C, soft_C))
+        if key not in solved:
+            basis = GridBasis(grid, float(r["sigma"]))
+            solved[key] = Reference(basis, solve_central(basis, points, labels, key[2]), key[2])
+        out[int(r["id"])] = solved[key]
+    return out
+
+
+def robots_agree(robots: list[dict[str, Any]]) -> bool:
+    """Every robot ended with the same grid, sigma, margin and (c, gamma), bit for bit."""
+    if not robots or not all(has_function(r) for r in robots):
+        return False
+    first = robots[0]
+    return all(
+        r["grid"] == first["grid"] and r["sigma"] == first["sigma"] and r.get("margin") == first.get("margin")
+        and r["c"] == first["c"] and r["gamma"] == first["gamma"]
+        for r in robots[1:]
+    )
+
+
+def build_autogrid_result(
+    world: World,
+    robots: list[dict[str, Any]],
+    references: dict[int, Reference],
+    *,
+    wall_s: float,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """result.json of an autogrid run (docs/result-schema.md): each robot measured on its own grid.
+
+    The top-level grid, sigma, central solve and the autogrid fields are robot 0's (the first
+    robot with a function); ``robots_agree`` says whether every robot holds the same grid, sigma
+    and function bit for bit. No per-round ``history``: the exchanged vectors change meaning from
+    phase to phase (bounds, sigma vote, ADMM on each grid, flood).
+    """
+    pts, labels = world.points, world.labels
+    with_f = [r for r in robots if has_function(r)]
+    first = with_f[0] if with_f else (robots[0] if robots else {})
+    ref0 = references.get(int(first["id"])) if with_f else None
+    rows, errors, accuracies, ious = [], [], [], []
+    for r in robots:
+        row = {k: v for k, v in r.items() if k not in ("trace", "x", "round_times")}
+        row["id"] = int(r["id"])
+        ref = references.get(int(r["id"]))
+        if ref is not None:
+            c, g = np.asarray(r["c"], dtype=float), float(r["gamma"])
+            b = ref.basis
+            accuracies.append(float(np.mean(np.sign(b.decision(pts, c, g)) == labels)))
+            if world.shape is not None:
+                ious.append(scenario.iou_on_raster(world.shape, lambda p, b=b, c=c, g=g: b.decision(p, c, g) < 0, world.bounds))
+            if ref.central.solved:
+                row["function_error"] = b.function_error(c, g, ref.central.c, ref.central.gamma)
+                errors.append(row["function_error"])
+        rows.append(row)
+    agree = robots_agree(robots)
+    consensus = float("nan")
+    if agree:
+        consensus = 0.0
+    elif ref0 is not None and all(references.get(int(r["id"])) is not None and references[int(r["id"])].basis is ref0.basis for r in robots):
+        fs = [(np.asarray(r["c"], dtype=float), float(r["gamma"])) for r in robots]
+        consensus = _errors(ref0.basis, fs, ref0.central)[1]
+    central = ref0.central if ref0 is not None else None
+    result: dict[str, Any] = {
+        "schema": SCHEMA_VERSION,
+        "converged": bool(robots) and all(bool(r.get("converged")) for r in robots),
+        "rounds": max((int(r["rounds"]) for r in robots), default=0),
+        "wall_s": wall_s,
+        "algorithm": "autogrid",
+        "sigma": first.get("sigma"),
+        "C": None if ref0 is None else ref0.C,
+        "grid": first.get("grid") or [],
+        "grid_bounds": list(world.bounds),
+        "robots_agree": agree,
+        **{k: first.get(k) for k in AUTOGRID_FIELDS},
+        "robots": rows,
+        "central": {
+            "c": central.c.tolist() if central is not None and central.solved else None,
+            "gamma": central.gamma if central is not None and central.solved else None,
+            "status": "no final grid" if central is None else central.status,
+            "message": "no robot finished with a function" if central is None else central.message,
+        },
+        "metrics": {
+            "function_error": _num(max(errors)) if errors and len(errors) == len(robots) else None,
+            "consensus_error": _num(consensus),
+            "train_accuracy": min(accuracies, default=None),
+            "iou": min(ious, default=None),
+        },
+        "history": [],
+    }
+    result.update(extra or {})
+    return result
+
+
 def write_json(path: Path, obj: Any) -> None:
     """Atomic JSON write: a reader never sees half a result."""
     tmp = Path(f"{path}.tmp")
@@ -132,8 +267,19 @@ def _robot_colours(n: int) -> list[Any]:
     return [cmap(i % cmap.N) for i in range(n)]
 
 
-def plot_shapes(path: Path, world: World, basis: GridBasis, result: dict[str, Any], title: str = "") -> None:
-    """The paper's Fig. 3: truth, each robot's data, grid points and every learned outline."""
+def plot_shapes(
+    path: Path,
+    world: World,
+    basis: GridBasis | None,
+    result: dict[str, Any],
+    title: str = "",
+    bases: dict[int, GridBasis] | None = None,
+) -> None:
+    """The paper's Fig. 3: truth, each robot's data, grid points and every learned outline.
+
+    ``bases`` (autogrid): each robot's own final basis; the grid drawn is ``result["grid"]`` (the
+    final grid) and, when the fleet started from a given grid, that start grid too.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -141,6 +287,10 @@ def plot_shapes(path: Path, world: World, basis: GridBasis, result: dict[str, An
 
     fig, ax = plt.subplots(figsize=(7.5, 6))
     x0, x1, y0, y1 = world.bounds
+    grid = np.asarray(result.get("grid") or [], dtype=float).reshape(-1, 2)
+    if len(grid):  # an automatic grid may reach beyond the data's box: show all of it
+        x0, x1 = min(x0, grid[:, 0].min()), max(x1, grid[:, 0].max())
+        y0, y1 = min(y0, grid[:, 1].min()), max(y1, grid[:, 1].max())
     pad = 0.05 * max(x1 - x0, y1 - y0)
     xs = np.linspace(x0 - pad, x1 + pad, 300)
     ys = np.linspace(y0 - pad, y1 + pad, 300)
@@ -158,13 +308,18 @@ def plot_shapes(path: Path, world: World, basis: GridBasis, result: dict[str, An
         if robot.pose is not None:
             ax.scatter(*robot.pose, marker="^", color=colour, s=80, edgecolors="black", zorder=5)
         row = rows.get(robot.id)
-        if row is None:
+        b = basis if bases is None else bases.get(robot.id)
+        if row is None or b is None or row.get("c") is None:
             continue
-        f = basis.decision(flat, np.asarray(row["c"]), row["gamma"]).reshape(gx.shape)
+        f = b.decision(flat, np.asarray(row["c"]), row["gamma"]).reshape(gx.shape)
         if f.min() < 0 < f.max():
             ax.contour(gx, gy, f, levels=[0.0], colors=[colour], linewidths=1.6)
         ax.plot([], [], color=colour, label=f"robot {robot.id}")
-    ax.scatter(*basis.grid.T, marker="+", color="black", s=60, lw=1.2, label="grid points")
+    if bases is not None and len(world.grid):
+        ax.scatter(*world.grid.T, marker="s", facecolors="none", edgecolors="grey", s=70, lw=1.0, label="start grid")
+    if len(grid):
+        label = "grid points" if bases is None else f"final grid ({len(grid)} points)"
+        ax.scatter(*grid.T, marker="+", color="black", s=60 if len(grid) < 80 else 25, lw=1.2 if len(grid) < 80 else 0.8, label=label)
     ax.set_aspect("equal")
     ax.set_xlim(xs[0], xs[-1])
     ax.set_ylim(ys[0], ys[-1])
@@ -216,7 +371,7 @@ def summary_table(result: dict[str, Any]) -> Any:
         table.add_row(
             str(r["id"]),
             str(r["rounds"]),
-            f"{r['gamma']:.4g}",
+            "-" if r.get("gamma") is None else f"{r['gamma']:.4g}",
             "-" if fe is None else f"{fe:.2e}",
             str(r.get("frames_sent", "-")),
             str(r.get("frames_received", "-")),
@@ -230,4 +385,12 @@ def summary_table(result: dict[str, Any]) -> Any:
         f"function error {fmt(m['function_error'], '.2e')}  consensus error {fmt(m['consensus_error'], '.2e')}  "
         f"train accuracy {fmt(m['train_accuracy'], '.3f')}  IoU {fmt(m['iou'], '.3f')}"
     )
+    if result["algorithm"] == "autogrid":
+        sizes = " -> ".join(str(h["size"]) for h in result.get("grid_history") or [])
+        table.caption += (
+            f"\nsigma {fmt(result['sigma'], '.4g')}, grids {sizes or '-'} points, {result.get('margin')} margin, "
+            f"robots {'agree bit for bit' if result.get('robots_agree') else 'DO NOT agree'}"
+        )
+        if result.get("message"):
+            table.caption += f"\n{result['message']}"
     return table

@@ -2,10 +2,19 @@
 
 `build_world` is the one place the command-line options turn into a `FleetSpec` (what robots
 are told) and a `World` (what only the launcher knows: the true shape, for drawing and IoU).
+
+Grid and sigma are automatic by default: with neither given, `algorithm="auto"` runs the fleet
+that chooses them itself (``autogrid``, agents/autogrid.py). `resolve_options` is the rule:
+
+* ``preset="paper"`` fills grid 5x3 and sigma 1 where not given (the paper's setting);
+* ``auto`` is ``admm`` when both grid and sigma are given, else ``autogrid``;
+* ``admm`` and ``ct-admm`` need a fixed grid: without grid / sigma they use the paper's;
+* ``autogrid`` takes a given grid as its start grid and a given sigma as fixed.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import secrets
 from dataclasses import dataclass, field
 from typing import Any
@@ -14,11 +23,24 @@ import networkx as nx
 import numpy as np
 from shapely import Polygon
 
+from agents.autogrid import AutoGridParams
 from agents.ct_admm import CTADMMParams
-from agents.spec import FleetSpec, RobotSpec, Timing
+from agents.spec import ALGORITHMS, FleetSpec, RobotSpec, Timing
 from launcher import scenario, topology
 from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults
+
+
+#: the paper's fixed grid and kernel width (``--preset paper``; admm/ct-admm without --grid/--sigma)
+PAPER_GRID = "5x3"
+PAPER_SIGMA = 1.0
+PRESETS: dict[str, dict[str, Any]] = {"paper": {"grid": PAPER_GRID, "sigma": PAPER_SIGMA}}
+#: --algorithm choices: "auto" resolves to admm (grid and sigma given) or autogrid
+ALGORITHM_CHOICES = ("auto", *ALGORITHMS)
+#: the autogrid fleet's budget of grid points (AutoGridParams.max_points)
+DEFAULT_MAX_GRID_POINTS = next(f.default for f in dataclasses.fields(AutoGridParams) if f.name == "max_points")
+#: the admm / ct-admm round cap when --max-rounds is not given (autogrid: its own cap over all phases)
+DEFAULT_MAX_ROUNDS = 5000
 
 
 @dataclass
@@ -35,17 +57,19 @@ class Options:
     lidar_range: float = 4.0
     offset: float = 0.3
     noise: float = 0.01
-    grid: str = "5x3"
-    grid_bounds: str | None = None
-    sigma: float = 1.0
+    grid: str | None = None  # None: automatic (autogrid), or the paper's 5x3 for admm / ct-admm
+    grid_bounds: str | None = None  # None: the data's padded bounding box
+    sigma: float | None = None  # None: chosen by the fleet (autogrid), or the paper's 1 for admm / ct-admm
     C: float | None = None
+    preset: str | None = None  # "paper": grid 5x3 and sigma 1 where not given
+    max_grid_points: int = DEFAULT_MAX_GRID_POINTS  # autogrid: budget of grid points
     topology: str = "complete"
     comm_range: float | None = None
-    algorithm: str = "admm"
+    algorithm: str = "auto"
     rho: float = 15.0
     relax: float = 1.95
     tol: float = 1e-3
-    max_rounds: int = 5000
+    max_rounds: int | None = None  # None: 5000 for admm, autogrid's own cap (all phases) for autogrid
     ct_step: float = 1e-3  # ct-admm: Euler step of the flow (s), the paper's sampling period
     ct_period: float = 1e-2  # ct-admm: communication period T_sp (s)
     ct_stop_time: float = 10.0  # ct-admm: stop time (s)
@@ -60,8 +84,8 @@ class World:
 
     shape: Polygon | None
     robots: list[scenario.RobotData]
-    grid: np.ndarray
-    bounds: tuple[float, float, float, float]
+    grid: np.ndarray  # the fixed grid; autogrid: the start grid, or empty (0, 2)
+    bounds: tuple[float, float, float, float]  # the region drawn and rastered for IoU
     graph: nx.Graph
 
     @property
@@ -78,18 +102,53 @@ def _check_positive(value: float, flag: str) -> None:
         raise scenario.ScenarioError(f"{flag}: {value!r} must be a positive number")
 
 
+def resolve_options(opts: Options) -> Options:
+    """The options with the preset applied and the algorithm, grid and sigma settled (module doc).
+
+    The result has ``preset=None`` and a concrete algorithm; grid and sigma are None only for
+    autogrid (chosen by the fleet). ScenarioError names a bad --preset / --algorithm.
+    """
+    grid, sigma = opts.grid, opts.sigma
+    if opts.preset is not None:
+        if opts.preset not in PRESETS:
+            raise scenario.ScenarioError(f"--preset: {opts.preset!r} is not a preset (choose from {', '.join(PRESETS)})")
+        preset = PRESETS[opts.preset]
+        grid = preset["grid"] if grid is None else grid
+        sigma = preset["sigma"] if sigma is None else sigma
+    algorithm = opts.algorithm
+    if algorithm == "auto":
+        algorithm = "admm" if grid is not None and sigma is not None else "autogrid"
+    if algorithm not in ALGORITHMS:
+        raise scenario.ScenarioError(f"--algorithm: {algorithm!r} is not one of {', '.join(ALGORITHM_CHOICES)}")
+    if algorithm != "autogrid":  # a fixed basis: the paper's where not given
+        grid = PAPER_GRID if grid is None else grid
+        sigma = PAPER_SIGMA if sigma is None else sigma
+    return dataclasses.replace(opts, grid=grid, sigma=sigma, algorithm=algorithm, preset=None)
+
+
 def build_world(opts: Options) -> tuple[World, FleetSpec]:
     """The scenario and the fleet file of one run; errors are ScenarioError / TopologyError."""
-    _check_positive(opts.sigma, "--sigma")
+    opts = resolve_options(opts)
+    autogrid = opts.algorithm == "autogrid"
+    if opts.sigma is not None:
+        _check_positive(opts.sigma, "--sigma")
     if opts.C is not None:
         _check_positive(opts.C, "--C")
     _check_positive(opts.rho, "--rho")
     _check_positive(opts.tol, "--tol")
     if not 0 < opts.relax < 2:
         raise scenario.ScenarioError(f"--relax: {opts.relax!r} must be in (0, 2)")
-    if opts.max_rounds < 1:
+    if opts.max_rounds is not None and opts.max_rounds < 1:
         raise scenario.ScenarioError(f"--max-rounds: {opts.max_rounds!r} must be at least 1")
-    nx_, ny_ = scenario.parse_grid(opts.grid)
+    if isinstance(opts.max_grid_points, bool) or not isinstance(opts.max_grid_points, (int, np.integer)) or opts.max_grid_points < 4:
+        raise scenario.ScenarioError(f"--max-grid-points: {opts.max_grid_points!r} must be an integer of at least 4")
+    grid_shape = None if opts.grid is None else scenario.parse_grid(opts.grid)
+    given_bounds = scenario.parse_bounds(opts.grid_bounds) if opts.grid_bounds else None
+    if given_bounds is not None and grid_shape is None:
+        raise scenario.ScenarioError(
+            "--grid-bounds: places the grid of --grid, and none is given (the automatic grid covers the data "
+            "by itself); give --grid too, or --preset paper"
+        )
     if opts.fleet_id is not None:
         try:
             validate_fleet_id(opts.fleet_id)
@@ -119,8 +178,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             offset=opts.offset,
         )
     points = np.vstack([r.points for r in robots])
-    bounds = scenario.parse_bounds(opts.grid_bounds) if opts.grid_bounds else scenario.default_bounds(points)
-    grid = scenario.make_grid(nx_, ny_, bounds)
+    bounds = given_bounds if given_bounds is not None else scenario.default_bounds(points)
+    grid = np.zeros((0, 2)) if grid_shape is None else scenario.make_grid(*grid_shape, bounds)
 
     ids = [r.id for r in robots]
     positions = None
@@ -135,9 +194,14 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         "rho": opts.rho,
         "relax": opts.relax,
         "tol": opts.tol,
-        "max_rounds": opts.max_rounds,
         "diameter": max(1, topology.diameter(graph)) if len(ids) > 1 else 0,
     }
+    if autogrid:  # the round cap covers every phase (max_total_rounds); unset: autogrid's own
+        params["max_points"] = int(opts.max_grid_points)
+        if opts.max_rounds is not None:
+            params["max_total_rounds"] = opts.max_rounds
+    else:
+        params["max_rounds"] = DEFAULT_MAX_ROUNDS if opts.max_rounds is None else opts.max_rounds
     if opts.algorithm == "ct-admm":
         for flag, value in (("--ct-step", opts.ct_step), ("--ct-period", opts.ct_period), ("--ct-stop-time", opts.ct_stop_time)):
             _check_positive(value, flag)
@@ -146,7 +210,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             CTADMMParams.from_params(params)
         except ValueError as exc:  # e.g. a period that is not a whole number of steps
             raise scenario.ScenarioError(f"--ct-period/--ct-step: {exc}") from None
-    spec = FleetSpec(
+    spec_kwargs = dict(
         fleet=opts.fleet_id or f"run-{secrets.token_hex(4)}",
         algorithm=opts.algorithm,
         sigma=opts.sigma,
@@ -160,4 +224,25 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         seed=opts.seed,
         timing=opts.timing,
     )
+    if autogrid:
+        _check_autogrid(opts, grid, ids, spec_kwargs)
+    spec = FleetSpec(**spec_kwargs)
     return World(shape, robots, grid, bounds, graph), spec
+
+
+def _check_autogrid(opts: Options, grid: np.ndarray, ids: list[int], spec_kwargs: dict[str, Any]) -> None:
+    """What AdaptiveGridCore would refuse on the robots, said here in terms of the flags."""
+    if len(grid) > opts.max_grid_points:
+        raise scenario.ScenarioError(
+            f"--grid: {opts.grid} is {len(grid)} start points, more than --max-grid-points {opts.max_grid_points}"
+        )
+    try:
+        params = FleetSpec(**spec_kwargs).autogrid_params
+    except ValueError as exc:
+        raise scenario.ScenarioError(f"autogrid: {exc}") from None
+    if params.validates and max(ids) >= params.tally_slots:
+        raise scenario.ScenarioError(
+            f"--max-grid-points: {opts.max_grid_points} leaves room for robot ids below {params.tally_slots} in the "
+            f"fleet's sigma vote (frames of max-grid-points + 2 numbers, 3 per robot); robot {max(ids)} needs "
+            f"--max-grid-points {3 * (max(ids) + 1) - 2} or more, or give --sigma"
+        )

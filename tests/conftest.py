@@ -15,11 +15,21 @@ from agents.problem import solve_central
 from launcher.world import Options, build_world
 
 
+#: the paper's setting, which the fixed-grid tests measure (the CLI's default is now autogrid)
+PAPER = {"grid": "5x3", "sigma": 1.0, "algorithm": "admm"}
+
+
 def make_run(**kwargs):
-    """(world, spec, central) for Options(**kwargs) with a fixed fleet id."""
+    """(world, spec, central) for Options(**kwargs) with a fixed fleet id, on the paper's
+    setting (grid 5x3, sigma 1, admm) unless the test passes its own; autogrid runs get no
+    paper grid or sigma (they choose their own; central is None then)."""
     kwargs.setdefault("fleet_id", "test")
+    kwargs.setdefault("algorithm", PAPER["algorithm"])
+    if kwargs["algorithm"] != "autogrid":
+        kwargs.setdefault("grid", PAPER["grid"])
+        kwargs.setdefault("sigma", PAPER["sigma"])
     world, spec = build_world(Options(**kwargs))
-    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
     return world, spec, central
 
 

@@ -22,7 +22,7 @@ def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
 
 def test_simulate_writes_the_run_folder(tmp_path):
     out = tmp_path / "run"
-    proc = run_cli("simulate", "--out", str(out))
+    proc = run_cli("simulate", "--preset", "paper", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     for name in ("data.csv", "result.json", "shapes.png", "convergence.png"):
         assert (out / name).stat().st_size > 0, name
@@ -38,7 +38,7 @@ def test_simulate_writes_the_run_folder(tmp_path):
         assert {"id", "c", "gamma", "rounds", "frames_sent", "frames_received"} <= r.keys()
     # the data file repeats the run exactly
     again = tmp_path / "again"
-    proc = run_cli("simulate", "--data", str(out / "data.csv"), "--out", str(again))
+    proc = run_cli("simulate", "--preset", "paper", "--data", str(out / "data.csv"), "--out", str(again))
     assert proc.returncode == 0, proc.stderr
     assert json.loads((again / "result.json").read_text())["central"] == result["central"]
 
@@ -114,7 +114,7 @@ def test_bad_data_messages_name_file_and_line(tmp_path, capsys):
 
 
 def test_infeasible_grid_is_said_in_words(tmp_path):
-    proc = run_cli("simulate", "--shape", "cross", "--grid", "2x2", "--out", str(tmp_path / "o"))
+    proc = run_cli("simulate", "--preset", "paper", "--shape", "cross", "--grid", "2x2", "--out", str(tmp_path / "o"))
     assert proc.returncode == 2
     assert "infeasible" in proc.stderr and "Traceback" not in proc.stderr
     assert (tmp_path / "o" / "shapes.png").exists()
@@ -124,7 +124,7 @@ def test_infeasible_grid_is_said_in_words(tmp_path):
 
 def test_ct_admm_writes_the_trajectory(tmp_path):
     out = tmp_path / "ct"
-    proc = run_cli("simulate", "--algorithm", "ct-admm", "--ct-stop-time", "2s", "--out", str(out))
+    proc = run_cli("simulate", "--preset", "paper", "--algorithm", "ct-admm", "--ct-stop-time", "2s", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     result = json.loads((out / "result.json").read_text())
     assert result["algorithm"] == "ct-admm" and result["rounds"] == 200  # 2 s of 10 ms periods
@@ -136,7 +136,7 @@ def test_ct_admm_writes_the_trajectory(tmp_path):
     [(["--ct-period", "10.5ms"], "whole number of steps"), (["--ct-step", "fast"], "--ct-step"), (["--ct-stop-time", "-1s"], "--ct-stop-time")],
 )
 def test_ct_admm_bad_flags(tmp_path, args, needle):
-    proc = run_cli("simulate", "--algorithm", "ct-admm", "--out", str(tmp_path / "o"), *args)
+    proc = run_cli("simulate", "--preset", "paper", "--algorithm", "ct-admm", "--out", str(tmp_path / "o"), *args)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert needle in proc.stderr.strip().splitlines()[-1]
 

@@ -32,6 +32,7 @@ TARGET = 1e-2  # function error every robot must reach within the stop time
 def ct_run(params: dict | None = None, **options):
     """(world, spec, central) of a ct-admm scenario; `params` override the fleet file's."""
     options.setdefault("fleet_id", "ct-test")
+    options.setdefault("preset", "paper")  # the paper's grid 5x3 and sigma 1 unless a test gives its own
     world, spec = build_world(Options(algorithm="ct-admm", **options))
     if params:
         spec = dataclasses.replace(spec, params={**spec.params, **params})

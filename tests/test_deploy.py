@@ -136,7 +136,7 @@ def _results(spec: FleetSpec, folder: Path, ids=None, fleet: str | None = None) 
 @pytest.fixture(scope="module")
 def prepared(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("prepared")
-    assert main(["prepare", "--robots", "3", "--fleet-id", "collect-test", "--out", str(tmp / "fleet")]) == 0
+    assert main(["prepare", "--preset", "paper", "--robots", "3", "--fleet-id", "collect-test", "--out", str(tmp / "fleet")]) == 0
     return tmp / "fleet"
 
 

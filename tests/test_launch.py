@@ -513,7 +513,7 @@ def _shapefleet(*args: str, timeout: float) -> subprocess.CompletedProcess:
 @bound(60)
 def test_cli_launch_end_to_end(tmp_path):
     out = tmp_path / "run"
-    proc = _shapefleet("launch", "--out", str(out), "--tol", "1e-3", "--max-rounds", "120", "--loss", "0.2",
+    proc = _shapefleet("launch", "--preset", "paper", "--out", str(out), "--tol", "1e-3", "--max-rounds", "120", "--loss", "0.2",
                        "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50)
     assert proc.returncode == 0, proc.stderr
     for name in ("result.json", "data.csv", "shapes.png", "convergence.png", "fleet/fleet.json"):

@@ -511,7 +511,7 @@ async def test_same_results_as_the_in_process_simulator(router, faults):
 
     async with asyncio.timeout(TEST_TIMEOUT_S):
         _world, spec = build_world(Options(
-            robots=4, points=15, grid="4x3", topology="ring", max_rounds=60, faults=faults,
+            robots=4, points=15, grid="4x3", sigma=1.0, algorithm="admm", topology="ring", max_rounds=60, faults=faults,
             timing=SpecTiming(retransmit_s=0.02, dead_after_s=10.0, max_wall_s=30.0, linger_s=1.0),
             fleet_id=f"shell-sim-{'clean' if faults.is_clean else 'lossy'}",
         ))

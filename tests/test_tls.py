@@ -91,7 +91,7 @@ def fleet_file(tmp_path_factory) -> Path:
     tmp = tmp_path_factory.mktemp("fleetfile")
     from launcher.world import Options, build_world
 
-    _, spec = build_world(Options(robots=2, fleet_id="tls-cli"))
+    _, spec = build_world(Options(robots=2, preset="paper", fleet_id="tls-cli"))
     spec.save(tmp / "fleet.json")
     return tmp / "fleet.json"
 
