@@ -20,17 +20,20 @@ rounds, through the same frames (D = the `diameter` parameter, >= the graph diam
    every iterate and the learned function f(s p) -- unchanged: the rule is scale-free.
    Unless sigma is given (or `validate_divisors` is empty, then sigma = diag / sigma_divisor),
    sigma is chosen by a held-out sweep first, for each candidate diag / d, d in
-   `validate_divisors` (default 4, 6, 8, 12, 16), in order:
-     VALIDATE (ADMM rounds, <= `validate_rounds`): every robot holds out its own pairs
-       i % holdout_every == holdout_every - 1; the fleet solves the soft margin (C = soft_C,
-       tol = `validate_tol`) on the candidate's coarse lattice from the remaining pairs;
-     TALLY (D rounds): every robot counts its held-out errors (y f <= 0), held-out pairs and
-       hinge loss into its own slots (one block of slots per quantity, slot = robot id) of a
-       zero vector; a max-consensus gives every robot every slot bit for bit, and the sums
-       are identical everywhere.
-   The rule, the same everywhere: fewest held-out errors, ties -> the larger sigma
-   (`choose_sigma`); `sigma_reason` says why. Then the run below uses all data. Each
-   candidate is proportional to diag and errors are signs, so the choice is scale-free too.
+   `validate_divisors` (default 4, 6, 8, 12, 16), in order, and each fold k < validate_folds:
+     VALIDATE (ADMM rounds, <= `validate_rounds`): every robot holds out its own units
+       u % holdout_every == holdout_every - 1 - k (a unit = an inside point and its nearest
+       outside point, `holdout_units`); the fleet solves the soft margin (C = soft_C,
+       tol = `validate_tol`) on the candidate's coarse lattice from the remaining points;
+     TALLY (D rounds): every robot counts its held-out errors (y f <= 0), held-out points,
+       hinge loss and whether its learned inside region is NOT one solid piece (`is_solid` on
+       a raster of the lattice box) into its own slots (one block of slots per quantity,
+       slot = robot id) of a zero vector; a max-consensus gives every robot every slot bit for
+       bit, and the sums are identical everywhere.
+   The rule, the same everywhere (`choose_sigma`): among the candidates whose inside region is
+   solid on every robot and fold, fewest held-out errors, ties -> the smaller sigma;
+   `sigma_reason` says why. Then the run below uses all data. Each candidate is proportional
+   to diag, errors are signs and the raster is the lattice box's, so the choice is scale-free.
 3. VOTE (D rounds, hard margin only): each robot checks that its own data is separable on the
    grid (its local hard-margin QP); a max-consensus on "infeasible" tells every robot.
 4. ADMM: `ConsensusADMM` runs as a sub-machine (its round counter offset by the phase start),
@@ -64,6 +67,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from agents.admm import ADMMParams, ConsensusADMM
 from agents.kernel import GridBasis
@@ -81,6 +85,8 @@ _NO_DATA = -1e300
 BOUNDS, VOTE, ADMM, FLOOD, DONE = "bounds", "vote", "admm", "flood", "done"
 #: the sigma sweep: a soft-margin ADMM on a training part per candidate, then a tally of held-out errors
 VALIDATE, TALLY = "validate", "tally"
+#: the tally's blocks of slots: held-out errors, held-out points, hinge loss, "inside region not solid"
+TALLY_BLOCKS = 4
 
 
 @dataclass(frozen=True)
@@ -105,11 +111,14 @@ class AutoGridParams:
     C: float | None = None  # a number: soft margin from the start (no hard attempt)
     max_total_rounds: int = 50_000
     # sigma by held-out validation (only when sigma is None): candidates diag / d for d in
-    # validate_divisors (empty: the fixed rule diag / sigma_divisor); every robot holds out its
-    # pairs i with i % holdout_every == holdout_every - 1; each candidate is a soft-margin ADMM
-    # (C = soft_C) on its coarse lattice, stopped at validate_tol or validate_rounds
+    # validate_divisors (empty: the fixed rule diag / sigma_divisor); in fold k every robot holds
+    # out its pairs u with u % holdout_every == holdout_every - 1 - k; each candidate and fold is
+    # a soft-margin ADMM (C = soft_C) on its coarse lattice, stopped at validate_tol or
+    # validate_rounds
     validate_divisors: tuple[float, ...] = (4.0, 6.0, 8.0, 12.0, 16.0)
     holdout_every: int = 5
+    validate_folds: int = 2
+    solid_raster: int = 64  # the solid-region check rasterizes the lattice box at this resolution
     validate_tol: float = 1e-2
     validate_rounds: int = 1000
 
@@ -130,6 +139,10 @@ class AutoGridParams:
             raise ValueError(f"validate_divisors must be positive numbers, got {self.validate_divisors!r}")
         if self.holdout_every < 2 or self.validate_rounds < 1:
             raise ValueError("holdout_every must be >= 2 and validate_rounds >= 1")
+        if not 1 <= self.validate_folds <= self.holdout_every:
+            raise ValueError(f"validate_folds must be in [1, holdout_every], got {self.validate_folds}")
+        if self.solid_raster < 8:
+            raise ValueError(f"solid_raster must be at least 8, got {self.solid_raster}")
         if not 0 < self.relax < 2:
             raise ValueError(f"relax must be in (0, 2), got {self.relax}")
 
@@ -145,8 +158,8 @@ class AutoGridParams:
 
     @property
     def tally_slots(self) -> int:
-        """Robot ids must be below this: the tally vector has 3 blocks of one slot per id."""
-        return self.dim // 3
+        """Robot ids must be below this: the tally vector has 4 blocks of one slot per id."""
+        return self.dim // TALLY_BLOCKS
 
 
 # -- the shared, deterministic rules (pure functions of agreed numbers) ---------------------------
@@ -231,24 +244,72 @@ def refine_grid(
 
 
 def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridParams) -> tuple[float, str]:
-    """The sweep's rule, the same on every robot: fewest held-out errors, ties -> the larger sigma.
+    """The sweep's rule, the same on every robot (`records` are the fleet-wide tallies).
 
-    `records` are the fleet-wide tallies (identical everywhere); returns (sigma, reason).
+    1. Keep the candidates whose learned inside region is one solid piece on every robot and in
+       every fold (one connected component, no holes): the object is a solid seen from outside,
+       and a too-narrow kernel betrays itself by holes and islands where there are no data.
+       If no candidate is solid, keep them all.
+    2. Among those, the fewest held-out errors; ties -> the smaller sigma (it follows the outline
+       more closely; step 1 guards against the narrow widths that break the region up).
+    Returns (sigma, reason in words).
     """
-    best = min(records, key=lambda r: (r["errors"], -r["sigma"]))
+    solid = [r for r in records if r["solid"]]
+    pool = solid or records
+    best = min(pool, key=lambda r: (r["errors"], r["sigma"]))
     held = best["held_out"]
-    ties = [r for r in records if r["errors"] == best["errors"]]
-    table = ", ".join(f"diag/{r['divisor']:g}: {r['errors']}" for r in records)
+    ties = [r for r in pool if r["errors"] == best["errors"]]
+    table = ", ".join(
+        f"diag/{r['divisor']:g}: {r['errors']}" + ("" if r["solid"] else " (not solid)") for r in records
+    )
+    folds = min(params.validate_folds, params.holdout_every)
     why = (
-        f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: fewest held-out errors "
-        f"({best['errors']}/{held}) of {len(records)} candidates"
-        + (f" (tied with {len(ties) - 1}, the larger sigma wins)" if len(ties) > 1 else "")
-        + f"; held-out errors {table}; every robot held out every {params.holdout_every}th pair, "
-        f"each candidate a soft-margin ADMM (C = {params.soft_C:g}) on its coarse lattice, errors "
-        f"summed exactly by max-consensus over one slot per robot id; diag = {diag:.6g} = diagonal "
-        "of the data's bounding box (scale-free: every candidate is proportional to diag)"
+        f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: "
+        + (f"of the {len(solid)} candidates whose inside region is one solid piece (no holes, no islands), "
+           if solid else "no candidate gave a solid inside region; of all candidates, ")
+        + f"fewest held-out errors ({best['errors']}/{held})"
+        + (f" (tied with {len(ties) - 1}, the smaller sigma wins)" if len(ties) > 1 else "")
+        + f"; held-out errors {table}; {folds} fold(s), each robot holding out every "
+        f"{params.holdout_every}th of its (inside point, nearest outside point) pairs; each candidate a "
+        f"soft-margin ADMM (C = {params.soft_C:g}) on its coarse lattice, errors summed exactly by "
+        f"max-consensus over one slot per robot id; diag = {diag:.6g} = diagonal of the data's "
+        "bounding box (scale-free: every candidate is proportional to diag)"
     )
     return float(best["sigma"]), why
+
+
+def holdout_units(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Unit index of every point for the held-out folds (-1: never held out).
+
+    A unit is an inside point (in data order) with its nearest outside point of the same robot:
+    a LiDAR return's two sides, so a held-out unit removes a whole piece of the outline rather
+    than leaving its twin 0.6 away in the training set. A robot without inside points uses its
+    points one by one. Ties in distance go to the first outside point.
+    """
+    n = len(labels)
+    units = np.full(n, -1, dtype=int)
+    inside = np.flatnonzero(labels < 0)
+    outside = np.flatnonzero(labels > 0)
+    if len(inside) == 0 or len(outside) == 0:
+        units[:] = np.arange(n)
+        return units
+    for u, i in enumerate(inside):
+        units[i] = u
+        j = outside[int(np.argmin(np.sum((points[outside] - points[i]) ** 2, axis=1)))]
+        if units[j] < 0:
+            units[j] = u
+    return units
+
+
+def is_solid(inside: np.ndarray) -> bool:
+    """True when a raster's inside cells form one 4-connected piece with no enclosed hole."""
+    if not inside.any():
+        return False
+    _, pieces = ndimage.label(inside)
+    outside, n_out = ndimage.label(~inside)
+    rim = np.concatenate([outside[0], outside[-1], outside[:, 0], outside[:, -1]])
+    touching = set(np.unique(rim).tolist()) - {0}
+    return pieces == 1 and n_out == len(touching)
 
 
 def _crossing(f: np.ndarray) -> np.ndarray:
@@ -353,7 +414,10 @@ class AdaptiveGridCore(RoundCore):
         self._final: np.ndarray | None = None  # (x, gamma) agreed by the fleet
         self._final_flags = 0
         # the sigma sweep: which pairs are held out, the candidate being solved, the tallies
-        self._held = (np.arange(len(labels)) % params.holdout_every) == params.holdout_every - 1
+        self._units = holdout_units(points, labels)
+        self._fold = 0
+        self._held = self._held_mask(0)
+        self._fold_tallies: list[dict[str, Any]] = []  # the current candidate's folds so far
         self._cand = 0
         self._diag = 0.0
         self.sigma_validation: list[dict[str, Any]] = []
@@ -421,10 +485,17 @@ class AdaptiveGridCore(RoundCore):
             grid = lattice(box, h0, 0)
         return box, h0, grid
 
+    def _held_mask(self, fold: int) -> np.ndarray:
+        """The points this robot holds out in `fold` (whole units, see `holdout_units`)."""
+        k = self.params.holdout_every
+        return (self._units >= 0) & (self._units % k == k - 1 - fold)
+
     def _validation_setup(self) -> None:
-        """sigma, grid, basis and training features of candidate self._cand (no phase change)."""
+        """sigma, grid, basis and training features of candidate self._cand, fold self._fold."""
         self.sigma = self._diag / self.params.validate_divisors[self._cand]
-        _, _, grid = self._coarse_lattice(self.sigma)
+        self._held = self._held_mask(self._fold)
+        box, _, grid = self._coarse_lattice(self.sigma)
+        self._box = box
         self.grid = grid
         self._basis = GridBasis(grid, self.sigma)
         train = self._points[~self._held]
@@ -446,6 +517,12 @@ class AdaptiveGridCore(RoundCore):
             errors, hinge = float(np.sum(yf <= 0)), float(np.sum(np.maximum(0.0, 1.0 - yf)))
         else:
             errors, hinge = 0.0, 0.0
+        # the learned inside region on a raster of the lattice box: one solid piece?
+        r = self.params.solid_raster
+        x0, x1, y0, y1 = self._box
+        gx, gy = np.meshgrid(np.linspace(x0, x1, r), np.linspace(y0, y1, r))
+        f = self._basis.decision(np.column_stack([gx.ravel(), gy.ravel()]), c, float(v[-1]))
+        not_solid = 0.0 if is_solid((f < 0).reshape(r, r)) else 1.0
         self._sub_converged = sub.converged
         self._admm_rounds = rounds
         self._sub = None
@@ -454,6 +531,7 @@ class AdaptiveGridCore(RoundCore):
         t[self.robot_id] = errors
         t[b + self.robot_id] = float(len(held_y))
         t[2 * b + self.robot_id] = hinge
+        t[3 * b + self.robot_id] = not_solid
         self.phase, self._left, self._phase_start = TALLY, self.params.diameter, self.round
         self._values, self._flags = t, 0
 
@@ -463,16 +541,33 @@ class AdaptiveGridCore(RoundCore):
         b = self.params.tally_slots
         v = self._values
         d = self.params.validate_divisors[self._cand]
+        self._fold_tallies.append(
+            {
+                "errors": int(round(float(np.sum(v[:b])))),
+                "held_out": int(round(float(np.sum(v[b : 2 * b])))),
+                "hinge": float(np.sum(v[2 * b : 3 * b])),
+                "solid": not np.any(v[3 * b : 4 * b] > 0),
+                "rounds": self._admm_rounds,
+                "converged": self._sub_converged,
+            }
+        )
+        self._fold += 1
+        if self._fold < self.params.validate_folds:
+            self._enter_validate()
+            return
+        folds, self._fold_tallies, self._fold = self._fold_tallies, [], 0
         self.sigma_validation.append(
             {
                 "divisor": float(d),
                 "sigma": self.sigma,
                 "grid_points": len(self.grid),
-                "errors": int(round(float(np.sum(v[:b])))),
-                "held_out": int(round(float(np.sum(v[b : 2 * b])))),
-                "hinge": float(np.sum(v[2 * b : 3 * b])),
-                "rounds": self._admm_rounds,
-                "converged": self._sub_converged,
+                "errors": sum(t["errors"] for t in folds),
+                "held_out": sum(t["held_out"] for t in folds),
+                "hinge": math.fsum(t["hinge"] for t in folds),
+                "solid": all(t["solid"] for t in folds),
+                "folds": len(folds),
+                "rounds": sum(t["rounds"] for t in folds),
+                "converged": all(t["converged"] for t in folds),
             }
         )
         self._cand += 1
@@ -724,6 +819,8 @@ class AdaptiveGridCore(RoundCore):
             "sigma_reason": self.sigma_reason,
             "diag": self._diag,
             "cand": self._cand,
+            "fold": self._fold,
+            "fold_tallies": [dict(t) for t in self._fold_tallies],
             "sigma_validation": [dict(r) for r in self.sigma_validation],
             "level": self._level,
             "grid": to_bytes(None if self.grid is None else self.grid.ravel()),
@@ -749,6 +846,8 @@ class AdaptiveGridCore(RoundCore):
         self.sigma_reason = state["sigma_reason"]
         self._diag = float(state["diag"])
         self._cand = int(state["cand"])
+        self._fold = int(state["fold"])
+        self._fold_tallies = [dict(t) for t in state["fold_tallies"]]
         self.sigma_validation = [dict(r) for r in state["sigma_validation"]]
         validating = state["phase"] in (VALIDATE, TALLY)
         if self.bounds is not None and not validating and self.sigma is not None:

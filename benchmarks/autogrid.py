@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -108,9 +109,10 @@ def measure(name, kwargs, robots, points, params_kw):
     sweep = [(svc_iou(world, bounds, diag / k), diag / k) for k in SWEEP]
     val = core.sigma_validation
     chosen = next((r for r in val if r["sigma"] == core.sigma), None)
-    # what another deterministic rule on the same tallies would have picked (SVC at that sigma)
-    by_hinge = min(val, key=lambda r: (r["errors"], r["hinge"], -r["sigma"])) if val else None
-    by_small = min(val, key=lambda r: (r["errors"], r["sigma"])) if val else None  # ties -> smaller sigma
+    # what other deterministic rules on the same tallies would have picked (SVC at that sigma)
+    by_old = min(val, key=lambda r: (r["errors"], -r["sigma"])) if val else None  # the previous rule: ties -> larger
+    solid = [r for r in val if r["solid"]] or val
+    by_large = min(solid, key=lambda r: (r["errors"], -r["sigma"])) if val else None  # solid, ties -> larger
     best, best_sigma = max(sweep)
     cv = StratifiedKFold(5, shuffle=True, random_state=0)
     cv_scores = [
@@ -123,14 +125,14 @@ def measure(name, kwargs, robots, points, params_kw):
         "n": len(world.labels),
         "sigma": core.sigma,
         "divisor": diag / core.sigma,
-        "val": " ".join(f"{r['errors']}" for r in val) + (f" /{val[0]['held_out']}" if val else ""),
+        "val": " ".join(f"{r['errors']}{'' if r['solid'] else '*'}" for r in val) + (f" /{val[0]['held_out']}" if val else ""),
         "val_rounds": sum(r["rounds"] for r in val) + len(val) * params.diameter,
         "chosen": chosen,
-        "hinge_div": None if by_hinge is None else by_hinge["divisor"],
-        "svc_hinge": None if by_hinge is None else svc_iou(world, bounds, by_hinge["sigma"]),
+        "old_div": None if by_old is None else by_old["divisor"],
+        "svc_old": None if by_old is None else svc_iou(world, bounds, by_old["sigma"]),
         "reason": core.sigma_reason,
-        "small_div": None if by_small is None else by_small["divisor"],
-        "svc_small": None if by_small is None else svc_iou(world, bounds, by_small["sigma"]),
+        "large_div": None if by_large is None else by_large["divisor"],
+        "svc_large": None if by_large is None else svc_iou(world, bounds, by_large["sigma"]),
         "sizes": "→".join(str(h["size"]) for h in core.grid_history if "norm2" in h or h["status"] == "hard-infeasible"),
         "margin": core.margin,
         "rounds": core.round,
@@ -149,27 +151,31 @@ def measure(name, kwargs, robots, points, params_kw):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="3 robots x 20 points")
+    ap.add_argument("--jobs", type=int, default=2, help="shapes measured in parallel (processes)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks/results/autogrid.md"))
     args = ap.parse_args()
     robots, points = (3, 20) if args.quick else (6, 40)
     params_kw = {"tol": 1e-3, "max_points": 200}
-    rows = []
-    for name, kwargs in SHAPES:
-        row = measure(name, kwargs, robots, points, params_kw)
-        rows.append(row)
-        print(
-            f"{name}: sigma diag/{row['divisor']:.3g} (held-out errors {row['val']}; "
-            f"errors+hinge rule diag/{row['hinge_div']} -> SVC {row['svc_hinge']})\n  "
-            f"auto {row['ours']:.3f}  SVC same {row['svc_same']:.3f}  best {row['svc_best']:.3f}  "
-            f"cv {row['svc_cv']:.3f}  grids {row['sizes']}  {row['rounds']} rounds  {row['wall']:.0f}s",
-            flush=True,
-        )
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        futures = [pool.submit(measure, name, kwargs, robots, points, params_kw) for name, kwargs in SHAPES]
+        rows = []
+        for future in futures:
+            row = future.result()
+            rows.append(row)
+            print(
+                f"{row['name']}: sigma diag/{row['divisor']:.3g} (held-out errors {row['val']})\n  "
+                f"auto {row['ours']:.3f}  SVC same {row['svc_same']:.3f}  best {row['svc_best']:.3f}  "
+                f"cv {row['svc_cv']:.3f}  grids {row['sizes']}  {row['rounds']} rounds  {row['wall']:.0f}s",
+                flush=True,
+            )
     lines = [
         f"# Automatic grid and sigma vs scikit-learn SVC ({robots} robots x {points} points, complete graph)",
         "",
         "Fleet: `agents/autogrid.py` defaults: sigma chosen by the fleet's held-out sweep over diag/{4, 6, 8, 12, 16} "
-        "(every robot holds out every 5th pair; soft-margin ADMM per candidate on its coarse lattice, tol 1e-2, <= 1000 rounds; "
-        "held-out errors summed exactly by max-consensus; fewest errors, ties -> larger sigma), then coarse lattice 1.5 sigma "
+        "(2 folds, every robot holds out every 5th of its (inside, nearest outside) pairs per fold; soft-margin ADMM per "
+        "candidate and fold on its coarse lattice, tol 1e-2, <= 1000 rounds; held-out errors and 'inside region not solid' "
+        "flags tallied exactly by max-consensus; among the solid candidates the fewest errors, ties -> the smaller sigma; "
+        "`*` marks a candidate that was not solid), then coarse lattice 1.5 sigma "
         f"and refinement within {params_kw['max_points']} points on all data, tol {params_kw['tol']:g}, frames through the real codec, no faults.",
         "SVC: RBF, C = 1e6, trained centrally on the same data. IoU on a 200x200 raster of the shape's box "
         "widened by 20%. 'best of sweep' picks sigma in diag/{2,4,6,8,12,16} by IoU with the truth (an oracle); "
@@ -192,12 +198,12 @@ def main() -> None:
         "",
         f"Mean IoU: fleet {mean['ours']:.3f}, SVC same sigma {mean['svc_same']:.3f}, "
         f"SVC best of sweep {mean['svc_best']:.3f}, SVC 5-fold CV {mean['svc_cv']:.3f}.",
-        f"Alternative rule on the same tallies (fewest errors, then smallest summed hinge loss): SVC at its sigma, mean "
-        f"{np.mean([r['svc_hinge'] for r in rows]):.3f} ("
-        + ", ".join(f"{r['name'].split()[0]} diag/{r['hinge_div']:g}" for r in rows) + ").",
-        f"Alternative tie rule on the same tallies (fewest errors, ties -> the smaller sigma): SVC at its sigma, mean "
-        f"{np.mean([r['svc_small'] for r in rows]):.3f} ("
-        + ", ".join(f"{r['name'].split()[0]} diag/{r['small_div']:g}" for r in rows) + ").",
+        f"Previous rule on the same tallies (fewest errors, ties -> the larger sigma, no solid check): SVC at its sigma, mean "
+        f"{np.mean([r['svc_old'] for r in rows]):.3f} ("
+        + ", ".join(f"{r['name'].split()[0]} diag/{r['old_div']:g}" for r in rows) + ").",
+        f"Solid check with ties -> the larger sigma, same tallies: SVC at its sigma, mean "
+        f"{np.mean([r['svc_large'] for r in rows]):.3f} ("
+        + ", ".join(f"{r['name'].split()[0]} diag/{r['large_div']:g}" for r in rows) + ").",
         "",
         "Reason reported by the fleet (first shape): " + rows[0]["reason"],
         "",

@@ -7,11 +7,13 @@ FrameDecoder, fixed vector length max_points + 2), like launcher.simulate with n
 from __future__ import annotations
 
 import msgpack
+from pathlib import Path
+
 import numpy as np
 import pytest
 from sklearn.svm import SVC
 
-from agents.autogrid import AdaptiveGridCore, AutoGridParams, lattice
+from agents.autogrid import AdaptiveGridCore, AutoGridParams, choose_sigma, holdout_units, is_solid, lattice
 from agents.kernel import GridBasis
 from agents.problem import solve_central
 from launcher import scenario
@@ -240,24 +242,63 @@ def _svc_iou(shape, points, labels, bounds, sigma):
     return scenario.iou_on_raster(shape, lambda q: clf.decision_function(q) < 0, bounds, resolution=120)
 
 
-@pytest.mark.parametrize("shape", ["star", "crescent"])
-def test_iou_against_sklearn_svc(shape, capsys):
-    world, spec = build_world(Options(fleet_id="t", shape=shape, robots=4, points=30))
-    params = fast_params(spec, tol=1e-3)
-    core = run_fleet(make_cores(robots_of(spec), params))[0]
-    x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
-    bounds = (x0 - 1, x1 + 1, y0 - 1, y1 + 1)
-    ours = scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds, resolution=120)
-    same = _svc_iou(world.shape, world.points, world.labels, bounds, core.sigma)
-    diag = float(np.hypot(*np.ptp(world.points, axis=0)))
-    # SVC with the best sigma of a small sweep, judged by IoU with the truth (an oracle)
-    best, best_sigma = max((_svc_iou(world.shape, world.points, world.labels, bounds, diag / k), diag / k) for k in (2, 4, 8, 16))
+MM = {"standoff": 1500.0, "lidar_range": 4000.0, "offset": 300.0, "noise": 10.0}
+IOU_SHAPES = {
+    "star": {"shape": "star"},
+    "bean": {"shape": "bean"},
+    "crescent": {"shape": "crescent"},
+    "cross": {"shape": "cross"},
+    "bracket_mm.csv": {"shape_file": str(Path(__file__).resolve().parents[1] / "benchmarks/data/bracket_mm.csv"), **MM},
+}
+
+
+@pytest.fixture(scope="module")
+def iou_table():
+    """Fleet defaults (sigma by the sweep, grid by refinement) vs SVC on five non-convex shapes."""
+    from sklearn.model_selection import StratifiedKFold, cross_val_score
+
+    rows = {}
+    for name, kw in IOU_SHAPES.items():
+        world, spec = build_world(Options(fleet_id="t", robots=3, points=20, **kw))
+        params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=100)
+        cores = run_fleet(make_cores(robots_of(spec), params))
+        core = cores[0]
+        x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
+        pad = 0.2 * max(x1 - x0, y1 - y0)
+        bounds = (x0 - pad, x1 + pad, y0 - pad, y1 + pad)
+        diag = float(np.hypot(*np.ptp(world.points, axis=0)))
+        sweep = {k: _svc_iou(world.shape, world.points, world.labels, bounds, diag / k) for k in (2, 4, 6, 8, 12, 16)}
+        cv = StratifiedKFold(5, shuffle=True, random_state=0)
+        scores = {
+            k: cross_val_score(SVC(kernel="rbf", C=1e6, gamma=k * k / (2 * diag * diag)), world.points, world.labels, cv=cv).mean()
+            for k in sweep
+        }
+        rows[name] = {
+            "fleet": scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds, resolution=120),
+            "same": _svc_iou(world.shape, world.points, world.labels, bounds, core.sigma),
+            "best": max(sweep.values()),
+            "cv": sweep[max(scores, key=lambda k: (scores[k], -k))],  # ties -> the larger sigma
+            "divisor": diag / core.sigma,
+            "identical": all(np.array_equal(k.function()[1], core.function()[1]) for k in cores),
+        }
+    return rows
+
+
+def test_iou_against_sklearn_svc_on_five_non_convex_shapes(iou_table, capsys):
     with capsys.disabled():
-        print(f"\n{shape}: IoU auto fleet {ours:.3f} (sigma {core.sigma:.3f}, {len(core.grid)} grid points); "
-              f"SVC same sigma {same:.3f}; SVC best of sweep {best:.3f} (sigma {best_sigma:.3f})")
-    # the grid and its refinement lose nothing against the full kernel machine at the same sigma;
-    # the issue's bar (>= the oracle sweep) is NOT met on every shape: see docs/autogrid.md
-    assert ours >= same - 0.02
+        print("\nshape            fleet (diag/k)  SVC same sigma  SVC 5-fold CV  SVC best of sweep (oracle)")
+        for name, r in iou_table.items():
+            print(f"{name:16s} {r['fleet']:.3f} (/{r['divisor']:.0f})     {r['same']:.3f}           {r['cv']:.3f}          {r['best']:.3f}")
+        mean = {k: np.mean([r[k] for r in iou_table.values()]) for k in ("fleet", "same", "cv", "best")}
+        print(f"{'mean':16s} {mean['fleet']:.3f}           {mean['same']:.3f}           {mean['cv']:.3f}          {mean['best']:.3f}")
+    for name, r in iou_table.items():
+        assert r["identical"], name
+        # the grid and its refinement lose nothing against the full kernel machine at the same sigma
+        assert r["fleet"] >= r["same"] - 0.02, name
+    # the fleet's own choice of sigma is at least as good, on average, as a central user's
+    # 5-fold cross-validation over a larger sweep; the oracle (best by IoU with the truth) is
+    # NOT reached on every shape: see docs/autogrid.md
+    assert mean["fleet"] >= mean["cv"] - 0.005
 
 
 def run_lossy(cores, faults, *, seed=3, retransmit_s=0.02, cap_s=500.0):
@@ -351,15 +392,21 @@ def test_sigma_sweep_is_identical_on_every_robot(sweep_runs):
     first = cores[0]
     val = first.sigma_validation
     assert [r["divisor"] for r in val] == list(params.validate_divisors)
-    held = sum(int(np.sum(np.arange(len(r.labels)) % 5 == 4)) for r in world.robots)
-    assert all(r["held_out"] == held for r in val)  # the exact fleet-wide sum
+    # the exact fleet-wide sum over the folds: every point of units u % 5 in {4, 3}
+    held = sum(
+        int(np.sum(np.isin(holdout_units(r.points, r.labels) % 5, [4, 3]) & (holdout_units(r.points, r.labels) >= 0)))
+        for r in world.robots
+    )
+    assert params.validate_folds == 2
+    assert all(r["held_out"] == held and r["folds"] == 2 for r in val)
     for core in cores:
         assert core.converged and core.sigma == first.sigma  # bit for bit
         assert core.sigma_validation == val and core.sigma_reason == first.sigma_reason
         assert np.array_equal(core.function()[1], first.function()[1])
-    # the rule: fewest held-out errors, ties -> the larger sigma
-    fewest = min(r["errors"] for r in val)
-    assert first.sigma == max(r["sigma"] for r in val if r["errors"] == fewest)
+    # the rule: among the solid candidates, fewest held-out errors, ties -> the smaller sigma
+    pool = [r for r in val if r["solid"]] or val
+    fewest = min(r["errors"] for r in pool)
+    assert first.sigma == min(r["sigma"] for r in pool if r["errors"] == fewest)
     diag = float(np.hypot(*np.ptp(world.points, axis=0)))
     assert any(first.sigma == pytest.approx(diag / d, rel=1e-12) for d in params.validate_divisors)
     res = first.result()
@@ -389,9 +436,44 @@ def test_sigma_sweep_is_scale_free(sweep_runs):
 def test_checkpoint_during_the_sigma_sweep_resumes_bit_for_bit(sweep_runs):
     _, robots, params, ref, _ = sweep_runs
     cores = make_cores(robots, params)
-    _lockstep(cores, 400)  # inside the second candidate's ADMM
+    _lockstep(cores, 700)  # inside the second candidate's ADMM (one fold tallied)
     assert cores[0].phase == "validate" and len(cores[0].sigma_validation) == 1
+    assert cores[0]._fold == 1
     resumed = _resume_from_checkpoints(cores, robots, params)
     for a, b in zip(ref, resumed):
         assert a.round == b.round and a.sigma == b.sigma and a.sigma_validation == b.sigma_validation
         assert np.array_equal(a.function()[1], b.function()[1])
+
+
+def test_holdout_units_pair_each_inside_point_with_its_nearest_outside_point():
+    points = np.array([[0.0, 0.0], [0.0, 1.0], [5.0, 0.0], [5.0, 1.2], [9.0, 9.0]])
+    labels = np.array([1, -1, 1, -1, 1])
+    units = holdout_units(points, labels)
+    assert units.tolist() == [0, 0, 1, 1, -1]  # the stray outside point is never held out
+    assert holdout_units(points[:1], labels[:1]).tolist() == [0]  # one class only: points alone
+
+
+def test_solid_region_check():
+    ring = np.zeros((9, 9), dtype=bool)
+    ring[2:7, 2:7] = True
+    assert is_solid(ring)
+    ring[4, 4] = False  # a hole
+    assert not is_solid(ring)
+    islands = np.zeros((9, 9), dtype=bool)
+    islands[1:3, 1:3] = islands[6:8, 6:8] = True
+    assert not is_solid(islands)
+    assert not is_solid(np.zeros((9, 9), dtype=bool))
+    edge = np.zeros((9, 9), dtype=bool)
+    edge[:, :4] = True  # touching the border is fine: no enclosed outside cell
+    assert is_solid(edge)
+
+
+def test_choose_sigma_skips_candidates_that_are_not_solid():
+    params = AutoGridParams()
+    rec = lambda d, e, solid: {"divisor": d, "sigma": 10.0 / d, "errors": e, "held_out": 20, "solid": solid}
+    records = [rec(4, 1, True), rec(8, 0, True), rec(12, 0, True), rec(16, 0, False)]
+    sigma, why = choose_sigma(records, 10.0, params)
+    assert sigma == 10.0 / 12  # the smallest solid sigma among the fewest errors, not diag/16
+    assert "diag/16: 0 (not solid)" in why and "the smaller sigma wins" in why
+    sigma, why = choose_sigma([rec(4, 2, False), rec(8, 1, False)], 10.0, params)
+    assert sigma == 10.0 / 8 and "no candidate gave a solid inside region" in why
