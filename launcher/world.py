@@ -241,8 +241,11 @@ def _check_autogrid(opts: Options, grid: np.ndarray, ids: list[int], spec_kwargs
     except ValueError as exc:
         raise scenario.ScenarioError(f"autogrid: {exc}") from None
     if params.validates and max(ids) >= params.tally_slots:
+        need = params.max_points
+        while dataclasses.replace(params, max_points=need).tally_slots <= max(ids):
+            need += 1
         raise scenario.ScenarioError(
             f"--max-grid-points: {opts.max_grid_points} leaves room for robot ids below {params.tally_slots} in the "
-            f"fleet's sigma vote (frames of max-grid-points + 2 numbers, 3 per robot); robot {max(ids)} needs "
-            f"--max-grid-points {3 * (max(ids) + 1) - 2} or more, or give --sigma"
+            f"fleet's sigma vote (a few slots per robot in frames of max-grid-points + 2 numbers); robot {max(ids)} "
+            f"needs --max-grid-points {need} or more, or give --sigma"
         )

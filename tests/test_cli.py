@@ -146,3 +146,137 @@ def test_gridstudy_says_the_shifted_grid_is_infeasible(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "INFEASIBLE" in proc.stdout and "feasible" in proc.stdout
     assert (tmp_path / "g" / "grid_study.png").stat().st_size > 0
+
+
+# -- automatic grid and sigma (the default) and the paper's preset ------------------------------
+SMALL_AUTO = ("--points", "15", "--max-grid-points", "60")  # 3 robots x 15 points, budget 60: a few seconds
+
+
+def test_default_simulate_chooses_grid_and_sigma_and_reaches_the_central_solve(tmp_path):
+    import numpy as np
+
+    from agents.kernel import GridBasis
+    from agents.problem import solve_central
+    from launcher import scenario
+
+    out = tmp_path / "auto"
+    proc = run_cli("simulate", *SMALL_AUTO, "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((out / "result.json").read_text())
+    assert result["algorithm"] == "autogrid" and result["converged"] and result["robots_agree"] is True
+    assert result["margin"] == "hard" and result["C"] is None and result["message"] == ""
+    assert result["sigma"] > 0 and "diag" in result["sigma_reason"] and len(result["sigma_validation"]) >= 1
+    assert 4 <= len(result["grid"]) <= 60 and result["history"] == []
+    history = result["grid_history"]
+    assert history and all({"size", "level", "margin", "status", "grid"} <= h.keys() for h in history)
+    assert all(len(h["grid"]) == h["size"] for h in history) and history[-1]["grid"] == result["grid"]
+    # every robot holds the same grid, sigma and function, within 1e-3 of the central solve there
+    robots = result["robots"]
+    assert all(r["grid"] == result["grid"] and r["sigma"] == result["sigma"] for r in robots)
+    points = scenario.load_data_csv(str(out / "data.csv"))
+    pts = np.vstack([r.points for r in points])
+    labels = np.concatenate([r.labels for r in points])
+    basis = GridBasis(np.asarray(result["grid"]), result["sigma"])
+    central = solve_central(basis, pts, labels)
+    assert central.solved and result["central"]["c"] == central.c.tolist()
+    for r in robots:
+        assert basis.function_error(np.asarray(r["c"]), r["gamma"], central.c, central.gamma) < 1e-3
+        assert r["function_error"] < 1e-3
+    assert result["metrics"]["function_error"] < 1e-3 and result["metrics"]["train_accuracy"] == 1.0
+    assert (out / "shapes.png").stat().st_size > 0 and not (out / "convergence.png").exists()
+
+
+def test_preset_paper_is_the_old_default(tmp_path):
+    """--preset paper = --grid 5x3 --sigma 1 --algorithm admm: the fleet of the old default."""
+    import numpy as np
+
+    from launcher.simulate import simulate_fleet
+
+    from .conftest import make_run
+
+    out = tmp_path / "paper"
+    proc = run_cli("central", "--preset", "paper", "--out", str(out))  # no fleet run needed for the data
+    assert proc.returncode == 0 and "paper's setting" not in proc.stdout, proc.stdout  # asked for: not announced
+    world, spec, central = make_run(data=str(out / "data.csv"))
+    assert spec.algorithm == "admm" and spec.sigma == 1.0 and len(spec.grid) == 15
+    proc = run_cli("simulate", "--preset", "paper", "--data", str(out / "data.csv"), "--out", str(tmp_path / "s"))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((tmp_path / "s" / "result.json").read_text())
+    assert result["algorithm"] == "admm" and result["sigma"] == 1.0 and result["grid"] == spec.grid.tolist()
+    want = simulate_fleet(spec).robots
+    for r, w in zip(result["robots"], want, strict=True):
+        assert r["rounds"] == w["rounds"] and r["c"] == spec.basis.c_from_x(np.asarray(w["x"])).tolist()
+    # explicit flags override the preset
+    opts = _resolved("--preset", "paper", "--algorithm", "autogrid")
+    assert (opts.algorithm, opts.grid, opts.sigma) == ("autogrid", "5x3", 1.0)
+    opts = _resolved("--preset", "paper", "--grid", "4x4")
+    assert (opts.algorithm, opts.grid, opts.sigma) == ("admm", "4x4", 1.0)
+
+
+def _resolved(*argv: str):
+    from launcher.cli import _options, parse_args
+    from launcher.world import resolve_options
+
+    return resolve_options(_options(parse_args(["simulate", *argv])))
+
+
+def test_algorithm_resolution():
+    assert _resolved().algorithm == "autogrid" and _resolved().grid is None and _resolved().sigma is None
+    assert (_resolved("--grid", "5x3", "--sigma", "1").algorithm) == "admm"
+    assert (_resolved("--sigma", "0.5").algorithm, _resolved("--sigma", "0.5").sigma) == ("autogrid", 0.5)
+    for algo in ("admm", "ct-admm"):  # a fixed grid: the paper's unless given
+        opts = _resolved("--algorithm", algo)
+        assert (opts.algorithm, opts.grid, opts.sigma) == (algo, "5x3", 1.0)
+    opts = _resolved("--algorithm", "admm", "--sigma", "0.7")
+    assert (opts.grid, opts.sigma) == ("5x3", 0.7)
+
+
+def test_central_says_when_it_uses_the_papers_setting(tmp_path):
+    proc = run_cli("central", "--out", str(tmp_path / "c"))
+    assert proc.returncode == 0, proc.stderr
+    assert "paper's setting" in proc.stdout and "grid 5x3, sigma 1" in proc.stdout
+    result = json.loads((tmp_path / "c" / "result.json").read_text())
+    assert result["sigma"] == 1.0 and len(result["grid"]) == 15 and result["algorithm"] == "central"
+
+
+AUTO_BAD = [
+    (["--preset", "fast"], "--preset: 'fast' is not a preset"),
+    (["--max-grid-points", "3"], "--max-grid-points: '3' must be at least 4"),
+    (["--max-grid-points", "0"], "--max-grid-points"),
+    (["--max-grid-points", "many"], "--max-grid-points: 'many' is not an integer"),
+    (["--grid-bounds=-2,2,-1,1"], "--grid-bounds: places the grid of --grid"),
+    (["--algorithm", "autogrid", "--grid", "20x20"], "--grid: 20x20 is 400 start points, more than --max-grid-points 300"),
+    (["--robots", "25", "--max-grid-points", "60"], "--max-grid-points: 60 leaves room for robot ids below"),
+]
+
+
+@pytest.mark.parametrize("args,needle", AUTO_BAD, ids=[str(i) for i in range(len(AUTO_BAD))])
+def test_bad_automatic_grid_flags_exit_2_with_one_line(tmp_path, capsys, args, needle):
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(err) == 1 and needle in err[0], err
+
+
+def test_fig5_coarse_start_grid_is_refined_until_it_separates_the_data(tmp_path):
+    """The paper's Fig. 5 with the fleet's refinement: its 4x2 grid shifted by half a cell is
+    infeasible; `--algorithm autogrid` keeps it as the start grid and adds points."""
+    import numpy as np
+
+    from launcher.gridstudy import _shifted_bounds
+    from launcher.world import Options, build_world
+
+    world, _ = build_world(Options(fleet_id="t", preset="paper"))
+    bounds = _shifted_bounds(world.bounds, "4x2", (0.5, 0.0))
+    out = tmp_path / "fig5"
+    proc = run_cli("simulate", "--algorithm", "autogrid", "--grid", "4x2", f"--grid-bounds={bounds}", "--sigma", "1",
+                   "--max-grid-points", "60", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((out / "result.json").read_text())
+    history = result["grid_history"]
+    assert history[0]["size"] == 8 and history[0]["status"] == "hard-infeasible"
+    assert len(result["grid"]) > 8 and result["grid"][:8] == history[0]["grid"]  # the start grid is kept
+    assert result["sigma"] == 1.0 and result["sigma_validation"] == [] and result["margin"] == "hard"
+    assert result["robots_agree"] and result["metrics"]["function_error"] < 1e-3
+    assert result["metrics"]["train_accuracy"] == 1.0
+    assert np.asarray(result["grid"]).shape == (len(result["grid"]), 2)

@@ -119,6 +119,14 @@ def test_a_data_source_on_the_command_line_replaces_the_files(tmp_path):
     assert (args.shape, args.shape_file) == ("bean", None)
 
 
+def test_preset_and_grid_budget_from_the_file(tmp_path):
+    path = write(tmp_path, '[model]\npreset = "paper"\nmax-grid-points = 80\n')
+    from_file = _options(parse_args(["simulate", "--config", str(path)]))
+    assert from_file == _options(parse_args(["simulate", "--preset", "paper", "--max-grid-points", "80"]))
+    assert (from_file.preset, from_file.max_grid_points) == ("paper", 80)
+    assert _options(parse_args(["simulate", "--config", str(path), "--max-grid-points", "70"])).max_grid_points == 70
+
+
 def test_relative_paths_are_relative_to_the_file(tmp_path, monkeypatch):
     (tmp_path / "conf").mkdir()
     write(tmp_path / "conf", '[world]\ndata = "../data.csv"\n')
@@ -158,6 +166,10 @@ BAD = [
     ("[faults]\ndelay = 20\n", "[faults] delay: expected a duration such as \"20ms\", got an integer 20"),
     ('[faults]\ndelay = "20 parsecs"\n', "[faults] delay: '20 parsecs' is not a duration"),
     ('[model]\ngrid = "5by3"\n', "[model] grid: "),
+    ('[model]\npreset = "fast"\n', "[model] preset: 'fast' is not a preset (choose from paper)"),
+    ("[model]\nmax-grid-points = 3\n", "[model] max-grid-points: 3 must be at least 4"),
+    ('[model]\nmax-grid-points = "60"\n', "[model] max-grid-points: expected an integer"),
+    ("[algorithm]\npreset = \"paper\"\n", "[algorithm] preset: this key belongs in the [model] section"),
     ('[algorithm]\ntopology = "star"\n', "[algorithm] topology: 'star' is not one of complete, ring, line, geometric"),
     ('[algorithm]\nalgorithm = "sgd"\n', "[algorithm] algorithm: 'sgd' is not one of"),
     ("[world]\nrobots = 0\n", "[world] robots: '0' must be at least 1"),

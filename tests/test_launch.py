@@ -256,6 +256,49 @@ def test_ct_admm_over_zenoh_with_delay_and_loss(tmp_path):
     assert all(r["algorithm"] == "ct-admm" for r in out.robots)
 
 
+@bound(45)
+def test_autogrid_over_zenoh_same_grid_and_function_as_simulate(tmp_path, capsys):
+    """The fleet that chooses its own grid and sigma (the default): over Zenoh every robot ends
+    with the in-process fleet's rounds, sigma, grids and (c, gamma), bit for bit; `collect`
+    measures each robot on that final grid."""
+    from launcher.cli import main
+
+    import dataclasses
+
+    _world, spec, _ = _run(algorithm="autogrid", points=15, max_grid_points=60, fleet_id="launch-autogrid")
+    # two sigma candidates instead of five (any AutoGridParams field rides in the fleet file's
+    # params): the same sweep and tally, half the rounds -- about 1900, 13 s over Zenoh here
+    spec = dataclasses.replace(spec, params={**spec.params, "validate_divisors": [4.0, 8.0]})
+    want = _simulate(spec)
+    assert len(want[0]["sigma_validation"]) == 2
+    out = _launch(spec, tmp_path)
+    assert sorted(r["id"] for r in out.robots) == [0, 1, 2]
+    for r in out.robots:
+        w = want[r["id"]]
+        assert r["stopped"] == "finished" and r["converged"] and r["phase"] == "done"
+        for key in ("rounds", "sigma", "sigma_reason", "sigma_validation", "grid_history", "margin", "grid", "x", "c", "gamma"):
+            assert r[key] == w[key], key
+    first = out.robots[0]
+    assert all(r["grid"] == first["grid"] and r["c"] == first["c"] for r in out.robots)
+    assert len(first["grid"]) <= 60 and first["grid_history"][-1]["grid"] == first["grid"]
+    # the launch folder's results, gathered by collect: all robots, then without robot 2
+    fleet = tmp_path / "fleet"
+    assert main(["collect", "--fleet-file", str(fleet / "fleet.json"), "--results", str(fleet), "--out", str(tmp_path / "all")]) == 0
+    result = json.loads((tmp_path / "all" / "result.json").read_text())
+    assert result["algorithm"] == "autogrid" and result["robots_agree"] and result["grid"] == first["grid"]
+    assert result["metrics"]["function_error"] < 1e-3 and result["grid_history"] == first["grid_history"]
+    part = tmp_path / "part"
+    part.mkdir()
+    for i in (0, 1):
+        (part / f"robot-{i}.json").write_text((fleet / f"robot-{i}.json").read_text())
+    assert main(["collect", "--fleet-file", str(fleet / "fleet.json"), "--results", str(part), "--out", str(tmp_path / "two")]) == 0
+    capsys.readouterr()
+    result = json.loads((tmp_path / "two" / "result.json").read_text())
+    assert result["participants"] == [0, 1] and result["absent"] == [2]
+    assert result["reference"] == "central solution of the participants' data"
+    assert result["central"]["status"] == "solved" and result["metrics"]["function_error"] is not None
+
+
 # ----------------------------------------------------------------------------- 4.-5. crashes
 
 
