@@ -27,6 +27,7 @@ from agents.autogrid import AutoGridParams
 from agents.ct_admm import CTADMMParams
 from agents.spec import ALGORITHMS, FleetSpec, RobotSpec, Timing
 from launcher import scenario, topology
+from protocol.frames import MAX_DIM
 from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults
 
@@ -142,6 +143,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         raise scenario.ScenarioError(f"--max-rounds: {opts.max_rounds!r} must be at least 1")
     if isinstance(opts.max_grid_points, bool) or not isinstance(opts.max_grid_points, (int, np.integer)) or opts.max_grid_points < 4:
         raise scenario.ScenarioError(f"--max-grid-points: {opts.max_grid_points!r} must be an integer of at least 4")
+    if opts.max_grid_points + 2 > MAX_DIM:
+        raise scenario.ScenarioError(f"--max-grid-points: {opts.max_grid_points} does not fit a frame (at most {MAX_DIM - 2})")
     grid_shape = None if opts.grid is None else scenario.parse_grid(opts.grid)
     given_bounds = scenario.parse_bounds(opts.grid_bounds) if opts.grid_bounds else None
     if given_bounds is not None and grid_shape is None:

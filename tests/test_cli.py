@@ -41,6 +41,18 @@ def test_simulate_writes_the_run_folder(tmp_path):
     proc = run_cli("simulate", "--preset", "paper", "--data", str(out / "data.csv"), "--out", str(again))
     assert proc.returncode == 0, proc.stderr
     assert json.loads((again / "result.json").read_text())["central"] == result["central"]
+    # --preset paper is the old default: the paper's fleet (admm, 5x3, sigma 1), iterate for iterate
+    import numpy as np
+
+    from launcher.simulate import simulate_fleet
+
+    from .conftest import make_run
+
+    _, spec, _ = make_run(data=str(out / "data.csv"))
+    assert result["algorithm"] == "admm" and result["grid"] == spec.grid.tolist()
+    want = simulate_fleet(spec).robots
+    for r, w in zip(result["robots"], want, strict=True):
+        assert r["rounds"] == w["rounds"] and r["c"] == spec.basis.c_from_x(np.asarray(w["x"])).tolist()
 
 
 def test_central_writes_a_result(tmp_path):
@@ -55,6 +67,10 @@ def test_default_out_folder_is_new_under_runs(tmp_path):
     assert proc.returncode == 0, proc.stderr
     (folder,) = (tmp_path / "runs").iterdir()
     assert (folder / "result.json").exists()
+    # with no grid and sigma, central solves on the paper's and says so
+    assert "paper's setting" in proc.stdout and "grid 5x3, sigma 1" in proc.stdout
+    result = json.loads((folder / "result.json").read_text())
+    assert result["sigma"] == 1.0 and len(result["grid"]) == 15 and result["algorithm"] == "central"
 
 
 BAD = [
@@ -186,27 +202,10 @@ def test_default_simulate_chooses_grid_and_sigma_and_reaches_the_central_solve(t
     assert (out / "shapes.png").stat().st_size > 0 and not (out / "convergence.png").exists()
 
 
-def test_preset_paper_is_the_old_default(tmp_path):
-    """--preset paper = --grid 5x3 --sigma 1 --algorithm admm: the fleet of the old default."""
-    import numpy as np
-
-    from launcher.simulate import simulate_fleet
-
-    from .conftest import make_run
-
-    out = tmp_path / "paper"
-    proc = run_cli("central", "--preset", "paper", "--out", str(out))  # no fleet run needed for the data
-    assert proc.returncode == 0 and "paper's setting" not in proc.stdout, proc.stdout  # asked for: not announced
-    world, spec, central = make_run(data=str(out / "data.csv"))
-    assert spec.algorithm == "admm" and spec.sigma == 1.0 and len(spec.grid) == 15
-    proc = run_cli("simulate", "--preset", "paper", "--data", str(out / "data.csv"), "--out", str(tmp_path / "s"))
-    assert proc.returncode == 0, proc.stderr
-    result = json.loads((tmp_path / "s" / "result.json").read_text())
-    assert result["algorithm"] == "admm" and result["sigma"] == 1.0 and result["grid"] == spec.grid.tolist()
-    want = simulate_fleet(spec).robots
-    for r, w in zip(result["robots"], want, strict=True):
-        assert r["rounds"] == w["rounds"] and r["c"] == spec.basis.c_from_x(np.asarray(w["x"])).tolist()
-    # explicit flags override the preset
+def test_preset_paper_flags_override_it():
+    """--preset paper = --grid 5x3 --sigma 1 --algorithm admm (its run: test_simulate_writes_the_run_folder)."""
+    opts = _resolved("--preset", "paper")
+    assert (opts.algorithm, opts.grid, opts.sigma, opts.grid_bounds) == ("admm", "5x3", 1.0, None)
     opts = _resolved("--preset", "paper", "--algorithm", "autogrid")
     assert (opts.algorithm, opts.grid, opts.sigma) == ("autogrid", "5x3", 1.0)
     opts = _resolved("--preset", "paper", "--grid", "4x4")
@@ -231,19 +230,12 @@ def test_algorithm_resolution():
     assert (opts.grid, opts.sigma) == ("5x3", 0.7)
 
 
-def test_central_says_when_it_uses_the_papers_setting(tmp_path):
-    proc = run_cli("central", "--out", str(tmp_path / "c"))
-    assert proc.returncode == 0, proc.stderr
-    assert "paper's setting" in proc.stdout and "grid 5x3, sigma 1" in proc.stdout
-    result = json.loads((tmp_path / "c" / "result.json").read_text())
-    assert result["sigma"] == 1.0 and len(result["grid"]) == 15 and result["algorithm"] == "central"
-
-
 AUTO_BAD = [
     (["--preset", "fast"], "--preset: 'fast' is not a preset"),
     (["--max-grid-points", "3"], "--max-grid-points: '3' must be at least 4"),
     (["--max-grid-points", "0"], "--max-grid-points"),
     (["--max-grid-points", "many"], "--max-grid-points: 'many' is not an integer"),
+    (["--max-grid-points", "100000"], "--max-grid-points: 100000 does not fit a frame"),
     (["--grid-bounds=-2,2,-1,1"], "--grid-bounds: places the grid of --grid"),
     (["--algorithm", "autogrid", "--grid", "20x20"], "--grid: 20x20 is 400 start points, more than --max-grid-points 300"),
     (["--robots", "25", "--max-grid-points", "60"], "--max-grid-points: 60 leaves room for robot ids below"),
