@@ -161,6 +161,11 @@ class AutoGridParams:
         """Robot ids must be below this: the tally vector has 4 blocks of one slot per id."""
         return self.dim // TALLY_BLOCKS
 
+    @staticmethod
+    def points_for_robot_ids(highest_id: int) -> int:
+        """The smallest max_points whose sigma-sweep tally has a slot for robot `highest_id`."""
+        return TALLY_BLOCKS * (highest_id + 1) - 2
+
 
 # -- the shared, deterministic rules (pure functions of agreed numbers) ---------------------------
 

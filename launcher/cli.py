@@ -24,9 +24,9 @@ from launcher import scenario, topology
 from launcher.world import (
     ALGORITHM_CHOICES,
     DEFAULT_MAX_ROUNDS,
+    DEFAULT_MAX_TOTAL_ROUNDS,
     PAPER_GRID,
     PAPER_SIGMA,
-    PRESETS,
     Options,
     World,
     build_world,
@@ -68,12 +68,6 @@ def _finite_float(text: str) -> float:
     if not np.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
     return value
-
-
-def _autogrid_default(name: str) -> Any:
-    from agents.autogrid import AutoGridParams
-
-    return next(f.default for f in dataclasses.fields(AutoGridParams) if f.name == name)
 
 
 def _max_grid_points(value: Any) -> int:
@@ -142,7 +136,7 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     algo.add_argument(
         "--max-rounds", type=_positive_int("--max-rounds"), default=d.max_rounds,
         help=f"round cap (default {DEFAULT_MAX_ROUNDS}; autogrid: the cap over all its phases, default "
-        f"{_autogrid_default('max_total_rounds')})",
+        f"{DEFAULT_MAX_TOTAL_ROUNDS})",
     )
     algo.add_argument("--ct-step", default=f"{d.ct_step * 1e3:g}ms", help="ct-admm: integration step of the flow (default 1ms, the paper's)")
     algo.add_argument("--ct-period", default=f"{d.ct_period * 1e3:g}ms", help="ct-admm: communication period T_sp (default 10ms, the paper's)")
@@ -209,7 +203,7 @@ def _options(args: argparse.Namespace, **extra: Any) -> Options:
         grid_bounds=args.grid_bounds,
         sigma=args.sigma,
         C=args.C,
-        preset=_preset(args.preset),
+        preset=args.preset,
         max_grid_points=_max_grid_points(args.max_grid_points),
         topology=args.topology,
         comm_range=args.comm_range,
@@ -225,12 +219,6 @@ def _options(args: argparse.Namespace, **extra: Any) -> Options:
         timing=timing,
         **extra,
     )
-
-
-def _preset(name: str | None) -> str | None:
-    if name is not None and name not in PRESETS:
-        raise UsageError(f"--preset: {name!r} is not a preset (choose from {', '.join(PRESETS)})")
-    return name
 
 
 def _out_dir(args: argparse.Namespace, mode: str) -> Path:

@@ -39,7 +39,9 @@ PRESETS: dict[str, dict[str, Any]] = {"paper": {"grid": PAPER_GRID, "sigma": PAP
 #: --algorithm choices: "auto" resolves to admm (grid and sigma given) or autogrid
 ALGORITHM_CHOICES = ("auto", *ALGORITHMS)
 #: the autogrid fleet's budget of grid points (AutoGridParams.max_points)
-DEFAULT_MAX_GRID_POINTS = next(f.default for f in dataclasses.fields(AutoGridParams) if f.name == "max_points")
+DEFAULT_MAX_GRID_POINTS = AutoGridParams().max_points
+#: autogrid's round cap over all its phases when --max-rounds is not given
+DEFAULT_MAX_TOTAL_ROUNDS = AutoGridParams().max_total_rounds
 #: the admm / ct-admm round cap when --max-rounds is not given (autogrid: its own cap over all phases)
 DEFAULT_MAX_ROUNDS = 5000
 
@@ -213,7 +215,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             CTADMMParams.from_params(params)
         except ValueError as exc:  # e.g. a period that is not a whole number of steps
             raise scenario.ScenarioError(f"--ct-period/--ct-step: {exc}") from None
-    spec_kwargs = dict(
+    spec = FleetSpec(
         fleet=opts.fleet_id or f"run-{secrets.token_hex(4)}",
         algorithm=opts.algorithm,
         sigma=opts.sigma,
@@ -228,25 +230,23 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         timing=opts.timing,
     )
     if autogrid:
-        _check_autogrid(opts, grid, ids, spec_kwargs)
-    spec = FleetSpec(**spec_kwargs)
+        _check_autogrid(opts, spec)
     return World(shape, robots, grid, bounds, graph), spec
 
 
-def _check_autogrid(opts: Options, grid: np.ndarray, ids: list[int], spec_kwargs: dict[str, Any]) -> None:
+def _check_autogrid(opts: Options, spec: FleetSpec) -> None:
     """What AdaptiveGridCore would refuse on the robots, said here in terms of the flags."""
-    if len(grid) > opts.max_grid_points:
+    if len(spec.grid) > opts.max_grid_points:
         raise scenario.ScenarioError(
-            f"--grid: {opts.grid} is {len(grid)} start points, more than --max-grid-points {opts.max_grid_points}"
+            f"--grid: {opts.grid} is {len(spec.grid)} start points, more than --max-grid-points {opts.max_grid_points}"
         )
     try:
-        params = FleetSpec(**spec_kwargs).autogrid_params
+        params = spec.autogrid_params
     except ValueError as exc:
         raise scenario.ScenarioError(f"autogrid: {exc}") from None
+    ids = spec.robot_ids
     if params.validates and max(ids) >= params.tally_slots:
-        need = params.max_points
-        while dataclasses.replace(params, max_points=need).tally_slots <= max(ids):
-            need += 1
+        need = AutoGridParams.points_for_robot_ids(max(ids))
         raise scenario.ScenarioError(
             f"--max-grid-points: {opts.max_grid_points} leaves room for robot ids below {params.tally_slots} in the "
             f"fleet's sigma vote (a few slots per robot in frames of max-grid-points + 2 numbers); robot {max(ids)} "
