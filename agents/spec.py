@@ -20,13 +20,14 @@ from agents.admm import ADMMParams, ConsensusADMM
 from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.kernel import GridBasis
+from agents.newton import DistributedNewton, NewtonParams, frame_size
 from protocol.frames import config_tag as make_config_tag
 from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults
 
-ALGORITHMS = ("admm", "ct-admm", "autogrid")
+ALGORITHMS = ("admm", "ct-admm", "autogrid", "newton")
 #: algorithms whose grid and sigma are fixed by the launcher (autogrid's fleet chooses its own)
-FIXED_GRID_ALGORITHMS = ("admm", "ct-admm")
+FIXED_GRID_ALGORITHMS = ("admm", "ct-admm", "newton")
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,11 @@ class FleetSpec:
             raise ValueError(f"{self.algorithm} needs a grid and a sigma (only autogrid chooses them itself)")
 
     @property
+    def graph(self) -> dict[int, tuple[int, ...]]:
+        """Every robot's neighbour list (each robot knows the whole communication graph)."""
+        return {i: r.neighbours for i, r in self.robots.items()}
+
+    @property
     def robot_ids(self) -> tuple[int, ...]:
         return tuple(sorted(self.robots))
 
@@ -119,9 +125,12 @@ class FleetSpec:
 
     @property
     def dim(self) -> int:
-        """Length of the vector robots exchange: (x, gamma), or autogrid's padded frame."""
+        """Length of the vector robots exchange: (x, gamma), autogrid's padded frame, or
+        newton's reduction payload."""
         if not self.fixed_grid:
             return self.autogrid_params.dim
+        if self.algorithm == "newton":
+            return frame_size(len(self.grid) + 1, self.graph, NewtonParams.from_params(self.params))
         return len(self.grid) + 1
 
     @cached_property
@@ -219,7 +228,7 @@ class FleetSpec:
             raise ValueError(f"{path}: not a valid fleet file ({exc})") from None
 
 
-Core = ConsensusADMM | ContinuousTimeADMM | AdaptiveGridCore
+Core = ConsensusADMM | ContinuousTimeADMM | AdaptiveGridCore | DistributedNewton
 
 
 def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Core:
@@ -248,6 +257,17 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
             keep_trace=False,
         )
     features = spec.basis.features(me.points)
+    if spec.algorithm == "newton":
+        return DistributedNewton(
+            robot_id,
+            me.neighbours,
+            features,
+            me.labels,
+            graph=spec.graph,
+            params=NewtonParams.from_params(spec.params),
+            C=spec.C,
+            keep_trace=keep_trace,
+        )
     if spec.algorithm == "ct-admm":
         return ContinuousTimeADMM(
             robot_id,

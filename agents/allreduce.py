@@ -1,0 +1,263 @@
+"""Exact all-reduce over the communication graph, as a per-robot sans-IO schedule.
+
+Every robot knows the whole graph (the fleet file lists every robot's neighbours), so every
+robot computes the same plan without talking. Two schedules:
+
+* gather (the default): flooding by distance shells. At offset r a robot publishes the
+  contributions of the robots exactly r hops away (r = 0: its own); a neighbour learns from these
+  the robots r + 1 hops from *it*. After D rounds (D = the diameter) every robot holds an exact
+  copy of every contribution and combines them in robot-id order. A complete graph is D = 1:
+  one round, one contribution per frame. Frames carry `slots` contributions, the largest shell
+  of any robot (2 on a ring).
+* tree: BFS tree from the centre (least eccentricity, ties -> lowest id), neighbours visited
+  in id order. Convergecast up (a robot at depth d publishes its subtree's partial sum at
+  offset h - d, h the tree height), broadcast down (it publishes the total at offset h + d):
+  2h >= D rounds, one contribution per frame, and only partial sums travel.
+
+gather needs D rounds where the tree needs 2h (on a ring D = h: half the rounds) for the same
+bytes on a ring (2 slots x D rounds = 1 slot x 2h); on star-like graphs its frames are larger.
+
+Why the results are bit-identical everywhere: under gather every robot adds the same vectors
+(exact copies) in the same order; under the tree the total is computed once (at the centre) and
+copied. Floating-point addition is not associative, so "the same sum" would not be enough.
+
+The combine is element-wise: the first ``n_min`` entries take the minimum, the rest the sum.
+No I/O, no clock: the caller feeds every neighbour's frame of the current round to `step`.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+def combine(a: np.ndarray, b: np.ndarray, n_min: int) -> np.ndarray:
+    """a (+) b: minimum over the first n_min entries, sum over the rest."""
+    out = a + b
+    if n_min:
+        out[:n_min] = np.minimum(a[:n_min], b[:n_min])
+    return out
+
+
+def reduce_in_order(parts: Sequence[np.ndarray], n_min: int) -> np.ndarray:
+    """Left fold of `combine` over `parts` in the order given (the order fixes the bits)."""
+    acc = np.array(parts[0], dtype=float, copy=True)
+    for p in parts[1:]:
+        acc = combine(acc, p, n_min)
+    return acc
+
+
+def _bfs(graph: Mapping[int, Sequence[int]], root: int) -> dict[int, int]:
+    """Hop distance from root to every reachable robot."""
+    dist = {root: 0}
+    queue = deque([root])
+    while queue:
+        i = queue.popleft()
+        for j in sorted(graph[i]):
+            if j not in dist:
+                dist[j] = dist[i] + 1
+                queue.append(j)
+    return dist
+
+
+def check_graph(graph: Mapping[int, Sequence[int]]) -> None:
+    """ValueError unless the graph is undirected, loop-free and connected."""
+    ids = set(graph)
+    for i, nbrs in graph.items():
+        for j in nbrs:
+            if j == i or j not in ids or i not in graph[j]:
+                raise ValueError(f"communication graph: link {i}-{j} is not a link between two distinct robots both list")
+    if ids and len(_bfs(graph, min(ids))) != len(ids):
+        raise ValueError("communication graph is not connected: no exact fleet-wide sum exists")
+
+
+#: schedules: "gather" floods contributions (diameter rounds), "tree" reduces along a spanning tree
+SCHEDULES = ("gather", "tree")
+
+
+@dataclass(frozen=True)
+class ReducePlan:
+    """One robot's part of the fleet's reduction schedule (the same computation on every robot).
+
+    gather: at offset r (0 <= r < D, D the diameter) a robot publishes the contributions of the
+    robots at exactly r hops from it (its "sphere", in id order, zero-padded to `slots`); from
+    its neighbours' spheres it learns its own sphere r + 1. After D rounds every robot holds
+    every contribution, an exact copy, and combines them in id order. A complete graph is the
+    case D = 1 (each robot publishes its own contribution once).
+    tree: convergecast to the centre and broadcast back along a BFS tree (2h rounds, 1 slot).
+    """
+
+    robot: int
+    ids: tuple[int, ...]  # every robot, ascending
+    schedule: str  # "gather" | "tree"
+    slots: int  # contributions per frame (the same for every robot)
+    rounds: int  # rounds per reduction
+    # gather: sends[r] = robots whose contributions this robot publishes at offset r;
+    # learns[r] = (robot k, neighbour i, slot in i's frame) of what it reads at offset r
+    sends: tuple[tuple[int, ...], ...] = ()
+    learns: tuple[tuple[tuple[int, int, int], ...], ...] = ()
+    # tree
+    root: int = 0
+    parent: int | None = None
+    children: tuple[int, ...] = ()
+    depth: int = 0
+    height: int = 0
+
+    @property
+    def period(self) -> int:
+        """Rounds per reduction."""
+        return self.rounds
+
+    @property
+    def complete(self) -> bool:
+        return self.schedule == "gather" and self.rounds == 1
+
+    def describe(self) -> str:
+        if self.schedule == "tree":
+            return f"tree (root {self.root}, height {self.height}, {self.rounds} rounds)"
+        if self.complete:
+            return "complete (1 round)"
+        return f"gather ({self.rounds} rounds, {self.slots} contributions per frame)"
+
+    @classmethod
+    def build(cls, graph: Mapping[int, Sequence[int]], robot: int, schedule: str = "gather") -> ReducePlan:
+        """The plan of `robot`, from every robot's neighbour list."""
+        if schedule not in SCHEDULES:
+            raise ValueError(f"all-reduce schedule must be gather or tree, got {schedule!r}")
+        graph = {int(i): tuple(int(j) for j in n) for i, n in graph.items()}
+        if robot not in graph:
+            raise ValueError(f"robot {robot} is not in the communication graph")
+        check_graph(graph)
+        ids = tuple(sorted(graph))
+        dist = {i: _bfs(graph, i) for i in ids}
+        diameter = max(max(d.values()) for d in dist.values())
+        if schedule == "gather" or diameter <= 1:
+            rounds = max(diameter, 1)
+            spheres = {i: [tuple(k for k in ids if dist[i][k] == r) for r in range(rounds)] for i in ids}
+            slots = max(len(sp) for i in ids for sp in spheres[i])
+            learns = []
+            for r in range(rounds):
+                row = []
+                for k in ids:
+                    if dist[robot][k] == r + 1:
+                        i = min(j for j in graph[robot] if dist[j][k] == r)
+                        row.append((k, i, spheres[i][r].index(k)))
+                learns.append(tuple(row))
+            return cls(robot, ids, "gather", slots, rounds, sends=tuple(spheres[robot]), learns=tuple(learns))
+        ecc = {i: max(dist[i].values()) for i in ids}
+        root = min(ids, key=lambda i: (ecc[i], i))
+        parent: dict[int, int | None] = {root: None}
+        depth = {root: 0}
+        queue = deque([root])
+        while queue:
+            i = queue.popleft()
+            for j in sorted(graph[i]):
+                if j not in depth:
+                    depth[j] = depth[i] + 1
+                    parent[j] = i
+                    queue.append(j)
+        height = max(depth.values())
+        children = tuple(sorted(j for j, p in parent.items() if p == robot))
+        return cls(
+            robot, ids, "tree", 1, 2 * height,
+            root=root, parent=parent[robot], children=children, depth=depth[robot], height=height,
+        )
+
+
+def frame_slots(graph: Mapping[int, Sequence[int]], schedule: str = "gather") -> int:
+    """Contributions per frame of `schedule` on this graph (the fleet's frame length / payload)."""
+    return ReducePlan.build(graph, min(graph), schedule).slots
+
+
+class AllReduce:
+    """One robot's side of repeated reductions: `begin` a reduction, `step` once per round.
+
+    The frame a robot publishes in each round of a reduction is what `begin` / `step` return
+    (`plan.slots * size` floats); slots where the robot has nothing to say are zeros. After the
+    reduction's last round `done` is True and `total` is the fleet's combined value, bit for bit
+    the same on every robot.
+    """
+
+    def __init__(self, plan: ReducePlan, size: int, n_min: int = 0) -> None:
+        if not 0 <= n_min <= size:
+            raise ValueError(f"n_min must be in [0, {size}], got {n_min}")
+        self.plan = plan
+        self.size = size
+        self.n_min = n_min
+        self.offset = 0  # offset of the frame last returned, within the reduction
+        self.own: np.ndarray = np.zeros(size)
+        self.known: dict[int, np.ndarray] = {}  # gather: the contributions received so far
+        self.total: np.ndarray | None = None
+
+    @property
+    def frame_size(self) -> int:
+        return self.plan.slots * self.size
+
+    @property
+    def done(self) -> bool:
+        return self.total is not None and self.offset == self.plan.period
+
+    def begin(self, contribution: np.ndarray) -> np.ndarray:
+        """Start a reduction with this robot's contribution; the frame of offset 0."""
+        contribution = np.asarray(contribution, dtype=float)
+        if contribution.shape != (self.size,):
+            raise ValueError(f"contribution has shape {contribution.shape}, expected ({self.size},)")
+        self.own = contribution.copy()
+        self.known = {self.plan.robot: self.own}
+        self.offset = 0
+        self.total = None
+        return self._frame(0, {})
+
+    def step(self, theirs: Mapping[int, np.ndarray]) -> np.ndarray:
+        """Consume the neighbours' frames of the current offset; the frame of the next one."""
+        if self.offset >= self.plan.period:
+            raise RuntimeError("the reduction is complete; begin the next one")
+        if self.plan.schedule == "gather":
+            n = self.size
+            for k, i, slot in self.plan.learns[self.offset]:
+                self.known[k] = np.array(theirs[i][slot * n : (slot + 1) * n], dtype=float, copy=True)
+        self.offset += 1
+        return self._frame(self.offset, theirs)
+
+    def _pad(self, parts: Sequence[np.ndarray]) -> np.ndarray:
+        out = np.zeros(self.frame_size)
+        for slot, part in enumerate(parts):
+            out[slot * self.size : (slot + 1) * self.size] = part
+        return out
+
+    def _frame(self, offset: int, theirs: Mapping[int, np.ndarray]) -> np.ndarray:
+        p = self.plan
+        if p.schedule == "gather":
+            if offset == p.period:
+                self.total = reduce_in_order([self.known[k] for k in p.ids], self.n_min)
+                return self._pad([self.total]) if p.slots == 1 else np.zeros(self.frame_size)
+            return self._pad([self.known[k] for k in p.sends[offset]])
+        up, down = p.height - p.depth, p.height + p.depth
+        if offset == up:  # the subtree's partial sum: own first, then children in id order
+            partial = reduce_in_order([self.own, *(theirs[c] for c in p.children)], self.n_min)
+            if p.parent is None:
+                self.total = partial
+            return partial.copy()
+        if offset == down:  # the parent's total, passed on
+            self.total = np.array(theirs[p.parent], dtype=float, copy=True)
+            return self.total.copy()
+        return np.zeros(self.size)
+
+    # -- checkpoint --------------------------------------------------------------------------
+    def save(self) -> dict[str, Any]:
+        return {
+            "offset": self.offset,
+            "own": np.asarray(self.own, "<f8").tobytes(),
+            "known": [[int(k), np.asarray(v, "<f8").tobytes()] for k, v in sorted(self.known.items())],
+            "total": None if self.total is None else np.asarray(self.total, "<f8").tobytes(),
+        }
+
+    def load(self, state: Mapping[str, Any]) -> None:
+        self.offset = int(state["offset"])
+        self.own = np.frombuffer(state["own"], "<f8").copy()
+        self.known = {int(k): np.frombuffer(v, "<f8").copy() for k, v in state["known"]}
+        self.total = None if state["total"] is None else np.frombuffer(state["total"], "<f8").copy()

@@ -1,0 +1,364 @@
+"""Distributed primal-dual interior-point method (`--algorithm newton`), one robot's state machine.
+
+The fixed-grid SVM in the preconditioned variable v = (x, gamma) (kernel.py, problem.py):
+
+    min 1/2 |x|^2 (+ C sum xi)   s.t.  a_i' v (+ xi_i) >= 1 for every point i of every robot  (xi >= 0)
+
+with a_i = theta_i [phi_i', 1] (problem.margin_rows). Every robot holds the same v, bit for bit.
+Its own points' slacks s_i = a_i'v (+ xi_i) - 1, multipliers mu_i (and, with a soft margin, xi_i
+and their multipliers nu_i) never leave it. Eliminating them from the Newton system of the
+perturbed KKT conditions (complementarity = centering * m, m the fleet's mean s*mu) leaves one
+(M+1)-square system that needs only sums over robots:
+
+    (P + sum_l H_l) dv = -P v + centering * m * sum_l u_l - sum_l g_l - alpha * (sum_l H_l) dv_prev
+
+    H_l = A_l' diag(w~) A_l,  u_l = A_l' kappa,  g_l = A_l' (w~ r - c0)      (per-point weights below)
+
+P = diag(1, .., 1, 0). The last term is why one reduction per iteration suffices: the robot's
+contribution is taken at the iterate *before* the fleet's step alpha (the minimum of every
+robot's fraction-to-boundary step along dv_prev), and the step is applied after the reduction,
+linearly. Per iteration the fleet reduces [min alpha_l, #pairs, sum s'mu, triu(H), g, u]
+(3 + (M+1)(M+2)/2 + 2(M+1) floats), then every robot solves the same system and moves its own
+(s, mu) with its own fraction-to-boundary steps (tau = 0.99).
+
+Fixed rule, no tuning: centering 0.3, tau 0.99, s = mu = 1 (xi = nu = 1) and v = 0 at the start;
+stop when the fleet-wide mean complementarity m < 1e-10, a value every robot holds in the same
+round, so all stop together. A hard margin with no separating function on the grid shows as m
+that does not fall: the run ends not converged after `max_iterations` with the infeasibility
+advice (never a hang). The sums travel by the exact all-reduce of `agents/allreduce.py`.
+
+No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from agents.allreduce import SCHEDULES, AllReduce, ReducePlan, frame_slots
+from agents.problem import INFEASIBLE_ADVICE, margin_rows
+from agents.rounds import RoundCore, from_bytes, to_bytes
+
+#: keys of a fleet file's params that belong to the ADMM family and mean nothing here
+_OTHER_ALGORITHMS = ("rho", "gamma_penalty", "relax", "tol", "diameter")
+
+
+@dataclass(frozen=True)
+class NewtonParams:
+    """The fixed interior-point rule (the same on every robot; defaults are the tested rule)."""
+
+    centering: float = 0.3
+    tau: float = 0.99
+    stop_mu: float = 1e-10  # stop when the fleet's mean complementarity is below
+    max_iterations: int = 100  # not converged after this many: infeasible (hard margin) or stalled
+    max_rounds: int = 5000
+    allreduce: str = "gather"  # or "tree" (agents/allreduce.py): gather takes D rounds, tree 2h
+
+    def __post_init__(self) -> None:
+        if self.allreduce not in SCHEDULES:
+            raise ValueError(f"allreduce must be one of {', '.join(SCHEDULES)}, got {self.allreduce!r}")
+        if not 0 < self.centering < 1:
+            raise ValueError(f"centering must be in (0, 1), got {self.centering}")
+        if not 0 < self.tau < 1:
+            raise ValueError(f"tau must be in (0, 1), got {self.tau}")
+        if not self.stop_mu > 0:
+            raise ValueError(f"stop_mu must be positive, got {self.stop_mu}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be at least 1, got {self.max_iterations}")
+        if self.max_rounds < 1:
+            raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds}")
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> NewtonParams:
+        """From a fleet file's `params`: ADMM keys are ignored, `newton_<field>` or `<field>`
+        sets <field>; any other key is an error naming it."""
+        names = {f.name for f in fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for key, value in params.items():
+            if key in _OTHER_ALGORITHMS:
+                continue
+            name = key.removeprefix("newton_")
+            if name not in names:
+                raise ValueError(f"unknown newton parameter {key!r}; known: {', '.join(sorted(names))}")
+            kwargs[name] = value
+        return cls(**kwargs)
+
+
+def payload_size(dim: int) -> int:
+    """Floats of one robot's contribution for (x, gamma) of length dim: alpha, #pairs, s'mu,
+    triu(H), g, u."""
+    return 3 + dim * (dim + 1) // 2 + 2 * dim
+
+
+def frame_size(dim: int, graph: Mapping[int, Sequence[int]], params: NewtonParams) -> int:
+    """Floats per frame: contributions per frame (the schedule's slots) times payload_size."""
+    return frame_slots(graph, params.allreduce) * payload_size(dim)
+
+
+#: m starts at 1 (s = mu = 1); a million-fold growth means the multipliers diverge -- the sign
+#: of an infeasible hard margin (measured on the paper's Fig. 5 grid: m > 1e6 at iteration 11,
+#: while feasible runs never rise above their start)
+DIVERGED_MU = 1e6
+
+#: the alpha a robot reports when its own numbers broke down (the fleet's min then says so)
+_BROKEN = -1.0
+
+
+def _max_step(x: np.ndarray, dx: np.ndarray) -> float:
+    """Largest t with x + t dx >= 0 (inf when dx >= 0)."""
+    neg = dx < 0
+    return float(np.min(-x[neg] / dx[neg])) if neg.any() else math.inf
+
+
+class DistributedNewton(RoundCore):
+    """One robot's distributed interior-point method; drive it with receive / ready / advance."""
+
+    algorithm = "newton"
+
+    def __init__(
+        self,
+        robot_id: int,
+        neighbours: tuple[int, ...],
+        features: np.ndarray,
+        labels: np.ndarray,
+        *,
+        graph: Mapping[int, Sequence[int]],
+        params: NewtonParams,
+        C: float | None = None,
+        keep_trace: bool = True,
+    ) -> None:
+        n = features.shape[1] + 1
+        plan = ReducePlan.build(graph, robot_id, params.allreduce)
+        super().__init__(
+            robot_id, neighbours, plan.slots * payload_size(n), diameter=0, round_cap=params.max_rounds,
+            keep_trace=keep_trace,
+        )
+        if tuple(sorted(graph.get(robot_id, ()))) != self.neighbours:
+            raise ValueError(f"robot {robot_id}: neighbours {self.neighbours} differ from the graph's {graph.get(robot_id)}")
+        if C is not None and not (math.isfinite(C) and C > 0):
+            raise ValueError(f"C must be a positive number, got {C}")
+        self.params = params
+        self.n = n
+        self._C = None if C is None else float(C)
+        self._rows = margin_rows(features, labels)
+        k = len(self._rows)
+        self._P = np.eye(n)
+        self._P[-1, -1] = 0.0
+        self._triu = np.triu_indices(n)
+        self.plan = plan
+        self._reduce = AllReduce(plan, payload_size(n), n_min=1)
+        self._v = np.zeros(n)
+        self._dv = np.zeros(n)
+        self._alpha = 1.0  # own fraction-to-boundary step along dv (none taken yet)
+        self._s = np.ones(k)
+        self._mu = np.ones(k)
+        self._xi = np.ones(k if self._C is not None else 0)
+        self._nu = np.ones(k if self._C is not None else 0)
+        self.iterations = 0
+        self.mean_complementarity = math.inf
+        self._status = "running"  # running | converged | failed
+        self.message = ""
+        self._values = self._reduce.begin(self._contribution())
+        self._record()
+
+    # -- what the shells and the launcher read ------------------------------------------------
+    @property
+    def converged(self) -> bool:
+        """Stopped by the stopping rule (not by the round cap, a failure or a lost robot)."""
+        return self.finished and self._status == "converged"
+
+    @property
+    def values(self) -> np.ndarray:
+        """The current (x, gamma) (the frames carry the reduction's payload instead)."""
+        return self._v.copy()
+
+    def status(self) -> dict[str, Any]:
+        return {
+            **super().status(),
+            "iterations": self.iterations,
+            "mean_complementarity": self.mean_complementarity,
+            "message": self.message,
+        }
+
+    def result(self) -> dict[str, Any]:
+        res = super().result()
+        res.update(
+            x=self._v[:-1].tolist(),
+            gamma=float(self._v[-1]),
+            iterations=self.iterations,
+            mean_complementarity=self.mean_complementarity,
+            message=self.message,
+            # one publication per round (round 0 included); retransmissions and the piggybacked
+            # previous round are the shell's, and frame overhead is not counted
+            frame_floats=self.dim,
+            payload_bytes_sent=8 * self.dim * (self.round + 1),
+            allreduce=self.plan.describe(),
+        )
+        return res
+
+    # -- one round ----------------------------------------------------------------------------
+    def _step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
+        frame = self._reduce.step(theirs)
+        if not self._reduce.done:
+            return frame, False
+        total = self._reduce.total
+        assert total is not None
+        alpha, pairs, comp = float(total[0]), float(total[1]), float(total[2])
+        self._v = self._v + alpha * self._dv
+        self.iterations += 1
+        m = comp / pairs if pairs > 0 else 0.0
+        self.mean_complementarity = m
+        self.residual = m
+        if alpha < 0:
+            return self._fail(
+                f"interior-point iteration {self.iterations}: a robot's slacks reached zero (mean s*mu {m:.1e}): "
+                + (INFEASIBLE_ADVICE if self._C is None else "the Newton steps broke down")
+            )
+        if m < self.params.stop_mu:
+            self._status = "converged"
+            return frame, True
+        if m > DIVERGED_MU:
+            return self._fail(
+                f"interior-point iteration {self.iterations}: the multipliers diverge (mean s*mu {m:.1e}): "
+                + (INFEASIBLE_ADVICE if self._C is None else "the Newton steps broke down")
+            )
+        if self.iterations >= self.params.max_iterations or not math.isfinite(m):
+            return self._fail(
+                f"no convergence after {self.iterations} interior-point iterations (mean s*mu {m:.1e}): "
+                + (INFEASIBLE_ADVICE if self._C is None else "the Newton steps stalled")
+            )
+        n = self.n
+        H = np.zeros((n, n))
+        H[self._triu] = total[3 : 3 + len(self._triu[0])]
+        H = H + np.triu(H, 1).T
+        g = total[3 + len(self._triu[0]) : 3 + len(self._triu[0]) + n]
+        u = total[3 + len(self._triu[0]) + n :]
+        rhs = -self._P @ self._v + self.params.centering * m * u - g - alpha * (H @ self._dv)
+        try:
+            dv = np.linalg.solve(self._P + H, rhs)
+        except np.linalg.LinAlgError:
+            return self._fail("the Newton system became singular: " + INFEASIBLE_ADVICE)
+        if not np.all(np.isfinite(dv)):
+            return self._fail("the Newton step is not finite: " + INFEASIBLE_ADVICE)
+        self._dv = dv
+        self._alpha = self._local_step(dv, m)
+        return self._reduce.begin(self._contribution()), False
+
+    def _fail(self, message: str) -> tuple[np.ndarray, bool]:
+        self._status = "failed"
+        self.message = message
+        self.finished = True
+        return self._values.copy(), False
+
+    def _forget_edge(self, j: int) -> None:
+        """Every robot's points are in the fleet's sums: without robot j there is no exact sum."""
+        self._status = "failed"
+        self.message = f"robot {j} dropped out: the fleet-wide sums would miss its data (the all-reduce needs every robot)"
+        self.finished = True
+
+    def _record(self) -> None:
+        if self._keep_trace:
+            self.trace[self.round] = self._v.copy()
+
+    # -- the robot's own points ---------------------------------------------------------------
+    def _weights(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per point: effective weight w~, kappa (the coefficient of centering*m), c0 (the C term).
+
+        Hard margin: w~ = mu/s, kappa = 1/s, c0 = 0. Soft margin (xi eliminated too), with
+        w = mu/s and q = nu/xi: w~ = wq/(w+q), kappa = 1/s - w/(w+q) (1/s + 1/xi), c0 = wC/(w+q).
+        """
+        with np.errstate(all="ignore"):
+            return self._weights_unchecked()
+
+    def _weights_unchecked(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        w = self._mu / self._s
+        if self._C is None:
+            return w, 1.0 / self._s, np.zeros_like(w)
+        q = self._nu / self._xi
+        share = w / (w + q)
+        return share * q, 1.0 / self._s - share * (1.0 / self._s + 1.0 / self._xi), share * self._C
+
+    def _primal_residual(self) -> np.ndarray:
+        r = self._rows @ self._v - 1.0 - self._s
+        return r + self._xi if self._C is not None else r
+
+    def _contribution(self) -> np.ndarray:
+        """[alpha, #pairs, s'mu (+ xi'nu), triu(A' W~ A), A'(w~ r - c0), A' kappa] at the current v."""
+        wt, kappa, c0 = self._weights()
+        A = self._rows
+        pairs = len(self._s) + len(self._xi)
+        with np.errstate(all="ignore"):
+            H = A.T @ (wt[:, None] * A)
+            comp = float(self._s @ self._mu) + float(self._xi @ self._nu)
+            out = np.concatenate(
+                [[self._alpha, pairs, comp], H[self._triu], A.T @ (wt * self._primal_residual() - c0), A.T @ kappa]
+            )
+        if not np.all(np.isfinite(out)):  # slacks underflowed: tell the fleet (alpha < 0 wins the min)
+            out = np.zeros_like(out)
+            out[0] = _BROKEN
+        return out
+
+    def _local_step(self, dv: np.ndarray, m: float) -> float:
+        """Move the own slacks and multipliers along the Newton direction; the own primal step."""
+        with np.errstate(all="ignore"):
+            return self._local_step_unchecked(dv, m)
+
+    def _local_step_unchecked(self, dv: np.ndarray, m: float) -> float:
+        sm = self.params.centering * m
+        tau = self.params.tau
+        adv = self._rows @ dv
+        r = self._primal_residual()
+        s, mu = self._s, self._mu
+        if self._C is None:
+            dxi = np.zeros(0)
+            ds = adv + r
+        else:
+            xi, nu = self._xi, self._nu
+            w, q = mu / s, nu / xi
+            b = (sm / s - mu) + (sm / xi - nu) - (self._C - mu - nu) - w * r
+            dxi = (b - w * adv) / (w + q)
+            ds = adv + dxi + r
+        dmu = (sm - s * mu - mu * ds) / s
+        primal = min(1.0, tau * min(_max_step(s, ds), _max_step(self._xi, dxi)))
+        if self._C is None:
+            dual = min(1.0, tau * _max_step(mu, dmu))
+        else:
+            dnu = (sm - self._xi * self._nu - self._nu * dxi) / self._xi
+            dual = min(1.0, tau * min(_max_step(mu, dmu), _max_step(self._nu, dnu)))
+            self._xi = self._xi + primal * dxi
+            self._nu = self._nu + dual * dnu
+        self._s = s + primal * ds
+        self._mu = mu + dual * dmu
+        return primal
+
+    # -- checkpoint ---------------------------------------------------------------------------
+    def _save_state(self) -> dict[str, Any]:
+        return {
+            "v": to_bytes(self._v),
+            "dv": to_bytes(self._dv),
+            "alpha": self._alpha,
+            "s": to_bytes(self._s),
+            "mu": to_bytes(self._mu),
+            "xi": to_bytes(self._xi),
+            "nu": to_bytes(self._nu),
+            "iterations": self.iterations,
+            "m": self.mean_complementarity,
+            "status": self._status,
+            "message": self.message,
+            "reduce": self._reduce.save(),
+        }
+
+    def _load_state(self, state: dict[str, Any]) -> None:
+        self._v, self._dv = from_bytes(state["v"]), from_bytes(state["dv"])
+        self._alpha = float(state["alpha"])
+        self._s, self._mu = from_bytes(state["s"]), from_bytes(state["mu"])
+        self._xi, self._nu = from_bytes(state["xi"]), from_bytes(state["nu"])
+        self.iterations = int(state["iterations"])
+        self.mean_complementarity = float(state["m"])
+        self._status = str(state["status"])
+        self.message = str(state["message"])
+        self._reduce.load(state["reduce"])
