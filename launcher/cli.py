@@ -127,7 +127,8 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     algo.add_argument(
         "--algorithm", default=d.algorithm, choices=ALGORITHM_CHOICES,
         help="auto (default): admm when --grid and --sigma are given, else autogrid; autogrid: the fleet agrees on "
-        "its data's box, chooses sigma by a held-out vote and refines its grid; admm / ct-admm: fixed grid, "
+        "its data's box, chooses sigma by a held-out vote and refines its grid; admm / ct-admm / newton (a "
+        "distributed interior-point method, exact in tens of rounds): fixed grid, "
         f"the paper's ({PAPER_GRID}, sigma {PAPER_SIGMA:g}) unless --grid/--sigma say otherwise",
     )
     algo.add_argument("--rho", type=_finite_float, default=d.rho, help=f"ADMM penalty (default {d.rho})")

@@ -231,6 +231,12 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
     )
     if autogrid:
         _check_autogrid(opts, spec)
+    if opts.algorithm == "newton" and spec.dim > MAX_DIM:
+        raise scenario.ScenarioError(
+            f"--grid: {opts.grid} is {len(grid)} points; newton's frames would carry {spec.dim} numbers (the upper "
+            f"triangle of a {len(grid) + 1}-square matrix per contribution), more than a frame holds ({MAX_DIM}); "
+            "use a coarser --grid or --algorithm admm"
+        )
     return World(shape, robots, grid, bounds, graph), spec
 
 
