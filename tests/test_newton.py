@@ -285,11 +285,13 @@ def test_allreduce_refuses_a_disconnected_or_one_sided_graph():
 
 @pytest.mark.integration
 def test_launch_equals_simulate_bit_for_bit(tmp_path):
-    """One Zenoh fleet (router + 4 robot processes on loopback), bounded in time; every process it
-    started is gone afterwards (test_launch's guards: leftovers are killed by PID, then we fail)."""
+    """One Zenoh fleet (router + 4 robot processes on loopback, 20 % loss, robot 1 killed at round
+    10 and restarted from its checkpoint) equals the clean in-process run bit for bit. Bounded in
+    time; every process it started is gone afterwards (leftovers are killed by PID, then we fail)."""
     import os
     import signal
 
+    from launcher.fleet import CrashPlan
     from tests.test_launch import TIMING, _assert_same_iterates, _launch, _processes_with
 
     def on_alarm(signum, frame):
@@ -303,8 +305,12 @@ def test_launch_equals_simulate_bit_for_bit(tmp_path):
         )
         want = {r["id"]: r for r in simulate_fleet(spec).robots}
         assert all(w["converged"] for w in want.values())
-        out = _launch(spec, tmp_path)
-        _assert_same_iterates(out.robots, want)
+        faulty = dataclasses.replace(spec, faults=LinkFaults(loss=0.2, delay=0.005))
+        out = _launch(faulty, tmp_path, crashes=[CrashPlan(1, 10)], restart=True, restart_after=0.5)
+        assert out.crashes_not_fired == [] and out.crashes[0].restarted_at_s is not None
+        _assert_same_iterates(out.robots, want, restarted=(1,))
+        assert [r["restarts"] for r in sorted(out.robots, key=lambda r: r["id"])] == [0, 1, 0, 0]
+        assert sum(r["frames_lost"] for r in out.robots) > 0
         best = certified_optimum(world, spec, np.append(central.x, central.gamma))
         assert error_to(spec, out.robots, best) < 1e-6
         assert all(r["algorithm"] == "newton" for r in out.robots)
