@@ -9,6 +9,7 @@ lost for good, bad parameters, a grid too large for a frame) end in words, not a
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import msgpack
 import networkx as nx
@@ -324,3 +325,31 @@ def test_launch_equals_simulate_bit_for_bit(tmp_path):
             except ProcessLookupError:
                 pass
         assert not left, f"processes left behind: {left}"
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def test_cli_simulate_newton_writes_the_run_folder(tmp_path, capsys):
+    from launcher.cli import main
+
+    out = tmp_path / "run"
+    main(["simulate", "--preset", "paper", "--algorithm", "newton", "--out", str(out)])
+    result = json.loads((out / "result.json").read_text())
+    assert result["algorithm"] == "newton" and result["converged"] and result["rounds"] <= 30
+    assert result["metrics"]["function_error"] < 1e-6
+    assert (out / "convergence.png").stat().st_size > 0
+    assert result["history"][-1]["function_error"] < 1e-6 and result["history"][-1]["round"] == result["rounds"]
+    for r in result["robots"]:
+        assert r["payload_bytes_sent"] == 8 * r["frame_floats"] * (r["rounds"] + 1) and r["frame_floats"] == 171
+        assert r["allreduce"].startswith("complete") and r["message"] == ""
+
+
+def test_cli_grid_too_large_for_newton_exits_2_with_one_line(tmp_path, capsys):
+    from launcher.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--algorithm", "newton", "--grid", "30x30", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--grid: 30x30" in err and "more than a frame holds" in err
