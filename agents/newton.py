@@ -181,8 +181,16 @@ class DistributedNewton(RoundCore):
             **super().status(),
             "iterations": self.iterations,
             "mean_complementarity": self.mean_complementarity,
-            "message": self.message,
+            "message": self._message(),
         }
+
+    def _message(self) -> str:
+        if self.finished and self._status == "running":  # stopped by RoundCore's round cap
+            return (
+                f"round cap {self.params.max_rounds} reached after {self.iterations} interior-point iterations "
+                f"(mean s*mu {self.mean_complementarity:.1e}, the stop needs {self.params.stop_mu:g})"
+            )
+        return self.message
 
     def result(self) -> dict[str, Any]:
         res = super().result()
@@ -191,7 +199,7 @@ class DistributedNewton(RoundCore):
             gamma=float(self._v[-1]),
             iterations=self.iterations,
             mean_complementarity=self.mean_complementarity,
-            message=self.message,
+            message=self._message(),
             # one publication per round (round 0 included); retransmissions and the piggybacked
             # previous round are the shell's, and frame overhead is not counted
             frame_floats=self.dim,

@@ -193,6 +193,7 @@ def test_round_cap_stops_unconverged():
     _world, spec, _central = make_run(**PAPER_NEWTON, max_rounds=5)
     robots = simulate_fleet(spec).robots
     assert all(r["rounds"] == 5 and not r["converged"] for r in robots)
+    assert all(r["message"].startswith("round cap 5 reached after 5 interior-point iterations") for r in robots)
 
 
 def test_bad_parameters_are_refused_by_name():
