@@ -24,6 +24,7 @@ bench: install
 	$(PY) benchmarks/rounds.py
 	$(PY) benchmarks/zenoh_fleet.py
 	$(PY) benchmarks/ct_delay.py
+	$(PY) benchmarks/newton.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.problem import margin_rows, solve_central  # noqa: E402
+from agents.problem import certify_hard_margin, margin_rows, solve_central  # noqa: E402
 from agents.spec import build_core  # noqa: E402
 from launcher.world import Options, build_world  # noqa: E402
 from protocol.frames import encode_state  # noqa: E402
@@ -42,21 +42,6 @@ SCENARIOS = [
 ]
 
 
-def certified_optimum(rows: np.ndarray, guess: np.ndarray) -> np.ndarray | None:
-    """The hard-margin optimum from the KKT system on the constraints active at `guess`, or None
-    when that is not a certified optimum (a multiplier <= 0, a margin violated)."""
-    active = rows[rows @ guess - 1.0 < 1e-6]
-    n, k = len(guess), len(active)
-    P = np.eye(n)
-    P[-1, -1] = 0.0
-    kkt = np.block([[P, -active.T], [active, np.zeros((k, k))]])
-    rhs = np.concatenate([np.zeros(n), np.ones(k)])
-    sol = np.linalg.lstsq(kkt, rhs, rcond=None)[0]
-    v, lam = sol[:n], sol[n:]
-    ok = np.abs(kkt @ sol - rhs).max() < 1e-10 and lam.min() > 0 and (rows @ v).min() > 1 - 1e-12
-    return v if ok else None
-
-
 def measure(kwargs: dict, algorithm: str, params: dict | None = None, tol: float = 1e-6) -> dict:
     world, spec = build_world(Options(fleet_id="bench", preset="paper", algorithm=algorithm, **kwargs))
     if params:
@@ -64,7 +49,7 @@ def measure(kwargs: dict, algorithm: str, params: dict | None = None, tol: float
     central = solve_central(spec.basis, world.points, world.labels, spec.C)
     b = spec.basis
     rows = margin_rows(b.features(world.points), world.labels)
-    best = certified_optimum(rows, np.append(central.x, central.gamma))
+    best = certify_hard_margin(rows, np.append(central.x, central.gamma))
     ref = best if best is not None else np.append(central.x, central.gamma)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
 

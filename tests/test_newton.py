@@ -18,7 +18,7 @@ import pytest
 
 from agents.allreduce import AllReduce, ReducePlan, check_graph
 from agents.newton import DistributedNewton, NewtonParams, payload_size
-from agents.problem import margin_rows
+from agents.problem import certify_hard_margin, margin_rows
 from agents.spec import build_core, restore_core
 from launcher.scenario import ScenarioError
 from launcher.simulate import simulate_fleet
@@ -59,23 +59,10 @@ def _assert_identical(robots):
 
 
 def certified_optimum(world, spec, guess):
-    """The hard-margin optimum, certified: the KKT system on the constraints active at `guess`
-    solved directly, accepted only if its multipliers are positive and every margin holds.
-
-    piqp's central solve can sit off the optimum by more than 1e-6 (4-robot ring: 1.6e-5, with
-    an objective above this point's); this reference is exact up to linear algebra round-off.
-    """
-    rows = margin_rows(spec.basis.features(world.points), world.labels)
-    active = rows[rows @ guess - 1.0 < 1e-6]
-    n, k = len(guess), len(active)
-    P = np.eye(n)
-    P[-1, -1] = 0.0
-    kkt = np.block([[P, -active.T], [active, np.zeros((k, k))]])
-    rhs = np.concatenate([np.zeros(n), np.ones(k)])
-    sol = np.linalg.lstsq(kkt, rhs, rcond=None)[0]
-    v, lam = sol[:n], sol[n:]
-    assert np.abs(kkt @ sol - rhs).max() < 1e-10 and lam.min() > 0 and (rows @ v).min() > 1 - 1e-12
-    return v
+    """The hard-margin optimum certified by its KKT conditions (agents/problem.py)."""
+    best = certify_hard_margin(margin_rows(spec.basis.features(world.points), world.labels), guess)
+    assert best is not None, "the active set at the guess does not certify an optimum"
+    return best
 
 
 def error_to(spec, robots, v):
@@ -120,13 +107,15 @@ def test_soft_margin_reaches_the_central_soft_solution():
     _assert_identical(robots)
 
 
-def test_exact_where_the_central_qp_solver_is_not():
-    """4-robot ring: piqp's solve_central is 1.6e-5 off the certified optimum; newton is not."""
+def test_exact_against_the_certified_central_optimum():
+    """4-robot ring: piqp alone stops 1.6e-5 off the optimum; the central reference is now
+    certified by its KKT conditions and newton is within 1e-6 of it."""
     world, spec, central = make_run(**PAPER_NEWTON, robots=4, topology="ring")
     robots = simulate_fleet(spec).robots
+    assert central.certified
     best = certified_optimum(world, spec, np.append(central.x, central.gamma))
     assert error_to(spec, robots, best) < 1e-6
-    assert max_function_error(spec, central, robots) > 1e-6  # the reference's own error, not the fleet's
+    assert max_function_error(spec, central, robots) < 1e-6
 
 
 def test_lone_robot_solves_the_central_problem():

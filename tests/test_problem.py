@@ -7,7 +7,7 @@ import pytest
 from sklearn.svm import SVC
 
 from agents.kernel import GridBasis
-from agents.problem import InfeasibleError, MarginQP, solve_central
+from agents.problem import InfeasibleError, MarginQP, certify_hard_margin, margin_rows, solve_central
 from launcher.scenario import make_grid
 
 from .conftest import make_run
@@ -74,3 +74,25 @@ def test_dense_grid_still_solves():
     assert sol.solved
     margins = world.labels * basis.decision(world.points, sol.c, sol.gamma)
     assert margins.min() > 1 - 1e-6
+
+
+@pytest.mark.parametrize("robots,topology", [(3, "complete"), (4, "ring"), (8, "ring")])
+def test_central_hard_margin_is_certified_by_its_kkt_conditions(robots, topology):
+    """The reference is the exact optimum: feasible, stationary with positive multipliers, and no
+    worse in objective than piqp's own point (which stops at its tolerance)."""
+    world, spec, central = make_run(preset="paper", robots=robots, topology=topology)
+    assert central.certified
+    rows = margin_rows(spec.basis.features(world.points), world.labels)
+    v = np.append(central.x, central.gamma)
+    assert (rows @ v).min() > 1.0 - 1e-9
+    qp = MarginQP(spec.basis.features(world.points), world.labels, x_weight=1.0, prox_weight=0.0, C=None)
+    raw = qp.solve(np.zeros(qp.dim))
+    assert central.x @ central.x <= raw.x @ raw.x + 1e-9
+
+
+def test_certification_refuses_a_point_that_is_not_optimal():
+    world, spec, central = make_run(preset="paper")
+    rows = margin_rows(spec.basis.features(world.points), world.labels)
+    far = 3.0 * np.append(central.x, central.gamma)  # feasible, but no margin is active
+    assert certify_hard_margin(rows, far) is None
+    assert solve_central(spec.basis, world.points, world.labels, C=10.0).certified is False
