@@ -743,3 +743,63 @@ def test_mutated_signed_frames_are_rejected_never_accepted(data):
             assert result.update == StateUpdate(1, 12, X, 1, PREV)
         else:
             assert result.reason in REJECTION_REASONS and dec.counts == {result.reason: 1}
+
+
+# ------------------------------------------------------------------------ keys in fleet files
+
+
+def test_fleet_files_hold_the_secret_or_only_the_robots_own_edge_keys(tmp_path):
+    import json
+
+    from agents.spec import FleetSpec
+    from tests.conftest import make_run
+
+    _world, spec, _central = make_run(robots=4, topology="line", fleet_id="keys")  # 0-1-2-3
+    assert spec.secret is not None and len(spec.secret) == 32
+    assert make_run(fleet_id="keys")[1].secret != spec.secret  # a fresh secret per fleet
+    spec.save(tmp_path / "full.json")
+    assert json.loads((tmp_path / "full.json").read_text())["auth"] == {"secret": spec.secret.hex()}
+    full_keys = {i: spec.frame_auth(i).keys for i in spec.robot_ids}
+    assert set(full_keys[1]) == {0, 2} and full_keys[1][2] == full_keys[2][1] != full_keys[1][0]
+    for i in spec.robot_ids:
+        own = spec.for_robot(i)
+        own.save(tmp_path / f"{i}.json")
+        data = json.loads((tmp_path / f"{i}.json").read_text())
+        assert "secret" not in data["auth"] and "secret" not in json.dumps(data)
+        assert data["auth"]["edge_keys"] == {str(j): k.hex() for j, k in sorted(full_keys[i].items())}
+        back = FleetSpec.load(tmp_path / f"{i}.json")
+        assert back.secret is None and back.frame_auth(i).keys == full_keys[i]
+        with pytest.raises(ValueError, match="frame keys only"):
+            back.frame_auth((i + 1) % 4)
+    # frames signed from a per-robot file verify with the neighbour's per-robot file
+    one, two = FleetSpec.load(tmp_path / "1.json"), FleetSpec.load(tmp_path / "2.json")
+    up = StateUpdate(1, 3, np.ones(spec.dim), 0, np.zeros(spec.dim))
+    frame = encode_state(up, fleet=spec.fleet, seq=0, config_tag=spec.config_tag, auth=one.frame_auth(1))
+    dec = FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=two.frame_auth(2))
+    assert dec.decode(frame, expected_sender=1).update == up
+    dec3 = FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=spec.frame_auth(3))
+    assert dec3.decode(frame, expected_sender=1).reason == "auth"  # 3 is no neighbour of 1
+
+
+def test_a_fleet_file_without_keys_is_refused_with_exit_2(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from agents.spec import FleetSpec
+    from tests.conftest import ROOT, make_run
+
+    _world, spec, _central = make_run(fleet_id="old-file")
+    data = spec.to_json()
+    del data["auth"]
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"old\.json: not a valid fleet file \(no frame keys"):
+        FleetSpec.load(old)
+    proc = subprocess.run([sys.executable, "-m", "launcher.cli", "robot", "--fleet-file", str(old), "--id", "0",
+                           "--connect", "tcp/127.0.0.1:9"], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "no frame keys" in lines[0] and "old.json" in lines[0], proc.stderr
