@@ -20,6 +20,9 @@ import pytest
 from launcher.cli import main
 from protocol.zenoh_config import TLSFiles, free_loopback_port, robot_config, robot_config_dict, router_config, router_config_dict
 from tests import deploy_doc as doc
+from tests.conftest import skip_evidence
+
+EVIDENCE = True  # with SHAPEFLEET_REQUIRE_EVIDENCE set a skip here fails (tests/conftest.py)
 
 ROBOTS = ("robot0", "robot1")
 CONNECT_BOUND_S = 45.0  # a robot gives up after the 10 s connect time-out, plus start-up on a busy machine
@@ -125,7 +128,7 @@ def test_cli_refuses_bad_tls_input(fleet_file, args, needle, capsys, monkeypatch
 # -- a fleet with TLS on loopback, and impostors ------------------------------------------------------
 def _have_openssl() -> None:
     if shutil.which("openssl") is None:
-        pytest.skip("needs the openssl command to make certificates (the doc's way)")
+        skip_evidence("needs the openssl command to make certificates (the doc's way)")
 
 
 @pytest.mark.integration
