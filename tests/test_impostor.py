@@ -35,7 +35,7 @@ from agents.spec import Timing  # noqa: E402
 from launcher.fleet import launch_fleet, stop_process  # noqa: E402
 from launcher.simulate import simulate_fleet  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
-from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint  # noqa: E402
+from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint, to_zenoh_config  # noqa: E402
 from tests.conftest import make_run, max_function_error, start_router  # noqa: E402
 from tests.test_launch import _assert_gone, _processes_with  # noqa: E402
 
@@ -77,10 +77,16 @@ def forge(payload: bytes, scale: float) -> list[bytes]:
 
 
 class Impostor:
-    """A Zenoh client on the router that republishes robot 1's frames, altered, on robot 1's key."""
+    """A Zenoh client on the router that republishes a robot's frames, altered, on that robot's key.
 
-    def __init__(self, endpoint: str, fleet: str, scale: float) -> None:
-        self.endpoint, self.fleet, self.scale = endpoint, fleet, scale
+    ``session``: a dict from protocol.zenoh_config (e.g. with TLS files), default a plain loopback
+    client of ``endpoint``. It never holds an edge key: only what every fleet file shares.
+    """
+
+    def __init__(self, endpoint: str, fleet: str, scale: float, *, robot: int = 1,
+                 session: dict | None = None) -> None:
+        self.endpoint, self.fleet, self.scale, self.robot = endpoint, fleet, scale, robot
+        self.session = session
         self.forged = 0
         self.errors: list[BaseException] = []
         self._stop = threading.Event()
@@ -103,7 +109,9 @@ class Impostor:
             session = None
             while session is None:  # the router may not listen yet (CLI launch)
                 try:
-                    session = zenoh.open(robot_config([self.endpoint]))
+                    config = (robot_config([self.endpoint]) if self.session is None
+                              else to_zenoh_config(self.session))
+                    session = zenoh.open(config)
                 except Exception:  # noqa: BLE001 - retried until the deadline
                     if time.monotonic() > deadline or self._stop.is_set():
                         raise
@@ -120,7 +128,7 @@ class Impostor:
                         pass
 
             try:
-                key = state_key(self.fleet, 1)
+                key = state_key(self.fleet, self.robot)
                 sub = session.declare_subscriber(key, on_sample)
                 pub = session.declare_publisher(key)
                 while not self._stop.is_set() and time.monotonic() < deadline and self.forged < MAX_FORGERIES:

@@ -3,8 +3,12 @@
 The integration test follows docs/deploy.md with its own commands (certificates made by the doc's
 openssl block, router and robots started by the doc's TLS blocks) on 127.0.0.1, and runs impostors
 beside the fleet: a robot that trusts another CA, one whose certificate another CA signed, one with
-no certificate and one speaking plain TCP. None of them gets a session; the fleet converges to the
-in-process simulator's iterates, bit for bit.
+no certificate and one speaking plain TCP. None of them gets a session, and a TLS handshake with
+each one's files shows why (the router's certificate refused by the impostor, the impostor's
+certificate refused by the router, no certificate, not TLS). A fifth impostor holds a *valid*
+certificate of another robot (robot 1's): TLS admits it, and it republishes robot 0's frames with
+x scaled; frame authentication refuses them (``auth`` in robot 1's counts). The fleet converges to
+the in-process simulator's iterates, bit for bit.
 """
 
 from __future__ import annotations
@@ -131,6 +135,52 @@ def _have_openssl() -> None:
         skip_evidence("needs the openssl command to make certificates (the doc's way)")
 
 
+def _tls_of(extra: list) -> tuple[str | None, str | None, str | None]:
+    """(ca, cert, key) from an impostor's --tls-* arguments."""
+    args = dict(zip(extra[::2], map(str, extra[1::2]), strict=True))
+    return args.get("--tls-ca"), args.get("--tls-cert"), args.get("--tls-key")
+
+
+def _handshake(port: int, ca: str | None, cert: str | None, key: str | None) -> str:
+    """Why a node with these files does (not) get a TLS link to the router, in words.
+
+    TLS 1.3: a client learns that the router refused its certificate from the alert that follows
+    the handshake, so the first read after it tells. No CA at all: a plain TCP client.
+    """
+    import socket
+    import ssl
+
+    sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+    with sock:
+        if ca is None:
+            sock.sendall(b"\x00" * 64)  # not a TLS ClientHello
+            sock.settimeout(5)
+            reply = sock.recv(16)
+            return "router answered with a TLS alert: it speaks TLS only" if reply[:1] == b"\x15" else f"reply {reply!r}"
+        ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+        ctx.load_verify_locations(ca)
+        ctx.check_hostname = False  # the router's name is checked by Zenoh, not the question here
+        if cert is not None:
+            ctx.load_cert_chain(cert, key)
+        try:
+            tls = ctx.wrap_socket(sock, server_hostname="127.0.0.1")
+        except ssl.SSLCertVerificationError as exc:
+            return f"client refused the router's certificate: {exc.verify_message}"
+        with tls:
+            tls.settimeout(2)
+            try:
+                tls.recv(1)
+            except TimeoutError:
+                return "admitted"  # the router waits for the Zenoh handshake: TLS accepted us
+            except ssl.SSLError as exc:
+                if "CERTIFICATE_REQUIRED" in exc.reason:
+                    return "router requires a client certificate"
+                if exc.reason in ("TLSV1_ALERT_DECRYPT_ERROR", "TLSV1_ALERT_UNKNOWN_CA", "SSLV3_ALERT_BAD_CERTIFICATE"):
+                    return f"router refused the client's certificate ({exc.reason})"
+                return f"TLS error {exc.reason}"
+            return "admitted"
+
+
 @pytest.mark.integration
 def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
     from agents.spec import FleetSpec
@@ -156,6 +206,7 @@ def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
         "plain-tcp": [],
     }
     started: list[subprocess.Popen] = []
+    forger = None
     try:
         router = doc.start("router-tls", hub, env)
         started.append(router)
@@ -166,6 +217,12 @@ def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
             cwd = doc.host_dir(tmp_path, host)
             fleet.append(doc.start("robot-tls", cwd, env, log=cwd / "robot.log"))
             started.append(fleet[-1])
+        from tests.test_impostor import Impostor
+
+        stolen = TLSFiles(ca=str(good / "ca.pem"), cert=str(good / "robot-1.pem"), key=str(good / "robot-1.key"))
+        forger = Impostor(f"tls/127.0.0.1:{port}", json.loads((hub / "fleet" / "fleet.json").read_text())["fleet"],
+                          1.02, robot=0, session=robot_config_dict([f"tls/127.0.0.1:{port}"], tls=stolen))
+        forger.__enter__()
         fakes = {}
         t0 = time.monotonic()
         for name, extra in impostors.items():
@@ -178,10 +235,15 @@ def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
             fakes[name] = doc.spawn(argv, d, env, log=d / "robot.log")
             started.append(fakes[name])
         codes = doc.wait_all(fleet, 120)
+        forger.__exit__(None, None, None)
+        why = {name: _handshake(port, *_tls_of(extra)) for name, extra in impostors.items()}
+        why["valid-certificate-of-robot-1"] = _handshake(port, stolen.ca, stolen.cert, stolen.key)
         logs = {h: (doc.host_dir(tmp_path, h) / "robot.log").read_text()[-2000:] for h in ROBOTS}
         assert codes == [0, 0], f"robot exit codes {codes}; logs {logs}"
         fake_codes = dict(zip(fakes, doc.wait_all(list(fakes.values()), max(5.0, CONNECT_BOUND_S - (time.monotonic() - t0))), strict=True))
     finally:
+        if forger is not None:
+            forger._stop.set()  # its thread ends within 0.1 s (bounded anyway by IMPOSTOR_S)
         for proc in reversed(started):
             doc.stop(proc)
 
@@ -191,6 +253,13 @@ def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
         assert code == 1, f"{name}: exit {code}, log {log[-1500:]}"
         assert "no Zenoh session" in log, f"{name}: {log[-1500:]}"
         assert not (d / "result.json").exists()
+    # why: each refusal is the one its files call for, and TLS itself admits a valid certificate
+    assert why["trusts-another-ca"].startswith("client refused the router's certificate"), why
+    assert why["foreign-certificate"].startswith("router refused the client's certificate"), why
+    assert why["no-certificate"] == "router requires a client certificate", why
+    assert why["plain-tcp"] == "router answered with a TLS alert: it speaks TLS only", why
+    assert why["valid-certificate-of-robot-1"] == "admitted", why
+    assert not forger.errors and forger.forged > 20, (forger.errors, forger.forged)
 
     spec = FleetSpec.load(hub / "fleet" / "fleet.json")
     want = {r["id"]: r for r in simulate_fleet(spec).robots}
@@ -198,4 +267,9 @@ def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
         got = json.loads((doc.host_dir(tmp_path, host) / "result.json").read_text())
         assert got["converged"] and got["rounds"] == want[k]["rounds"]
         assert got["x"] == list(want[k]["x"]) and got["gamma"] == want[k]["gamma"]
-        assert got["frames_rejected"]["total"] == 0
+        # robot 1 listens to robot 0's key, where the impostor with robot 1's certificate forged
+        if k == 1:
+            assert got["frames_rejected"]["by_reason"].get("auth", 0) > 0, got["frames_rejected"]
+            assert set(got["frames_rejected"]["by_reason"]) == {"auth"}, got["frames_rejected"]
+        else:
+            assert got["frames_rejected"]["total"] == 0
