@@ -273,3 +273,111 @@ def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
             assert set(got["frames_rejected"]["by_reason"]) == {"auth"}, got["frames_rejected"]
         else:
             assert got["frames_rejected"]["total"] == 0
+
+
+# -- access control: a robot's certificate publishes only on its own keys -----------------------------
+_ACL_ROUTER = """
+import sys, time
+import zenoh
+from protocol.zenoh_config import TLSFiles, robot_access_control, router_config_dict, to_zenoh_config
+certs, port, acl, wall = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "acl", float(sys.argv[4])
+tls = TLSFiles(ca=certs + "/ca.pem", cert=certs + "/router.pem", key=certs + "/router.key")
+session = zenoh.open(to_zenoh_config(router_config_dict(
+    port, tls=tls, access_control=robot_access_control("acl-test", [0, 1]) if acl else None)))
+print("ready", flush=True)
+time.sleep(wall)  # bounded; the test stops it by PID long before
+session.close()
+"""
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("acl", [True, False], ids=["acl", "no-acl"])
+def test_access_control_lets_a_certificate_publish_only_on_its_robots_keys(tmp_path, acl):
+    """Robot 0's valid certificate puts on robot 0's and on robot 1's state key and declares both
+    liveliness tokens; a subscriber with robot 1's certificate sees only robot 0's own (with the
+    ACL), both (without it: the control that shows the test can fail)."""
+    import sys
+    import threading
+
+    import zenoh
+
+    _have_openssl()
+    env = doc.environment(tmp_path, ROUTER_IP="127.0.0.1", ROUTER_PORT="1")
+    doc.run("certs", tmp_path, env)
+    certs = tmp_path / "certs"
+    port = free_loopback_port()
+    router = doc.spawn([sys.executable, "-c", _ACL_ROUTER, str(certs), str(port), "acl" if acl else "none", "60"],
+                       tmp_path, env, log=tmp_path / "router.log")
+    sessions = []
+    try:
+        deadline = time.monotonic() + 30
+        while "ready" not in (tmp_path / "router.log").read_text():
+            assert router.poll() is None and time.monotonic() < deadline, (tmp_path / "router.log").read_text()
+            time.sleep(0.05)
+
+        def session(i: int):
+            tls = TLSFiles(ca=str(certs / "ca.pem"), cert=str(certs / f"robot-{i}.pem"), key=str(certs / f"robot-{i}.key"))
+            sessions.append(zenoh.open(robot_config([f"tls/127.0.0.1:{port}"], tls=tls)))
+            return sessions[-1]
+
+        r0, r1 = session(0), session(1)
+        got: set[tuple[str, bytes]] = set()
+        tokens: set[str] = set()
+        lock = threading.Lock()
+
+        def on_state(s) -> None:
+            with lock:
+                got.add((str(s.key_expr), s.payload.to_bytes()))
+
+        def on_alive(s) -> None:
+            with lock:
+                tokens.add(str(s.key_expr))
+
+        subs = [r1.declare_subscriber("shapefleet/acl-test/robot/*/state", on_state),
+                r1.liveliness().declare_subscriber("shapefleet/acl-test/robot/*/alive", on_alive)]
+        time.sleep(0.5)
+        toks = [r0.liveliness().declare_token(f"shapefleet/acl-test/robot/{i}/alive") for i in (0, 1)]
+        for _ in range(10):  # bounded
+            r0.put("shapefleet/acl-test/robot/0/state", b"own")
+            r0.put("shapefleet/acl-test/robot/1/state", b"forged")
+            time.sleep(0.05)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and len(got) < (1 if acl else 2):
+            time.sleep(0.05)
+        time.sleep(0.5)  # anything else that was going to arrive has
+        for ent in (*toks, *subs):
+            ent.undeclare()
+        with lock:
+            got_now, tokens_now = set(got), set(tokens)
+    finally:
+        for s in sessions:
+            s.close()
+        doc.stop(router)
+    own = {("shapefleet/acl-test/robot/0/state", b"own")}
+    forged = {("shapefleet/acl-test/robot/1/state", b"forged")}
+    if acl:
+        assert got_now == own and tokens_now == {"shapefleet/acl-test/robot/0/alive"}, (got_now, tokens_now)
+    else:
+        assert got_now == own | forged, got_now
+        assert tokens_now == {f"shapefleet/acl-test/robot/{i}/alive" for i in (0, 1)}, tokens_now
+
+
+def test_access_control_config_names_each_robots_own_keys():
+    from protocol.zenoh_config import robot_access_control, router_config_dict
+
+    acl = robot_access_control("f-1", [1, 0])
+    assert acl["default_permission"] == "deny" and acl["enabled"] is True
+    own = {r["id"]: r["key_exprs"] for r in acl["rules"] if r["id"].startswith("own-")}
+    assert own == {"own-0": ["shapefleet/f-1/robot/0/**"], "own-1": ["shapefleet/f-1/robot/1/**"]}
+    assert [s["cert_common_names"] for s in acl["subjects"]] == [["shapefleet robot 0"], ["shapefleet robot 1"]]
+    assert [p["rules"] for p in acl["policies"]] == [["fleet-in", "fleet-out", "own-0"], ["fleet-in", "fleet-out", "own-1"]]
+    # publishing (put) is allowed into the router only by the own-<id> rules
+    assert [r["id"] for r in acl["rules"] if "put" in r["messages"] and "ingress" in r["flows"]] == ["own-0", "own-1"]
+    tls = TLSFiles(ca="ca.pem", cert="r.pem", key="r.key")
+    assert router_config_dict(7447, tls=tls, access_control=acl)["access_control"] == acl
+    with pytest.raises(ValueError, match="needs a mutual-TLS router"):
+        router_config_dict(7447, access_control=acl)
+    with pytest.raises(ValueError, match="needs a mutual-TLS router"):
+        router_config_dict(7447, tls=TLSFiles(cert="r.pem", key="r.key"), access_control=acl)
+    with pytest.raises(ValueError):
+        robot_access_control("bad/fleet", [0])
