@@ -242,7 +242,8 @@ class RobotShell:
         self._fleet = spec.fleet
         self._tag = bytes(spec.config_tag)
         senders = tuple(spec.robot_ids)
-        self._auth = spec.frame_auth(self.me)  # this robot's edge keys (docs/protocol.md)
+        # this robot's edge keys (docs/protocol.md); a spec without frame_auth (test doubles) runs unauthenticated
+        self._auth = spec.frame_auth(self.me) if hasattr(spec, "frame_auth") else None
         self.decoder = FrameDecoder(spec.fleet, senders, spec.dim, spec.config_tag, auth=self._auth)
         self.links = LinkLayer(spec.faults, spec.seed)
 
