@@ -242,7 +242,9 @@ class RobotShell:
         self._fleet = spec.fleet
         self._tag = bytes(spec.config_tag)
         senders = tuple(spec.robot_ids)
-        self.decoder = FrameDecoder(spec.fleet, senders, spec.dim, spec.config_tag)
+        # this robot's edge keys (docs/protocol.md); a spec without frame_auth (test doubles) runs unauthenticated
+        self._auth = spec.frame_auth(self.me) if hasattr(spec, "frame_auth") else None
+        self.decoder = FrameDecoder(spec.fleet, senders, spec.dim, spec.config_tag, auth=self._auth)
         self.links = LinkLayer(spec.faults, spec.seed)
 
         self.watched: tuple[int, ...] = tuple(core.neighbours)  # neighbours we subscribe to
@@ -359,7 +361,7 @@ class RobotShell:
     def _publish(self, update: StateUpdate) -> None:
         self._latest = update
         self._republish_now = False
-        frame = encode_state(update, fleet=self._fleet, seq=self._seq, config_tag=self._tag)
+        frame = encode_state(update, fleet=self._fleet, seq=self._seq, config_tag=self._tag, auth=self._auth)
         self._seq += 1
         self._pub.put(frame)
         self.sent += 1

@@ -21,6 +21,7 @@ from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.kernel import GridBasis
 from agents.newton import DistributedNewton, NewtonParams, frame_size
+from protocol.auth import FLEET_SECRET_BYTES, FrameAuth, new_fleet_secret
 from protocol.frames import config_tag as make_config_tag
 from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults
@@ -71,9 +72,19 @@ class FleetSpec:
     seed: int = 0
     timing: Timing = field(default_factory=Timing)
     owner: int | None = None  # set in a per-robot fleet file (for_robot): the one robot whose data it holds
+    # frame authentication (protocol/auth.py): the full file holds the fleet secret, a per-robot
+    # file only the keys of its owner's edges (neighbour id -> key)
+    secret: bytes | None = field(default_factory=new_fleet_secret, repr=False)
+    edge_keys: dict[int, bytes] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         validate_fleet_id(self.fleet)
+        if self.secret is None and (self.edge_keys is None or self.owner is None):
+            raise ValueError("no frame keys: a fleet file needs the fleet secret, or its robot's edge keys")
+        if self.secret is not None and len(self.secret) != FLEET_SECRET_BYTES:
+            raise ValueError(f"the fleet secret must be {FLEET_SECRET_BYTES} bytes")
+        if self.secret is None:
+            FrameAuth(self.owner, self.edge_keys)  # ValueError names a bad key
         if self.owner is not None and self.owner not in self.robots:
             raise ValueError(f"fleet file is for robot {self.owner}, which is not in the fleet (robots {sorted(self.robots)})")
         if self.algorithm not in ALGORITHMS:
@@ -161,13 +172,29 @@ class FleetSpec:
             i: r if i == robot_id else RobotSpec(i, r.neighbours, empty, np.zeros(0, dtype=int))
             for i, r in self.robots.items()
         }
-        return replace(self, robots=robots, owner=robot_id)
+        keys = self.frame_auth(robot_id).keys
+        return replace(self, robots=robots, owner=robot_id, secret=None, edge_keys=dict(keys))
+
+    def frame_auth(self, robot_id: int) -> FrameAuth:
+        """Robot ``robot_id``'s frame keys: one per edge to a neighbour (docs/protocol.md)."""
+        if robot_id not in self.robots:
+            raise ValueError(f"robot {robot_id} is not in fleet {self.fleet} (robots {list(self.robot_ids)})")
+        if self.secret is not None:
+            return FrameAuth.from_secret(self.secret, robot_id, self.robots[robot_id].neighbours)
+        if self.owner != robot_id or self.edge_keys is None:
+            raise ValueError(f"this fleet file holds robot {self.owner}'s frame keys only, not robot {robot_id}'s")
+        return FrameAuth(robot_id, self.edge_keys)
 
     # -- JSON --------------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
         extra: dict[str, Any] = {} if self.owner is None else {"for": self.owner}
+        if self.secret is not None:
+            auth: dict[str, Any] = {"secret": self.secret.hex()}
+        else:
+            auth = {"edge_keys": {str(j): k.hex() for j, k in sorted((self.edge_keys or {}).items())}}
         return {
             **extra,
+            "auth": auth,
             "fleet": self.fleet,
             "algorithm": self.algorithm,
             "sigma": self.sigma,
@@ -199,6 +226,18 @@ class FleetSpec:
             )
             for r in data["robots"]
         }
+        auth = data.get("auth")
+        if not isinstance(auth, dict) or not ({"secret", "edge_keys"} & set(auth)):
+            raise ValueError(
+                "no frame keys (\"auth\"): it was written by a shapefleet without frame "
+                "authentication; write it again (shapefleet launch / deploy)"
+            )
+        secret = None if auth.get("secret") is None else bytes.fromhex(auth["secret"])
+        edge_keys = (
+            None
+            if auth.get("edge_keys") is None
+            else {int(j): bytes.fromhex(k) for j, k in auth["edge_keys"].items()}
+        )
         return cls(
             fleet=data["fleet"],
             algorithm=data["algorithm"],
@@ -211,6 +250,8 @@ class FleetSpec:
             seed=int(data.get("seed", 0)),
             timing=Timing(**data.get("timing", {})),
             owner=None if data.get("for") is None else int(data["for"]),
+            secret=secret,
+            edge_keys=edge_keys,
         )
 
     def save(self, path: Path) -> None:

@@ -56,15 +56,21 @@ def simulate_fleet(
     started = time.perf_counter()
     cap = spec.timing.max_wall_s if max_virtual_s is None else max_virtual_s
     robots = {
-        rid: _Robot(build_core(spec, rid), FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag))
+        rid: _Robot(
+            build_core(spec, rid),
+            FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=spec.frame_auth(rid)),
+        )
         for rid in spec.robot_ids
     }
+    auths = {rid: spec.frame_auth(rid) for rid in spec.robot_ids}
     links = LinkLayer(spec.faults, spec.seed)
     now = 0.0
 
     def publish(rid: int) -> None:
         r = robots[rid]
-        payload = encode_state(r.core.outgoing(), fleet=spec.fleet, seq=r.seq, config_tag=spec.config_tag)
+        payload = encode_state(
+            r.core.outgoing(), fleet=spec.fleet, seq=r.seq, config_tag=spec.config_tag, auth=auths[rid]
+        )
         r.seq += 1
         r.frames_sent += 1
         r.last_publish = now

@@ -20,6 +20,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from protocol.auth import TAG_BYTES, FrameAuth
 from protocol.keys import validate_fleet_id, validate_robot_id
 
 FRAME_VERSION = 1
@@ -53,7 +54,15 @@ REJECTION_REASONS: tuple[str, ...] = (
     "prev",             # prev at round 0, or pflags set without prev
     "vector-length",    # x or prev is not 8 * dim bytes
     "non-finite",       # x or prev holds NaN or +-inf
+    # only with authentication (FrameDecoder(auth=...)); "auth" is checked right after unpacking
+    # the envelope (before any field of the frame is trusted), "equivocation" last
+    "auth",             # no envelope, no tag for this receiver, or a tag that does not verify
+    "equivocation",     # a valid frame whose values for a round differ from an earlier one's
 )
+
+#: rounds per sender remembered for equivocation (neighbours are at most one round apart)
+EQUIVOCATION_WINDOW = 8
+_TAG_ENTRY = 4 + TAG_BYTES  # receiver id (u32 LE) + tag
 
 _FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "v": (int,),
@@ -171,9 +180,13 @@ def _check_config_tag(tag: Any) -> bytes:
     return tag
 
 
-def encode_state(update: StateUpdate, *, fleet: str, seq: int, config_tag: bytes) -> bytes:
-    """Serialise ``update`` as a version-1 state frame.
+def encode_state(
+    update: StateUpdate, *, fleet: str, seq: int, config_tag: bytes, auth: FrameAuth | None = None
+) -> bytes:
+    """Serialise ``update`` as a version-1 state frame, authenticated when ``auth`` is given.
 
+    With ``auth`` (the sender's edge keys) the frame is wrapped in an envelope
+    ``[sender, frame, tags]`` carrying one tag per neighbour (docs/protocol.md, "Authentication").
     Raises ValueError for anything a receiver would reject (non-finite values, seq out of
     range, bad fleet id or tag, vector longer than MAX_DIM), so such a frame never leaves.
     """
@@ -200,7 +213,15 @@ def encode_state(update: StateUpdate, *, fleet: str, seq: int, config_tag: bytes
         "pflags": update.prev_flags,
     }
     data: bytes = msgpack.packb(frame, use_bin_type=True)
-    return data
+    if auth is None:
+        return data
+    if auth.me != update.sender:
+        raise ValueError(f"robot {auth.me}'s keys cannot sign a frame of robot {update.sender}")
+    tags = b"".join(struct.pack("<I", j) + t for j, t in sorted(auth.tags(data).items()))
+    wrapped: bytes = msgpack.packb([update.sender, data, tags], use_bin_type=True)
+    if len(wrapped) > MAX_FRAME_BYTES:
+        raise ValueError(f"authenticated frame of {len(wrapped)} bytes exceeds {MAX_FRAME_BYTES}")
+    return wrapped
 
 
 _CONFIG_PERSON = b"shapefleet-cfg1"
@@ -273,12 +294,21 @@ class _Reject(Exception):
 class FrameDecoder:
     """Validates frames for one robot: its fleet, its neighbours, its vector length, its problem.
 
-    Stateless apart from counters: deduplication and round bookkeeping belong to the algorithm
-    state machine, which sees ``Decoded.update.round`` and ``Decoded.seq``.
+    Without ``auth`` it is stateless apart from counters: deduplication and round bookkeeping
+    belong to the algorithm state machine, which sees ``Decoded.update.round`` and ``Decoded.seq``.
+    With ``auth`` (this robot's edge keys) only authenticated frames pass, and the decoder
+    remembers each sender's values of its last EQUIVOCATION_WINDOW rounds to refuse a second,
+    different frame for a round it has already accepted (equivocation); retransmissions of the
+    same values pass.
     """
 
     def __init__(
-        self, fleet: str, known_senders: Collection[int], dim: int, config_tag: bytes
+        self,
+        fleet: str,
+        known_senders: Collection[int],
+        dim: int,
+        config_tag: bytes,
+        auth: FrameAuth | None = None,
     ) -> None:
         self.fleet = validate_fleet_id(fleet)
         self.known_senders = frozenset(validate_robot_id(s) for s in known_senders)
@@ -288,6 +318,9 @@ class FrameDecoder:
         self.config_tag = _check_config_tag(config_tag)
         self.counts: collections.Counter[str] = collections.Counter()
         self.accepted = 0
+        self.auth = auth
+        # sender -> round -> (flags, raw float64 bytes) of the first valid frame seen
+        self._seen: dict[int, dict[int, tuple[int, bytes]]] = {}
 
     def decode(self, data: bytes, *, expected_sender: int | None = None) -> Decoded | Rejected:
         """Check ``data`` completely; never raises.
@@ -310,6 +343,67 @@ class FrameDecoder:
         size = memoryview(data).nbytes
         if size > MAX_FRAME_BYTES:
             raise _Reject("too-large", f"{size} bytes > {MAX_FRAME_BYTES}")
+        if self.auth is None:
+            return self._decode_frame(data, expected_sender)
+        sender, body = self._open_envelope(data, expected_sender)
+        decoded = self._decode_frame(body, sender)
+        self._check_equivocation(decoded.update)
+        return decoded
+
+    def _open_envelope(self, data: Any, expected_sender: int | None) -> tuple[int, bytes]:
+        """The authenticated frame's sender and body; "auth" unless the tag to us verifies."""
+        assert self.auth is not None
+        env = self._unpack_object(data)
+        if isinstance(env, list):  # a map: a bare, unauthenticated version-1 frame
+            raise _Reject("auth", "frame is not authenticated (no envelope)")
+        if not (
+            isinstance(env, tuple)
+            and len(env) == 3
+            and type(env[0]) is int
+            and type(env[1]) is bytes
+            and type(env[2]) is bytes
+            and len(env[2]) % _TAG_ENTRY == 0
+        ):
+            raise _Reject("auth", "malformed authentication envelope")
+        sender, body, tags = env
+        if sender not in self.known_senders:
+            raise _Reject("sender", f"sender {sender} is not a known sender")
+        if expected_sender is not None and sender != expected_sender:
+            raise _Reject("sender", f"sender {sender} on robot {expected_sender}'s key")
+        if sender not in self.auth.peers:
+            raise _Reject("auth", f"no key shared with sender {sender} (not a neighbour)")
+        me = struct.pack("<I", self.auth.me)
+        tag = None
+        for off in range(0, len(tags), _TAG_ENTRY):
+            if tags[off : off + 4] == me:
+                tag = tags[off + 4 : off + _TAG_ENTRY]
+                break
+        if tag is None:
+            raise _Reject("auth", f"no tag for robot {self.auth.me} in sender {sender}'s frame")
+        if not self.auth.verify(sender, body, tag):
+            raise _Reject("auth", f"tag of sender {sender}'s frame does not verify")
+        return sender, body
+
+    def _check_equivocation(self, update: StateUpdate) -> None:
+        """Refuse a frame whose values of a round differ from those first accepted; then remember."""
+        seen = self._seen.setdefault(update.sender, {})
+        claims = [(update.round, (update.flags, update.values.tobytes()))]
+        if update.prev_values is not None:
+            claims.append((update.round - 1, (update.prev_flags, update.prev_values.tobytes())))
+        for rnd, claim in claims:
+            first = seen.get(rnd)
+            if first is not None and first != claim:
+                raise _Reject(
+                    "equivocation",
+                    f"sender {update.sender} sent two different frames for round {rnd}",
+                )
+        for rnd, claim in claims:
+            seen.setdefault(rnd, claim)
+        newest = max(seen)
+        for rnd in [r for r in seen if r <= newest - EQUIVOCATION_WINDOW]:
+            del seen[rnd]
+
+    def _decode_frame(self, data: Any, expected_sender: int | None) -> Decoded:
         frame = self._unpack(data)
         self._check_version_and_kind(frame)
         unknown = [k for k in frame if k not in _FIELD_TYPES]
@@ -360,8 +454,20 @@ class FrameDecoder:
         )
         return Decoded(update, frame["seq"])
 
+    @classmethod
+    def _unpack(cls, data: bytes | bytearray | memoryview) -> dict[str, Any]:
+        obj = cls._unpack_object(data)
+        if not isinstance(obj, list):  # arrays are tuples (use_list=False), maps are lists
+            raise _Reject("not-a-map", f"top-level {type(obj).__name__}, not a map")
+        frame: dict[str, Any] = {}
+        for key, value in obj:
+            if key in frame:
+                raise _Reject("duplicate-field", f"field {key!r} appears twice")
+            frame[key] = value
+        return frame
+
     @staticmethod
-    def _unpack(data: bytes | bytearray | memoryview) -> dict[str, Any]:
+    def _unpack_object(data: bytes | bytearray | memoryview) -> Any:
         try:
             # Limits bound memory per frame; maps come out as pair lists so duplicate keys show.
             # msgpack's exception set is not fully documented (ValueError, StackError,
@@ -381,14 +487,7 @@ class FrameDecoder:
         except Exception as e:
             detail = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
             raise _Reject("not-msgpack", detail[:200]) from None
-        if not isinstance(obj, list):  # arrays are tuples (use_list=False), maps are lists
-            raise _Reject("not-a-map", f"top-level {type(obj).__name__}, not a map")
-        frame: dict[str, Any] = {}
-        for key, value in obj:
-            if key in frame:
-                raise _Reject("duplicate-field", f"field {key!r} appears twice")
-            frame[key] = value
-        return frame
+        return obj
 
     @staticmethod
     def _check_version_and_kind(frame: dict[str, Any]) -> None:

@@ -178,11 +178,66 @@ def _merge(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def robot_common_name(robot: int) -> str:
+    """The certificate common name of robot ``robot`` (docs/deploy.md's openssl block)."""
+    return f"shapefleet robot {robot}"
+
+
+def robot_access_control(fleet: str, robots: Iterable[int]) -> dict[str, Any]:
+    """Zenoh access control for a mutual-TLS router: robot i's certificate may publish only on its
+    own keys ``shapefleet/<fleet>/robot/<i>/**`` (state, status, liveliness token), subscribe to
+    the fleet's keys, and receive what is published there; everything else is denied.
+
+    Subjects are the certificates' common names (:func:`robot_common_name`), so this needs
+    ``enable_mtls``. It complements frame authentication (docs/protocol.md): a stolen certificate
+    alone can no longer even put frames on another robot's key.
+    """
+    from protocol.keys import fleet_prefix, validate_robot_id
+
+    prefix = fleet_prefix(fleet)
+    ids = sorted({validate_robot_id(i) for i in robots})
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "fleet-in",
+            "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+            "flows": ["ingress"],
+            "permission": "allow",
+            "key_exprs": [f"{prefix}/**"],
+        },
+        {
+            "id": "fleet-out",
+            "messages": ["put", "delete", "liveliness_token", "declare_subscriber",
+                         "declare_liveliness_subscriber", "liveliness_query"],
+            "flows": ["egress"],
+            "permission": "allow",
+            "key_exprs": [f"{prefix}/**"],
+        },
+    ]
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for i in ids:
+        rules.append({
+            "id": f"own-{i}",
+            "messages": ["put", "delete", "liveliness_token"],
+            "flows": ["ingress"],
+            "permission": "allow",
+            "key_exprs": [f"{prefix}/robot/{i}/**"],
+        })
+        subjects.append({"id": f"robot-{i}", "cert_common_names": [robot_common_name(i)]})
+        policies.append({"id": f"robot-{i}", "rules": ["fleet-in", "fleet-out", f"own-{i}"], "subjects": [f"robot-{i}"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
 def router_config_dict(
-    port: int, host: str = "127.0.0.1", *, loopback_only: bool = True, tls: TLSFiles | None = None
+    port: int,
+    host: str = "127.0.0.1",
+    *,
+    loopback_only: bool = True,
+    tls: TLSFiles | None = None,
+    access_control: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Router listening on ``tcp/host:port`` (``tls/host:port`` with ``tls``) only, no scouting,
-    connecting to nobody."""
+    connecting to nobody. ``access_control``: e.g. :func:`robot_access_control` (needs mutual TLS)."""
     if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
         raise ValueError(f"router port must be an int in 1..65535, got {port!r}")
     endpoint = validate_endpoint(router_endpoint(port, host, "tls" if tls else "tcp"), loopback_only=loopback_only)
@@ -198,6 +253,10 @@ def router_config_dict(
         if tls.ca is not None:  # mutual TLS: robots must show a certificate signed by this CA
             link.update(root_ca_certificate=tls.ca, enable_mtls=True)
         extra["transport"] = {"link": {"protocols": ["tls"], "tls": link}}
+    if access_control is not None:
+        if tls is None or tls.ca is None:
+            raise ValueError("access control by certificate needs a mutual-TLS router (--tls-ca)")
+        extra["access_control"] = dict(access_control)
     return _merge(_COMMON, extra)
 
 

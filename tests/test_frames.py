@@ -255,8 +255,13 @@ for _name, _values in _WRONG_TYPES.items():
         )
 
 
+AUTH_ONLY_REASONS = {"auth", "equivocation"}  # reachable with FrameDecoder(auth=...): tests below
+
+
 def test_every_rejection_reason_is_reachable():
-    assert {reason for reason, _ in REJECTION_CASES.values()} == set(REJECTION_REASONS)
+    assert {reason for reason, _ in REJECTION_CASES.values()} == set(REJECTION_REASONS) - AUTH_ONLY_REASONS
+    # "auth" by the single frames of AUTH_CASES; "equivocation" needs two frames (its own test)
+    assert "auth" in {reason for reason, _ in AUTH_CASES.values()}
 
 
 @pytest.mark.parametrize(("reason", "data"), list(REJECTION_CASES.values()),
@@ -551,3 +556,250 @@ def test_decode_never_raises_on_mutated_frames(data):
         frame[pos] = data.draw(st.integers(0, 255))
     cut = data.draw(st.integers(0, len(frame)))
     _check_total(bytes(frame[:cut]))
+
+
+# ------------------------------------------------------------------------------ authentication
+
+from protocol.auth import TAG_BYTES, FrameAuth, edge_key, new_fleet_secret  # noqa: E402
+
+SECRET = bytes(range(32))
+OTHER_SECRET = bytes(range(1, 33))
+# robot 1's neighbours are 0 and 2; 0 and 2 are also neighbours (a triangle); 7 is a stranger
+NEIGHBOURS = {0: (1, 2), 1: (0, 2), 2: (0, 1), 7: ()}
+
+
+def auth(me: int, secret: bytes = SECRET) -> FrameAuth:
+    return FrameAuth.from_secret(secret, me, NEIGHBOURS[me])
+
+
+def auth_decoder(me: int = 0, secret: bytes = SECRET) -> FrameDecoder:
+    return FrameDecoder(FLEET, KNOWN, DIM, TAG, auth=auth(me, secret))
+
+
+def signed(update: StateUpdate | None = None, *, seq: int = 42, signer: FrameAuth | None = None) -> bytes:
+    update = update or StateUpdate(1, 12, X, 1, PREV)
+    return encode_state(update, fleet=FLEET, seq=seq, config_tag=TAG, auth=signer or auth(update.sender))
+
+
+def envelope(data: bytes) -> tuple[int, bytes, bytes]:
+    sender, body, tags = msgpack.unpackb(data, raw=False)
+    return sender, body, tags
+
+
+def rewrap(sender: int, body: bytes, tags: bytes) -> bytes:
+    return pack([sender, body, tags])
+
+
+def _forged_tag() -> bytes:
+    sender, body, tags = envelope(signed())
+    return rewrap(sender, body, tags[:4] + bytes(TAG_BYTES) + tags[4 + TAG_BYTES:])
+
+
+def _tag_from_another_robots_key() -> bytes:
+    # robot 2 signs a frame that claims to be robot 1's: its keys are not robot 1's edge keys
+    body = encode_state(StateUpdate(1, 12, X, 1, PREV), fleet=FLEET, seq=42, config_tag=TAG)
+    tags = b"".join(struct.pack("<I", j) + t for j, t in auth(2).tags(body).items())
+    return rewrap(1, body, tags)
+
+
+def _tampered_byte() -> bytes:
+    sender, body, tags = envelope(signed())
+    i = body.index(le(X)) + 3  # a byte inside x: the frame stays valid msgpack
+    return rewrap(sender, body[:i] + bytes([body[i] ^ 0x01]) + body[i + 1:], tags)
+
+
+def _replayed_as_another_round() -> bytes:
+    sender, body, tags = envelope(signed())
+    frame = msgpack.unpackb(body, raw=False)
+    frame["round"] = 13
+    return rewrap(sender, pack(frame), tags)
+
+
+def _other_fleet_same_id() -> bytes:
+    return signed(signer=auth(1, OTHER_SECRET))
+
+
+AUTH_CASES = {
+    "unauthenticated": ("auth", pack(valid_map())),
+    "forged-tag": ("auth", _forged_tag()),
+    "another-robots-key": ("auth", _tag_from_another_robots_key()),
+    "tampered-byte": ("auth", _tampered_byte()),
+    "replayed-as-round-13": ("auth", _replayed_as_another_round()),
+    "other-fleet-secret": ("auth", _other_fleet_same_id()),
+    "no-tag-for-me": ("auth", signed(signer=FrameAuth(1, {2: edge_key(SECRET, 1, 2)}))),
+    "malformed-envelope": ("auth", pack([1, b"x"])),
+    "stranger": ("sender", pack([9, pack(valid_map()), b""])),
+}
+
+
+@pytest.mark.parametrize(("reason", "data"), list(AUTH_CASES.values()), ids=list(AUTH_CASES))
+def test_auth_rejection(reason, data):
+    dec = auth_decoder(0)
+    result = dec.decode(data, expected_sender=None if reason == "sender" else 1)
+    assert isinstance(result, Rejected), result
+    assert (result.reason, dec.counts, dec.accepted) == (reason, {reason: 1}, 0)
+    # the genuine frame still passes afterwards: a forgery does not poison the decoder
+    assert isinstance(dec.decode(signed(), expected_sender=1), Decoded)
+
+
+def test_signed_frame_is_accepted_by_each_neighbour_and_only_them():
+    data = signed()
+    for me in (0, 2):
+        dec = auth_decoder(me)
+        result = dec.decode(data, expected_sender=1)
+        assert isinstance(result, Decoded) and result.update == StateUpdate(1, 12, X, 1, PREV)
+    stranger = FrameDecoder(FLEET, KNOWN, DIM, TAG, auth=auth(7))
+    assert stranger.decode(data, expected_sender=1).reason == "auth"  # shares no key with robot 1
+    # robot 0 holds k_01 and could forge "robot 1" towards itself, but not towards robot 2:
+    body = encode_state(StateUpdate(1, 12, 2 * X, 1, PREV), fleet=FLEET, seq=1, config_tag=TAG)
+    k01 = auth(0).keys[1]
+    from protocol.auth import frame_tag
+
+    forged = rewrap(1, body, struct.pack("<I", 2) + frame_tag(k01, 1, 2, body))
+    assert auth_decoder(2).decode(forged, expected_sender=1).reason == "auth"
+
+
+def test_signer_must_be_the_sender():
+    with pytest.raises(ValueError, match="cannot sign"):
+        encode_state(StateUpdate(2, 1, X, 0, None), fleet=FLEET, seq=0, config_tag=TAG, auth=auth(1))
+
+
+def test_equivocation_is_rejected_and_the_first_frame_kept():
+    dec = auth_decoder(0)
+    first = StateUpdate(1, 12, X, 1, PREV)
+    assert isinstance(dec.decode(signed(first, seq=1), expected_sender=1), Decoded)
+    # retransmission (new seq, same values) and a later frame carrying round 12 as prev: fine
+    assert isinstance(dec.decode(signed(first, seq=2), expected_sender=1), Decoded)
+    nxt = StateUpdate(1, 13, 2 * X, 0, X, prev_flags=1)
+    assert isinstance(dec.decode(signed(nxt, seq=3), expected_sender=1), Decoded)
+    # a different x for round 12, a different flag for it, a different prev for round 12
+    for bad in (
+        StateUpdate(1, 12, X * 1.02, 1, PREV),
+        StateUpdate(1, 12, X, 0, PREV),
+        StateUpdate(1, 13, 2 * X, 0, X * 1.5, prev_flags=1),
+        StateUpdate(1, 12, X, 1, PREV * 2),  # its prev (round 11) contradicts the first frame's
+    ):
+        result = dec.decode(signed(bad, seq=4), expected_sender=1)
+        assert isinstance(result, Rejected) and result.reason == "equivocation", bad
+    assert dec.counts == {"equivocation": 4} and dec.accepted == 3
+    # the first frame is still the one that counts: resending it passes
+    assert isinstance(dec.decode(signed(first, seq=5), expected_sender=1), Decoded)
+    # another sender's round 12 is its own business
+    assert isinstance(dec.decode(signed(StateUpdate(2, 12, -X, 0, None)), expected_sender=2), Decoded)
+
+
+def test_equivocation_memory_is_bounded():
+    from protocol.frames import EQUIVOCATION_WINDOW
+
+    dec = auth_decoder(0)
+    for rnd in range(1, 200):
+        assert isinstance(dec.decode(signed(StateUpdate(1, rnd, X + rnd, 0, X + rnd - 1))), Decoded)
+    assert len(dec._seen[1]) <= EQUIVOCATION_WINDOW
+
+
+def test_fleet_secret_and_edge_keys():
+    a, b = new_fleet_secret(), new_fleet_secret()
+    assert len(a) == 32 and a != b
+    assert edge_key(a, 1, 2) == edge_key(a, 2, 1) != edge_key(a, 1, 3)
+    assert edge_key(a, 1, 2) != edge_key(b, 1, 2)
+    with pytest.raises(ValueError):
+        edge_key(a, 1, 1)
+    with pytest.raises(ValueError):
+        edge_key(a[:16], 1, 2)
+    with pytest.raises(ValueError):
+        FrameAuth(1, {2: b"short"})
+
+
+@given(updates(), st.integers(0, MAX_SEQ))
+def test_valid_signed_frames_round_trip_bit_for_bit(update, seq):
+    me = next(j for j in KNOWN if j != update.sender)
+    signer = FrameAuth.from_secret(SECRET, update.sender, [me])
+    dec = FrameDecoder(FLEET, KNOWN, update.values.size, TAG, auth=FrameAuth.from_secret(SECRET, me, [update.sender]))
+    result = dec.decode(encode_state(update, fleet=FLEET, seq=seq, config_tag=TAG, auth=signer),
+                        expected_sender=update.sender)
+    assert isinstance(result, Decoded) and result.seq == seq and result.update == update
+    assert result.update.values.tobytes() == update.values.tobytes()
+
+
+@settings(suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_mutated_signed_frames_are_rejected_never_accepted(data):
+    """Any change to an authenticated frame is refused (and the decoder never raises)."""
+    original = signed()
+    frame = bytearray(original)
+    for _ in range(data.draw(st.integers(1, 4))):
+        pos = data.draw(st.integers(0, len(frame) - 1))
+        frame[pos] = data.draw(st.integers(0, 255))
+    cut = data.draw(st.integers(0, len(frame)))
+    mutated = bytes(frame[:cut])
+    dec = auth_decoder(0)
+    result = dec.decode(mutated, expected_sender=1)
+    if mutated == original:
+        assert isinstance(result, Decoded)
+    else:
+        # a change may leave the body and our tag intact (e.g. in the tag to robot 2): then the
+        # frame is the genuine one; otherwise it is refused
+        if isinstance(result, Decoded):
+            assert result.update == StateUpdate(1, 12, X, 1, PREV)
+        else:
+            assert result.reason in REJECTION_REASONS and dec.counts == {result.reason: 1}
+
+
+# ------------------------------------------------------------------------ keys in fleet files
+
+
+def test_fleet_files_hold_the_secret_or_only_the_robots_own_edge_keys(tmp_path):
+    import json
+
+    from agents.spec import FleetSpec
+    from tests.conftest import make_run
+
+    _world, spec, _central = make_run(robots=4, topology="line", fleet_id="keys")  # 0-1-2-3
+    assert spec.secret is not None and len(spec.secret) == 32
+    assert make_run(fleet_id="keys")[1].secret != spec.secret  # a fresh secret per fleet
+    spec.save(tmp_path / "full.json")
+    assert json.loads((tmp_path / "full.json").read_text())["auth"] == {"secret": spec.secret.hex()}
+    full_keys = {i: spec.frame_auth(i).keys for i in spec.robot_ids}
+    assert set(full_keys[1]) == {0, 2} and full_keys[1][2] == full_keys[2][1] != full_keys[1][0]
+    for i in spec.robot_ids:
+        own = spec.for_robot(i)
+        own.save(tmp_path / f"{i}.json")
+        data = json.loads((tmp_path / f"{i}.json").read_text())
+        assert "secret" not in data["auth"] and "secret" not in json.dumps(data)
+        assert data["auth"]["edge_keys"] == {str(j): k.hex() for j, k in sorted(full_keys[i].items())}
+        back = FleetSpec.load(tmp_path / f"{i}.json")
+        assert back.secret is None and back.frame_auth(i).keys == full_keys[i]
+        with pytest.raises(ValueError, match="frame keys only"):
+            back.frame_auth((i + 1) % 4)
+    # frames signed from a per-robot file verify with the neighbour's per-robot file
+    one, two = FleetSpec.load(tmp_path / "1.json"), FleetSpec.load(tmp_path / "2.json")
+    up = StateUpdate(1, 3, np.ones(spec.dim), 0, np.zeros(spec.dim))
+    frame = encode_state(up, fleet=spec.fleet, seq=0, config_tag=spec.config_tag, auth=one.frame_auth(1))
+    dec = FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=two.frame_auth(2))
+    assert dec.decode(frame, expected_sender=1).update == up
+    dec3 = FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=spec.frame_auth(3))
+    assert dec3.decode(frame, expected_sender=1).reason == "auth"  # 3 is no neighbour of 1
+
+
+def test_a_fleet_file_without_keys_is_refused_with_exit_2(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from agents.spec import FleetSpec
+    from tests.conftest import ROOT, make_run
+
+    _world, spec, _central = make_run(fleet_id="old-file")
+    data = spec.to_json()
+    del data["auth"]
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"old\.json: not a valid fleet file \(no frame keys"):
+        FleetSpec.load(old)
+    proc = subprocess.run([sys.executable, "-m", "launcher.cli", "robot", "--fleet-file", str(old), "--id", "0",
+                           "--connect", "tcp/127.0.0.1:9"], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "no frame keys" in lines[0] and "old.json" in lines[0], proc.stderr

@@ -107,13 +107,43 @@ def test_robot_from_key_rejects_non_canonical(key):
     assert robot_from_key(key) is None
 
 
-@given(st.text(max_size=80))
+def _canonical_key(fleet: str, robot: int, kind: str) -> str:
+    return state_key(fleet, robot) if kind == "state" else status_key(fleet, robot)
+
+
+canonical_keys = st.builds(_canonical_key, fleet_ids, st.integers(0, MAX_ROBOT_ID), st.sampled_from(["state", "status"]))
+# near misses: a canonical key with a character inserted, removed or replaced somewhere
+near_keys = st.tuples(canonical_keys, st.integers(0, 200), st.integers(0, 2), st.characters()).map(
+    lambda t: t[0][: t[1]] + (t[3] if t[2] != 1 else "") + t[0][t[1] + (t[2] != 0):]
+)
+
+
+@given(fleet_ids, st.integers(0, MAX_ROBOT_ID), st.sampled_from(["state", "status"]))
+def test_robot_from_key_inverts_the_key_builders(fleet, robot, kind):
+    assert robot_from_key(_canonical_key(fleet, robot, kind)) == robot
+
+
+@given(st.one_of(st.text(max_size=80), canonical_keys, near_keys))
 def test_robot_from_key_total(key):
+    """Whatever the string: None, or the id of the canonical key it is (the equality branch is
+    reached by the canonical keys and by near misses that are still canonical)."""
     result = robot_from_key(key)
-    assert result is None or state_key(key.split("/")[1], result) in (
-        key,
-        key.removesuffix("status") + "state",
-    )
+    if result is None:
+        return
+    fleet = key.split("/")[1]
+    assert key in (state_key(fleet, result), status_key(fleet, result))
+
+
+def test_robot_from_key_total_reaches_both_branches():
+    """The strategy above really produces keys that are recognised and keys that are not."""
+    seen = {"id": 0, "none": 0}
+
+    @given(st.one_of(st.text(max_size=80), canonical_keys, near_keys))
+    def probe(key):
+        seen["id" if robot_from_key(key) is not None else "none"] += 1
+
+    probe()
+    assert seen["id"] > 0 and seen["none"] > 0, seen
 
 
 def test_alive_keys_live_beside_the_state_keys():

@@ -349,18 +349,29 @@ def test_crash_without_restart_survivors_finish(tmp_path):
 
 
 def _garbage(spec) -> dict[str, bytes]:
-    """Frames that must be rejected when they arrive on robot 2's state key."""
-    dim, tag = spec.dim, spec.config_tag
+    """Frames that must be rejected when they arrive on robot 2's state key.
+
+    Signed with robot 2's own keys (as robot 2 could), so that they get past authentication and
+    the frame checks behind it are exercised; unsigned frames are refused as "auth"
+    (tests/test_impostor.py).
+    """
+    from protocol.auth import TAG_BYTES  # noqa: F401 - the envelope layout is docs/protocol.md's
+    import struct
+
+    dim, tag, keys = spec.dim, spec.config_tag, spec.frame_auth(2)
     good = StateUpdate(2, 0, np.zeros(dim), 0, None)
     nan_frame = msgpack.unpackb(encode_state(good, fleet=spec.fleet, seq=1, config_tag=tag))
     nan_frame["x"] = np.full(dim, np.nan).tobytes()
+    nan_body = msgpack.packb(nan_frame)
+    nan_tags = b"".join(struct.pack("<I", j) + t for j, t in sorted(keys.tags(nan_body).items()))
     return {
         "random": np.random.default_rng(5).bytes(150),
-        "fleet": encode_state(good, fleet="another-fleet", seq=1, config_tag=tag),
-        "sender": encode_state(StateUpdate(99, 0, np.zeros(dim), 0, None), fleet=spec.fleet, seq=1, config_tag=tag),
+        "fleet": encode_state(good, fleet="another-fleet", seq=1, config_tag=tag, auth=keys),
+        "sender": msgpack.packb([99, encode_state(StateUpdate(99, 0, np.zeros(dim), 0, None), fleet=spec.fleet,
+                                                  seq=1, config_tag=tag), b""]),
         "vector-length": encode_state(StateUpdate(2, 0, np.zeros(dim + 1), 0, None),
-                                      fleet=spec.fleet, seq=1, config_tag=tag),
-        "non-finite": msgpack.packb(nan_frame),
+                                      fleet=spec.fleet, seq=1, config_tag=tag, auth=keys),
+        "non-finite": msgpack.packb([2, nan_body, nan_tags]),
     }
 
 

@@ -1,0 +1,99 @@
+"""Per-edge frame authentication: keyed BLAKE2b tags, one per receiving neighbour.
+
+Sans-IO: keys and bytes in, tags and booleans out. The launcher draws one random *fleet secret*;
+the key of the communication edge {i, j} is ``k_ij = BLAKE2b(pack(min, max), key=secret,
+person="shapefleet-edge1")``. A robot holds only the keys of its own edges (its per-robot fleet
+file carries nothing else), and tags every frame it sends once per neighbour j with
+``BLAKE2b(pack(sender, receiver) || frame, key=k_ij, digest_size=16)``. So
+
+* a process that knows the fleet id and everything shared in the fleet files, but no edge key,
+  cannot make a frame any robot accepts;
+* a robot i (or a stolen per-robot file of i) can forge frames "from j" only towards i itself,
+  never towards a third robot k (it lacks k_jk);
+* the (sender, receiver) pair inside the MAC stops a tag from being reflected back or moved to
+  another edge.
+
+Why per-edge symmetric keys rather than per-robot keys: with a symmetric MAC, whoever can verify
+j's frames can also forge them, so per-robot keys shared with neighbours would let any neighbour
+of j speak for j to every other neighbour of j. Per-edge keys close that at the cost of one
+16-byte tag per neighbour in each frame (robots have few neighbours). See docs/protocol.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+import struct
+from collections.abc import Iterable, Mapping
+
+from protocol.keys import validate_robot_id
+
+FLEET_SECRET_BYTES = 32
+EDGE_KEY_BYTES = 32
+TAG_BYTES = 16
+_EDGE_PERSON = b"shapefleet-edge1"
+_TAG_PERSON = b"shapefleet-tag1"
+
+
+def new_fleet_secret() -> bytes:
+    """A fresh random fleet secret (the launcher draws one per fleet it writes)."""
+    return secrets.token_bytes(FLEET_SECRET_BYTES)
+
+
+def _check_key(name: str, key: object, size: int) -> bytes:
+    if not isinstance(key, (bytes, bytearray)) or len(key) != size:
+        raise ValueError(f"{name} must be {size} bytes")
+    return bytes(key)
+
+
+def edge_key(secret: bytes, i: int, j: int) -> bytes:
+    """The key of the undirected edge {i, j}, derived from the fleet secret."""
+    secret = _check_key("fleet secret", secret, FLEET_SECRET_BYTES)
+    a, b = sorted((validate_robot_id(i), validate_robot_id(j)))
+    if a == b:
+        raise ValueError(f"no edge from robot {a} to itself")
+    return hashlib.blake2b(
+        struct.pack("<II", a, b), key=secret, digest_size=EDGE_KEY_BYTES, person=_EDGE_PERSON
+    ).digest()
+
+
+def frame_tag(key: bytes, sender: int, receiver: int, body: bytes) -> bytes:
+    """The 16-byte tag of ``body`` sent by ``sender`` to ``receiver`` under their edge key."""
+    h = hashlib.blake2b(key=key, digest_size=TAG_BYTES, person=_TAG_PERSON)
+    h.update(struct.pack("<II", sender, receiver))
+    h.update(body)
+    return h.digest()
+
+
+class FrameAuth:
+    """One robot's edge keys: tags its frames for each neighbour, verifies theirs to it."""
+
+    def __init__(self, me: int, edge_keys: Mapping[int, bytes]) -> None:
+        self.me = validate_robot_id(me)
+        self.keys: dict[int, bytes] = {}
+        for j, k in edge_keys.items():
+            j = validate_robot_id(j)
+            if j == self.me:
+                raise ValueError(f"robot {me} has no edge key to itself")
+            self.keys[j] = _check_key(f"edge key {me}-{j}", k, EDGE_KEY_BYTES)
+
+    @classmethod
+    def from_secret(cls, secret: bytes, me: int, neighbours: Iterable[int]) -> FrameAuth:
+        """Robot ``me``'s keys derived from the fleet secret (only the full fleet file has it)."""
+        return cls(me, {j: edge_key(secret, me, j) for j in neighbours})
+
+    @property
+    def peers(self) -> frozenset[int]:
+        return frozenset(self.keys)
+
+    def tags(self, body: bytes) -> dict[int, bytes]:
+        """One tag per neighbour for a frame ``body`` this robot sends."""
+        return {j: frame_tag(k, self.me, j, body) for j, k in self.keys.items()}
+
+    def verify(self, sender: int, body: bytes, tag: bytes) -> bool:
+        """True iff ``tag`` is ``sender``'s tag of ``body`` to this robot (constant-time compare)."""
+        key = self.keys.get(sender)
+        if key is None or not isinstance(tag, bytes) or len(tag) != TAG_BYTES:
+            return False
+        return hmac.compare_digest(frame_tag(key, sender, self.me, body), tag)
