@@ -14,6 +14,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from agents.problem import InfeasibleError, SolverError
+from agents.robot import check_iterate
 from agents.spec import FleetSpec, build_core
 from protocol.frames import Decoded, FrameDecoder, encode_state
 from protocol.links import LinkLayer
@@ -44,6 +46,13 @@ class FleetOutcome:
 
 class DeadlockError(RuntimeError):
     """No robot can advance and nothing is in flight: a protocol bug, never a network state."""
+
+
+class FleetFailure(RuntimeError):
+    """A robot's local solve failed or its iterate diverged: the run has no answer.
+
+    The message is one line naming the robot, the round and why (the CLI prints it, exit 1).
+    """
 
 
 def simulate_fleet(
@@ -89,7 +98,13 @@ def simulate_fleet(
         advanced = False
         for rid, r in robots.items():
             if r.core.ready():
-                r.core.advance()
+                try:
+                    update = r.core.advance()
+                except (SolverError, InfeasibleError, FloatingPointError) as exc:
+                    raise FleetFailure(f"robot {rid} round {r.core.round}: local solver failed: {exc}") from None
+                why = check_iterate(update.values)
+                if why is not None:
+                    raise FleetFailure(f"robot {rid} round {update.round}: diverged: {why}")
                 r.round_times[r.core.round] = now
                 publish(rid)
                 advanced = True
