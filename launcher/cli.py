@@ -605,6 +605,7 @@ def cmd_robot(args: argparse.Namespace) -> int:
 
     import zenoh
 
+    from agents.problem import InfeasibleError, SolverError
     from agents.robot import run_robot
     from agents.spec import FleetSpec
     from protocol.zenoh_config import robot_config_dict
@@ -635,6 +636,9 @@ def cmd_robot(args: argparse.Namespace) -> int:
         )
     except zenoh.ZError as exc:
         print(f"shapefleet: robot {rid}: no Zenoh session with {', '.join(args.connect)}: {exc}", file=sys.stderr)
+        return 1
+    except (SolverError, InfeasibleError) as exc:  # the first local solve (building the core)
+        print(f"shapefleet: robot {rid} round 0: local solver failed: {exc}", file=sys.stderr)
         return 1
     if result_path is None:
         print(json.dumps({"result": result}))

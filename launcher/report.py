@@ -95,7 +95,8 @@ def agreement_verdict(
         reasons.append(f"robots {worst[0]} and {worst[1]} disagree by {disagreement:.3g} > tol {tol:g}")
     rest = [i for i in not_converged if i not in failed]
     if rest:
-        reasons.append(f"robots {rest} did not meet their stopping rule")
+        how = sorted({str(rows[i].get("stopped")) for i in rest if rows[i].get("stopped") not in (None, "finished")})
+        reasons.append(f"robots {rest} did not meet their stopping rule" + (f" (stopped: {', '.join(how)})" if how else ""))
     converged = not reasons
     return {
         "converged": converged,

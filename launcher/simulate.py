@@ -64,10 +64,13 @@ def simulate_fleet(
     """Run every robot of `spec` to completion in this process and return their results."""
     started = time.perf_counter()
     cap = spec.timing.max_wall_s if max_virtual_s is None else max_virtual_s
-    robots = {
-        rid: _Robot(build_core(spec, rid), FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag))
-        for rid in spec.robot_ids
-    }
+    robots = {}
+    for rid in spec.robot_ids:
+        try:
+            core = build_core(spec, rid)
+        except (SolverError, InfeasibleError) as exc:
+            raise FleetFailure(f"robot {rid} round 0: local solver failed: {exc}") from None
+        robots[rid] = _Robot(core, FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag))
     links = LinkLayer(spec.faults, spec.seed)
     now = 0.0
 
