@@ -537,11 +537,18 @@ def cmd_launch(args: argparse.Namespace) -> int:
 
 def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, Any]], extra: dict[str, Any]) -> Any:
     """Record who took part; with robots absent, the reference is the central solve of the
-    participants' data (they solved the problem of *their* data: measure them against that)."""
+    participants' data (they solved the problem of *their* data: measure them against that).
+
+    A robot took part if it wrote a result or if a robot that did still lists it as a neighbour
+    at the end (its data is in their answer: only its result file is missing, ``results_missing``).
+    ``absent``: robots dropped for good by everyone who wrote a result (or that never came)."""
     from agents.problem import solve_central
 
-    extra["participants"] = sorted(int(r["id"]) for r in robots)
+    with_result = {int(r["id"]) for r in robots}
+    linked = {int(j) for r in robots for j in (r.get("neighbours") or [])}
+    extra["participants"] = sorted(with_result | (linked & set(spec.robot_ids)))
     extra["absent"] = sorted(set(spec.robot_ids) - set(extra["participants"]))
+    extra["results_missing"] = sorted(set(extra["participants"]) - with_result)
     if not spec.fixed_grid:  # measured per robot on its own grid (_autogrid_references)
         if extra["absent"]:
             extra["reference"] = "central solution of the participants' data"
