@@ -291,6 +291,7 @@ class RobotShell:
         self._connected = True
         self._connected_since = 0.0  # our (re)connection to a router: drop evidence counts after it
         self._connected_polled = float("-inf")
+        self._router_ids: set[str] = set()
         self._had_neighbours = bool(self.watched) or bool(self.neighbours_dropped)
 
         self._waiter: asyncio.Future | None = None  # set while the main loop sleeps
@@ -361,6 +362,10 @@ class RobotShell:
         else:
             self._gone.add(j)
             log.info("robot %d: neighbour %d left (liveliness token gone)", self.me, j)
+            # Was it our router that went (every token goes with it)? Look now, so that a
+            # reconnection later counts as fresh evidence time (see _drop_due).
+            self._connected_polled = float("-inf")
+            self._poll_connected(self.clock())
         self._wake()
 
     def _on_raw(self, j: int, data: bytes) -> None:
@@ -455,18 +460,29 @@ class RobotShell:
 
     # ---------------------------------------------------------------- main loop
 
+    def _routers(self) -> set[str] | None:
+        """The ids of the routers our session is connected to (None: no session to ask)."""
+        session = getattr(self, "_session", None)
+        if session is None:
+            return None
+        try:
+            return {str(z) for z in session.info.routers_zid()}
+        except Exception:  # noqa: BLE001 - a closing session: treat as disconnected
+            return set()
+
     def _poll_connected(self, now: float) -> bool:
         """Whether our session has a router (asked at most every CONNECTED_POLL_S)."""
         if now - self._connected_polled >= CONNECTED_POLL_S:
             self._connected_polled = now
-            session = getattr(self, "_session", None)
-            try:
-                up = session is None or bool(list(session.info.routers_zid()))
-            except Exception:  # noqa: BLE001 - a closing session: treat as disconnected
-                up = False
-            if up and not self._connected:
+            ids = self._routers()
+            up = ids is None or bool(ids)
+            if up and (not self._connected or (ids is not None and ids != self._router_ids)):
+                # back, or on another router (a restarted router has a new id) even if we
+                # never saw the gap: evidence of a neighbour's death counts from now
                 self._connected_since = now
                 log.info("robot %d: connected to a router again", self.me)
+            if ids:
+                self._router_ids = ids
             elif not up and self._connected:
                 log.warning("robot %d: no router; waiting for it (nobody is dropped meanwhile)", self.me)
             self._connected = up
@@ -704,6 +720,7 @@ class RobotShell:
             raise
         self._session = session
         self._connected_since = self._t0
+        self._router_ids = self._routers() or set()
         self._subs: dict[int, Any] = {}
         token = alive_sub = None
         try:
