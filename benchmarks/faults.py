@@ -55,8 +55,10 @@ ROWS = [
     Row("crash middle robot of a line of 3 for good", ["--topology", "line", "--crash", "1@20", "--no-restart"]),
     Row("SIGSTOP robot 2 of 4 for 4 s (> --dead-after 1.5 s), SIGCONT", ["--robots", "4", "--dead-after", "1.5s"], "pause", 4.0),
     Row("SIGSTOP robot 2 of 4 for 9 s (> --dead-after 6 s), SIGCONT", ["--robots", "4", "--dead-after", "6s"], "pause", 9.0),
+    Row("SIGSTOP robot 2 of 4 for 14 s (> the Zenoh lease of 10 s), SIGCONT", ["--robots", "4", "--dead-after", "1.5s"], "pause", 14.0),
     Row("SIGKILL the router mid-run (launcher restarts it)", ["--robots", "4", "--dead-after", "1.5s"], "router"),
     Row("SIGTERM to shapefleet launch mid-run", [], "sigterm"),
+    Row("SIGHUP to shapefleet launch mid-run", [], "sighup"),
     Row("local solver failure (--rho 1e300)", ["--rho", "1e300", "--dead-after", "1s"]),
 ]
 
@@ -133,9 +135,9 @@ def run_row(row: Row, folder: Path) -> dict:
         elif row.action == "router":
             pid = _wait(lambda: _round_of(out, 0) >= 5 and _pid(out, "launcher.router"), 30)
             os.kill(pid, signal.SIGKILL)
-        elif row.action == "sigterm":
+        elif row.action in ("sigterm", "sighup"):
             _wait(lambda: _round_of(out, 0) >= 5, 30)
-            os.kill(proc.pid, signal.SIGTERM)
+            os.kill(proc.pid, getattr(signal, row.action.upper()))
         _, err = proc.communicate(timeout=180)
     finally:
         if proc.poll() is None:
@@ -187,7 +189,7 @@ def main() -> int:
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        outcome = "converged" if r["converged"] else f"NOT converged: {r['verdict']}"
+        outcome = "converged" if r["converged"] else f"NOT converged: {r['verdict']}".replace("|", "\\|")
         if r["router_restarts"]:
             outcome += f" (router restarted {r['router_restarts']}x)"
         err = "-" if r["error"] is None else f"{r['error']:.2e}"
