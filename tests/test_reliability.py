@@ -233,9 +233,10 @@ def test_router_killed_mid_run_is_restarted_and_the_fleet_heals(tmp_path):
 
 
 @bound(40)
-@pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP"])
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP", "SIGINT"])
 def test_sigterm_and_sighup_stop_every_child_and_write_a_partial_result(tmp_path, sig):
-    """Row 5: SIGTERM (timeout, systemd, docker stop) and SIGHUP clean up like Ctrl-C."""
+    """Row 5: SIGTERM (timeout, systemd, docker stop) and SIGHUP clean up like Ctrl-C (SIGINT):
+    every child stopped by PID, a partial result, and where the per-robot results are."""
     out = tmp_path / "run"
     proc = _start("launch", *PAPER, "--out", str(out))
     try:
