@@ -499,8 +499,8 @@ class RobotShell:
         evidence = max(heard, self._token_at.get(j, self._t0), self._connected_since)
         gone_at = evidence + self.dead_after_s
         if now >= gone_at and self._poll_connected(now):
-            evidence = max(evidence, self._connected_since)
-            if now >= evidence + self.dead_after_s:
+            gone_at = max(evidence, self._connected_since) + self.dead_after_s  # a reconnection moves it
+            if now >= gone_at:
                 return gone_at, (f"liveliness token gone and silent for {now - heard:.2f}s "
                                  f"(dead_after_s={self.dead_after_s:g}s)")
         return min(give_up_at, max(gone_at, now + CONNECTED_POLL_S)), None
