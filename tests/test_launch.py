@@ -492,10 +492,20 @@ def test_ctrl_c_stops_every_process(tmp_path):
         started.append(proc.pid)
         return proc
 
+    def interrupt_when_running() -> None:
+        """Ctrl-C once every robot has checkpointed a round (a fixed delay fails on a loaded
+        machine, where a robot may still be importing when it is asked to stop)."""
+        end = time.monotonic() + 25
+        while time.monotonic() < end:
+            if all((tmp_path / "fleet" / f"robot-{i}.ckpt").exists() for i in spec.robot_ids):
+                break
+            time.sleep(0.05)
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGALRM)
+
     previous = signal.signal(signal.SIGALRM, interrupt)
     fleet_mod._spawn = spawn
     try:
-        signal.setitimer(signal.ITIMER_REAL, 3.0)
+        threading.Thread(target=interrupt_when_running, daemon=True).start()
         with pytest.raises(KeyboardInterrupt):
             launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
                          zenoh_port=None, progress=False)
