@@ -18,14 +18,25 @@ of the fault link, next neighbour death deadline, wall-clock cap):
   when a neighbour's frame shows it is one round behind us (it lost our last frame); exact recovery
   comes from the previous round piggybacked in every frame plus retransmission: the shell never
   invents or substitutes values;
-* a neighbour we wait for and have not heard from for ``dead_after_s`` -> ``core.drop_neighbour(j)``;
+* a neighbour we wait for is dropped (``core.drop_neighbour(j)``) only on evidence that it is gone
+  for good: its liveliness token is gone while we are connected to a router, and it has been silent
+  for ``dead_after_s`` since the later of its last frame, its token's disappearance and our own
+  (re)connection; or it has been silent for ``give_up_s`` (default ``GIVE_UP_FACTOR`` x
+  ``dead_after_s``) whatever its token says. A paused neighbour (token still there) or a router
+  that restarts (every token gone, but we are disconnected too) is waited for: the fleet resumes
+  from the agreed round when it is back (lockstep: nobody is more than one round ahead);
+* a robot whose every neighbour was dropped is cut off: it stops, ``stopped = "isolated"``,
+  never ``converged`` on its own data;
+* a local solver failure or a non-finite / exploding iterate stops the robot,
+  ``stopped = "solver_error"`` / ``"diverged"`` with a one-line ``error``; never converged;
 * ``core.finished`` -> linger: keep republishing the final frame until every live neighbour has been
   heard at our final round or later (it has finished too) or the bounded linger time is over;
 * ``max_wall_s``    -> stop, ``converged = false``.
 
 A liveliness token per robot (declared after its subscriptions) lets a neighbour that (re)appears
 be served at once: when its token shows up we republish our latest frame instead of waiting for the
-next retransmission. This is an optimisation only; correctness rests on retransmission.
+next retransmission; its disappearance is the evidence of death the drop rule needs. Zenoh clients
+reconnect to a restarted router on the same endpoint by themselves (and re-declare their tokens).
 """
 
 from __future__ import annotations
@@ -46,6 +57,7 @@ from typing import Any, TextIO
 import msgpack
 import numpy as np
 
+from agents.problem import InfeasibleError, SolverError
 from protocol.frames import Decoded, FrameDecoder, StateUpdate, encode_state
 from protocol.keys import alive_key, alive_wildcard, state_key
 from protocol.links import LinkLayer
@@ -60,6 +72,9 @@ __all__ = [
     "write_checkpoint",
     "checkpoint_exists",
     "CHECKPOINT_VERSION",
+    "check_iterate",
+    "DIVERGED_ABS",
+    "GIVE_UP_FACTOR",
 ]
 
 log = logging.getLogger("shapefleet.robot")
@@ -76,6 +91,24 @@ ADAPT_WINDOW = 32
 ADAPT_MIN_ROUNDS = 8
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 LINGER_RETRANSMITS = 5
+# A neighbour silent this many dead_after_s is given up even if its token is still there (bounded
+# waiting for a paused or partitioned robot), unless spec.timing has its own give_up_s.
+GIVE_UP_FACTOR = 10.0
+CONNECTED_POLL_S = 0.2  # how often a stalled robot asks Zenoh whether it still has a router
+# An iterate this large is taken as divergence: the function values are O(1)-O(100) in any sane
+# problem; far beyond that float64 arithmetic is about to lose every digit (the issue saw 1e77).
+DIVERGED_ABS = 1e12
+
+
+def check_iterate(values: np.ndarray) -> str | None:
+    """Why ``values`` (x, gamma) cannot be a result (non-finite or exploding), or None."""
+    v = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(v)):
+        return "non-finite iterate (NaN or inf)"
+    big = float(np.max(np.abs(v))) if v.size else 0.0
+    if big > DIVERGED_ABS:
+        return f"exploding iterate (largest component {big:.3g} > {DIVERGED_ABS:g})"
+    return None
 
 
 def _finite(obj: Any) -> Any:
@@ -195,12 +228,16 @@ class RobotShell:
         self.linger_s = float(linger) if linger is not None else max(LINGER_MIN_S, LINGER_RETRANSMITS * self.retransmit_s)
         if self.linger_s < 0:
             raise ValueError(f"linger_s must be >= 0, got {self.linger_s}")
+        give_up = getattr(timing, "give_up_s", None)
+        self.give_up_s = float(give_up) if give_up is not None else GIVE_UP_FACTOR * self.dead_after_s
+        self.error: str | None = None  # why the robot stopped on a failure (solver, divergence)
 
         # counters (carried over a restart through the checkpoint)
         self.restarts = 0
         self.sent = 0
         self.received = 0  # raw samples delivered by Zenoh, before the fault link
         self.neighbours_dropped: list[int] = []
+        self.dropped_at: dict[int, int] = {}  # neighbour -> the round we dropped it at
         self.rejected: collections.Counter[str] = collections.Counter()
         prior_lost = 0
         prior_duplicated = 0
@@ -227,6 +264,7 @@ class RobotShell:
             prior_accepted = int(c.get("accepted", 0))
             self.rejected.update({str(k): int(v) for k, v in c.get("rejected", {}).items()})
             self.neighbours_dropped = [int(j) for j in env.get("dropped", [])]
+            self.dropped_at = {int(j): int(k) for j, k in (env.get("dropped_at") or {}).items()}
             log.info("robot %d: restored from %s at round %d (restart %d)",
                      self.me, self.checkpoint_path, core.round, self.restarts)
         else:
@@ -250,7 +288,13 @@ class RobotShell:
         self.watched: tuple[int, ...] = tuple(core.neighbours)  # neighbours we subscribe to
         self.last_heard: dict[int, float] = {}
         self.heard_round: dict[int, int] = {j: -1 for j in self.watched}
-        self._gone: set[int] = set()  # neighbours whose liveliness token disappeared
+        self._gone: set[int] = set(self.watched)  # neighbours without a liveliness token (yet)
+        self._token_at: dict[int, float] = {}  # when a neighbour's token last appeared/vanished
+        self._connected = True
+        self._connected_since = 0.0  # our (re)connection to a router: drop evidence counts after it
+        self._connected_polled = float("-inf")
+        self._router_ids: set[str] = set()
+        self._had_neighbours = bool(self.watched) or bool(self.neighbours_dropped)
 
         self._waiter: asyncio.Future | None = None  # set while the main loop sleeps
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -313,12 +357,17 @@ class RobotShell:
     def _on_alive(self, j: int, appeared: bool) -> None:
         if j not in self.watched:
             return
+        self._token_at[j] = self.clock()
         if appeared:
             self._gone.discard(j)
             self._republish_now = True
         else:
             self._gone.add(j)
             log.info("robot %d: neighbour %d left (liveliness token gone)", self.me, j)
+            # Was it our router that went (every token goes with it)? Look now, so that a
+            # reconnection later counts as fresh evidence time (see _drop_due).
+            self._connected_polled = float("-inf")
+            self._poll_connected(self.clock())
         self._wake()
 
     def _on_raw(self, j: int, data: bytes) -> None:
@@ -382,6 +431,7 @@ class RobotShell:
                 "restarts": self.restarts,
                 "counters": self._counters(),
                 "dropped": list(self.neighbours_dropped),
+                "dropped_at": dict(self.dropped_at),
                 "core": self.core.checkpoint(),
             },
         )
@@ -412,15 +462,77 @@ class RobotShell:
 
     # ---------------------------------------------------------------- main loop
 
+    def _routers(self) -> set[str] | None:
+        """The ids of the routers our session is connected to (None: no session to ask)."""
+        session = getattr(self, "_session", None)
+        if session is None:
+            return None
+        try:
+            return {str(z) for z in session.info.routers_zid()}
+        except Exception:  # noqa: BLE001 - a closing session: treat as disconnected
+            return set()
+
+    def _poll_connected(self, now: float) -> bool:
+        """Whether our session has a router (asked at most every CONNECTED_POLL_S)."""
+        if now - self._connected_polled >= CONNECTED_POLL_S:
+            self._connected_polled = now
+            ids = self._routers()
+            up = ids is None or bool(ids)
+            if up and (not self._connected or (ids is not None and ids != self._router_ids)):
+                # back, or on another router (a restarted router has a new id) even if we
+                # never saw the gap: evidence of a neighbour's death counts from now
+                self._connected_since = now
+                log.info("robot %d: connected to a router again", self.me)
+            if ids:
+                self._router_ids = ids
+            elif not up and self._connected:
+                log.warning("robot %d: no router; waiting for it (nobody is dropped meanwhile)", self.me)
+            self._connected = up
+        return self._connected
+
+    def _drop_due(self, j: int, now: float) -> tuple[float, str | None]:
+        """(when j may be dropped, why now if due): see the module doc for the rule."""
+        heard = self.last_heard.get(j, self._t0)
+        give_up_at = heard + self.give_up_s
+        if now >= give_up_at:
+            return give_up_at, f"silent for {now - heard:.2f}s (give_up_s={self.give_up_s:g}s)"
+        if j not in self._gone:
+            return give_up_at, None
+        evidence = max(heard, self._token_at.get(j, self._t0), self._connected_since)
+        gone_at = evidence + self.dead_after_s
+        if now >= gone_at and self._poll_connected(now):
+            gone_at = max(evidence, self._connected_since) + self.dead_after_s  # a reconnection moves it
+            if now >= gone_at:
+                return gone_at, (f"liveliness token gone and silent for {now - heard:.2f}s "
+                                 f"(dead_after_s={self.dead_after_s:g}s)")
+        return min(give_up_at, max(gone_at, now + CONNECTED_POLL_S)), None
+
     def _drop(self, j: int, why: str) -> None:
         log.warning("robot %d: dropping neighbour %d at round %d: %s", self.me, j, self.core.round, why)
         self.core.drop_neighbour(j)
         self.neighbours_dropped.append(j)
+        self.dropped_at[j] = int(self.core.round)
         sub = self._subs.pop(j, None)
         if sub is not None:
             sub.undeclare()
         self.watched = tuple(n for n in self.watched if n != j)
         self.heard_round.pop(j, None)
+
+    def _advance(self) -> str | None:
+        """``core.advance()`` and publish; a failure or divergence stops the robot (its reason)."""
+        try:
+            update = self.core.advance()
+        except (SolverError, InfeasibleError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            self.error = f"robot {self.me} round {self.core.round}: local solver failed: {exc}"
+            log.error("%s", self.error)
+            return "solver_error"
+        why = check_iterate(update.values)
+        if why is not None:
+            self.error = f"robot {self.me} round {update.round}: diverged: {why}"
+            log.error("%s", self.error)
+            return "diverged"
+        self._publish(update)
+        return None
 
     def _wake(self, *_: Any) -> None:
         w = self._waiter
@@ -484,8 +596,9 @@ class RobotShell:
             self._pump(now)
             if core.ready():  # ready() is false once finished
                 self._checkpoint()
-                update = core.advance()
-                self._publish(update)
+                failed = self._advance()
+                if failed is not None:
+                    return failed
                 t = self.clock()
                 self.round_times.append(t - last_advance)
                 last_advance = t
@@ -502,10 +615,11 @@ class RobotShell:
                 log.warning("robot %d: max_wall_s=%.1fs reached at round %d", self.me, self.max_wall_s, core.round)
                 return "max_wall"
             dropped_any = False
+            drop_deadline = float("inf")
             for j in core.missing():
-                silent = now - self.last_heard.get(j, self._t0)
-                if silent >= self.dead_after_s:
-                    self._drop(j, f"silent for {silent:.2f}s (dead_after_s={self.dead_after_s:g}s)")
+                when, why = self._drop_due(j, now)
+                if why is not None:
+                    self._drop(j, why)
                     dropped_any = True
                 elif self.heard_round.get(j, -1) >= core.round + 2:
                     # A live neighbour is never more than one round ahead of us unless it dropped
@@ -514,11 +628,17 @@ class RobotShell:
                     # so a neighbour two rounds past our checkpoint never gets here.)
                     self._drop(j, f"it is at round {self.heard_round[j]}, so it has dropped us")
                     dropped_any = True
+                else:
+                    drop_deadline = min(drop_deadline, when)
             if dropped_any:
+                if self._had_neighbours and not core.neighbours:
+                    # Cut off from every neighbour: continuing would "converge" on our own data.
+                    self.error = (f"robot {self.me} round {core.round}: isolated, every neighbour dropped "
+                                  f"({sorted(self.neighbours_dropped)})")
+                    log.error("%s", self.error)
+                    return "isolated"
                 continue
-            deadline = min(self._resend(now), wall_end)
-            for j in core.missing():
-                deadline = min(deadline, self.last_heard.get(j, self._t0) + self.dead_after_s)
+            deadline = min(self._resend(now), wall_end, drop_deadline)
             due = self.links.next_due()
             if due is not None:
                 deadline = min(deadline, due)
@@ -548,6 +668,11 @@ class RobotShell:
         res = dict(self.core.result())
         if stopped != "finished":
             res["converged"] = False
+        if self._had_neighbours and not self.core.neighbours:
+            res["converged"] = False  # alone: its answer is its own data's, not the fleet's
+            res["isolated"] = True
+        if self.error is not None:
+            res["error"] = self.error
         rt = sorted(self.round_times)
         res.update(
             {
@@ -562,6 +687,7 @@ class RobotShell:
                 "frames_rejected": {"total": sum(self.rejected.values()), "by_reason": dict(self.rejected)},
                 "restarts": self.restarts,
                 "neighbours_dropped": list(self.neighbours_dropped),
+                "dropped_at": {str(j): k for j, k in self.dropped_at.items()},
                 "wall_s": self.clock() - self._t0,
                 "round_ms": {
                     "rounds": len(rt),
@@ -594,6 +720,9 @@ class RobotShell:
         except asyncio.CancelledError:  # do not leak a session opened after we were cancelled
             opening.add_done_callback(lambda f: f.cancelled() or f.exception() or f.result().close())
             raise
+        self._session = session
+        self._connected_since = self._t0
+        self._router_ids = self._routers() or set()
         self._subs: dict[int, Any] = {}
         token = alive_sub = None
         try:
@@ -605,7 +734,8 @@ class RobotShell:
             self._pub = session.declare_publisher(
                 state_key(fleet, self.me), express=PUBLISH_EXPRESS, congestion_control=zenoh.CongestionControl.DROP
             )
-            alive_sub = session.liveliness().declare_subscriber(alive_wildcard(fleet), self._on_alive_thread)
+            alive_sub = session.liveliness().declare_subscriber(
+                alive_wildcard(fleet), self._on_alive_thread, history=True)
             token = session.liveliness().declare_token(alive_key(fleet, self.me))
             now = self.clock()
             for j in self.watched:

@@ -1,6 +1,10 @@
 """`shapefleet simulate | launch | central | prepare | robot | router | collect` -- what a person runs.
 
-Bad input ends with exit code 2 and one line naming the flag or file and what is wrong.
+Exit codes: 0 the fleet converged (every participant agrees with its neighbours within tol and
+their graph is connected: launcher/report.py ``agreement_verdict``); 1 it did not, or a robot's
+solve failed or diverged, or the machine failed (one line says why; result.json says more);
+2 bad input (one line naming the flag or file; nothing is left behind); 128+N stopped by signal N
+(SIGINT 130, SIGHUP 129, SIGTERM 143; a partial result.json is written).
 `--config scenario.toml` gives simulate/launch/central/prepare their flags from a scenario file
 (launcher/config.py); flags on the command line override it.
 """
@@ -10,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -34,6 +39,7 @@ from launcher.world import (
 from protocol.links import LinkFaults, parse_duration, parse_probability
 
 EXIT_BAD_INPUT = 2
+EXIT_NOT_CONVERGED = 1
 
 
 class UsageError(ValueError):
@@ -46,6 +52,45 @@ def _fail(message: str) -> NoReturn:
 
 
 # -- argument parsing -------------------------------------------------------------------------
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's rule for bad input: one line (no usage block), exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        print(f"shapefleet: error: {message} (see {self.prog} --help)", file=sys.stderr)
+        raise SystemExit(EXIT_BAD_INPUT)
+
+
+_NEGATIVE_VALUE = re.compile(r"-[0-9.]")
+
+
+def _join_negative_values(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> list[str]:
+    """``--delay -5ms`` -> ``--delay=-5ms``: argparse would read ``-5ms`` as an unknown option and
+    miss the flag's value; joined, the flag's own check says what is wrong with it."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args:
+        return args
+    try:
+        sub = _subparser(parser, args[0])
+    except KeyError:
+        return args
+    value_flags = {
+        opt
+        for action in sub._actions
+        if isinstance(action, (argparse._StoreAction, argparse._AppendAction)) and action.nargs is None
+        for opt in action.option_strings
+    }
+    out: list[str] = []
+    i = 0
+    while i < len(args):
+        if args[i] in value_flags and i + 1 < len(args) and _NEGATIVE_VALUE.match(args[i + 1]):
+            out.append(f"{args[i]}={args[i + 1]}")
+            i += 2
+        else:
+            out.append(args[i])
+            i += 1
+    return out
+
+
 def _positive_int(flag: str) -> Callable[[str], int]:
     def parse(text: str) -> int:
         try:
@@ -222,6 +267,18 @@ def _options(args: argparse.Namespace, **extra: Any) -> Options:
     )
 
 
+def _robots_bound(args: argparse.Namespace) -> None:
+    """--robots within what this machine runs as processes (launch), unless --max-robots says more."""
+    from launcher.fleet import max_robots
+
+    bound, why = max_robots()
+    if args.max_robots is not None:
+        bound, why = args.max_robots, "--max-robots"
+    if args.robots > bound:
+        raise UsageError(f"--robots: {args.robots} robot processes is more than this machine runs at once "
+                         f"({bound}: {why}); use fewer, or --max-robots {args.robots} to insist")
+
+
 def _out_dir(args: argparse.Namespace, mode: str) -> Path:
     if args.out:
         out = Path(args.out)
@@ -251,7 +308,9 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
 
     bases = None
     if spec.fixed_grid:
-        result = report.build_result(world, spec.basis, central, robots, algorithm=spec.algorithm, C=spec.C, wall_s=wall_s, extra=extra)
+        tol = float(spec.params.get("tol", report.DEFAULT_AGREEMENT_TOL))
+        result = report.build_result(world, spec.basis, central, robots, algorithm=spec.algorithm, C=spec.C,
+                                     wall_s=wall_s, extra=extra, tol=tol)
     else:
         references = _autogrid_references(world, spec, robots, extra)
         bases = {i: ref.basis for i, ref in references.items()}
@@ -275,7 +334,14 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     if not spec.fixed_grid and result.get("sigma_reason"):
         console.print(f"sigma: {result['sigma_reason']}", soft_wrap=True)
     console.print(f"wrote {out}/: {', '.join(written)}")
+    if not result["converged"]:
+        print(f"shapefleet: NOT converged: {result.get('verdict', 'see result.json')}", file=sys.stderr)
     return result
+
+
+def _exit_code(result: dict[str, Any]) -> int:
+    """0 only when the run converged (agreement, connected); 1 otherwise."""
+    return 0 if result.get("converged") else EXIT_NOT_CONVERGED
 
 
 def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], extra: dict[str, Any]) -> dict[int, Any]:
@@ -302,12 +368,17 @@ def _round_budget(spec: Any) -> int:
     return int(spec.params["max_rounds"])
 
 
-def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None, **extra: Any) -> tuple[Path, World, Any, Any]:
+def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None,
+             check: Callable[[Any], None] | None = None, **extra: Any) -> tuple[Path, World, Any, Any]:
     """The world, the fleet file, the run folder and -- for a fixed grid -- the central solve
-    (an autogrid fleet's grid exists only after its run: central is None then)."""
+    (an autogrid fleet's grid exists only after its run: central is None then).
+    ``check(spec)`` validates what needs the fleet before anything is written (a refused run
+    leaves nothing behind)."""
     from agents.problem import solve_central
 
     world, spec = build_world(options or _options(args, **extra))
+    if check is not None:
+        check(spec)
     out = _out_dir(args, mode)
     scenario.write_data_csv(out / "data.csv", world.robots)
     central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
@@ -350,14 +421,14 @@ def cmd_central(args: argparse.Namespace) -> int:
     if not central.solved:
         _infeasible(out, world, spec, central)
     robot = {"id": 0, "x": central.x.tolist(), "gamma": central.gamma, "rounds": 0, "converged": True}
-    _finish(out, world, spec, central, [robot], wall_s=time.perf_counter() - t0, extra={"algorithm": "central"})
-    return 0
+    result = _finish(out, world, spec, central, [robot], wall_s=time.perf_counter() - t0, extra={"algorithm": "central"})
+    return _exit_code(result)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from launcher.simulate import simulate_fleet
+    from launcher.simulate import FleetFailure, simulate_fleet
 
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "simulate")
@@ -376,10 +447,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         def progress(rnd: int, residual: float) -> None:
             bar.update(task, completed=rnd, residual=f"{residual:.2e}")
 
-        outcome = simulate_fleet(spec, progress=progress)
+        try:
+            outcome = simulate_fleet(spec, progress=progress)
+        except FleetFailure as exc:  # a local solve failed or an iterate diverged: no answer
+            print(f"shapefleet: the run failed: {exc}", file=sys.stderr)
+            return EXIT_NOT_CONVERGED
     extra = {"fleet": spec.fleet, "topology": args.topology, "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
-    _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
-    return 0
+    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
+    return _exit_code(result)
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
@@ -394,11 +469,26 @@ def cmd_launch(args: argparse.Namespace) -> int:
         raise UsageError("--restart-after: must be a non-negative number of seconds")
     if args.zenoh_port is not None and not 1 <= args.zenoh_port <= 65535:
         raise UsageError(f"--zenoh-port: {args.zenoh_port} is not a TCP port (1-65535)")
+    if args.max_robots is not None and args.max_robots < 1:
+        raise UsageError(f"--max-robots: {args.max_robots} must be at least 1")
+    _robots_bound(args)
+    from launcher.fleet import _port_in_use
+
+    if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
+        raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
+
+    def check(spec: Any) -> None:
+        unknown = [c.robot for c in crashes if c.robot not in spec.robots]
+        if unknown:
+            raise UsageError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
+        budget = _round_budget(spec)
+        late = [c for c in crashes if c.round >= budget]
+        if late:
+            raise UsageError(f"--crash: {late[0].robot}@{late[0].round} is at or past the run's last possible round "
+                             f"({budget - 1}: the round cap is {budget}); it could never fire")
+
     t0 = time.perf_counter()
-    out, world, spec, central = _prepare(args, "launch", fleet_id=args.fleet_id)
-    unknown = [c.robot for c in crashes if c.robot not in spec.robots]
-    if unknown:
-        raise UsageError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
+    out, world, spec, central = _prepare(args, "launch", check=check, fleet_id=args.fleet_id)
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     try:
@@ -415,27 +505,51 @@ def cmd_launch(args: argparse.Namespace) -> int:
     except LaunchError as exc:  # the machine, not the input: say it in one line, exit 1
         print(f"shapefleet: launch failed: {exc} (logs in {out / 'fleet'})", file=sys.stderr)
         return 1
-    if not outcome.robots:
-        print(f"shapefleet: launch failed: no robot produced a result (logs in {out / 'fleet'})", file=sys.stderr)
+    fleet_dir = out / "fleet"
+    if not outcome.robots and outcome.interrupted is None:
+        print(f"shapefleet: launch failed: no robot produced a result (logs in {fleet_dir})", file=sys.stderr)
         return 1
     extra: dict[str, Any] = {
         "fleet": spec.fleet,
         "topology": args.topology,
         "faults": _fault_dict(spec.faults),
         "crashes": [dataclasses.asdict(c) for c in outcome.crashes],
+        "crashes_not_fired": [dataclasses.asdict(c) for c in outcome.crashes_not_fired],
+        "router_restarts": outcome.router_restarts,
+        "interrupted": outcome.interrupted,
+        "timed_out": outcome.timed_out,
     }
+    for c in outcome.crashes_not_fired:
+        print(f"shapefleet: --crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}",
+              file=sys.stderr)
+    for r in outcome.robots:
+        if r.get("error"):
+            print(f"shapefleet: {r['error']}", file=sys.stderr)
     central = _participants(world, spec, central, outcome.robots, extra)
-    _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
-    return 0
+    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
+    if outcome.interrupted is not None:
+        import signal as _signal
+
+        print(f"shapefleet: stopped by {outcome.interrupted}: partial result in {out / 'result.json'}, "
+              f"per-robot results in {fleet_dir}/robot-<id>.json, logs in {fleet_dir}/robot-<id>.log", file=sys.stderr)
+        return 128 + int(getattr(_signal, outcome.interrupted))
+    return _exit_code(result)
 
 
 def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, Any]], extra: dict[str, Any]) -> Any:
     """Record who took part; with robots absent, the reference is the central solve of the
-    participants' data (they solved the problem of *their* data: measure them against that)."""
+    participants' data (they solved the problem of *their* data: measure them against that).
+
+    A robot took part if it wrote a result or if a robot that did still lists it as a neighbour
+    at the end (its data is in their answer: only its result file is missing, ``results_missing``).
+    ``absent``: robots dropped for good by everyone who wrote a result (or that never came)."""
     from agents.problem import solve_central
 
-    extra["participants"] = sorted(int(r["id"]) for r in robots)
+    with_result = {int(r["id"]) for r in robots}
+    linked = {int(j) for r in robots for j in (r.get("neighbours") or [])}
+    extra["participants"] = sorted(with_result | (linked & set(spec.robot_ids)))
     extra["absent"] = sorted(set(spec.robot_ids) - set(extra["participants"]))
+    extra["results_missing"] = sorted(set(extra["participants"]) - with_result)
     if not spec.fixed_grid:  # measured per robot on its own grid (_autogrid_references)
         if extra["absent"]:
             extra["reference"] = "central solution of the participants' data"
@@ -499,6 +613,7 @@ def cmd_robot(args: argparse.Namespace) -> int:
 
     import zenoh
 
+    from agents.problem import InfeasibleError, SolverError
     from agents.robot import run_robot
     from agents.spec import FleetSpec
     from protocol.zenoh_config import robot_config_dict
@@ -530,9 +645,14 @@ def cmd_robot(args: argparse.Namespace) -> int:
     except zenoh.ZError as exc:
         print(f"shapefleet: robot {rid}: no Zenoh session with {', '.join(args.connect)}: {exc}", file=sys.stderr)
         return 1
+    except (SolverError, InfeasibleError) as exc:  # the first local solve (building the core)
+        print(f"shapefleet: robot {rid} round 0: local solver failed: {exc}", file=sys.stderr)
+        return 1
     if result_path is None:
         print(json.dumps({"result": result}))
-    return 0 if result.get("stopped") == "finished" else 1
+    if result.get("error"):
+        print(f"shapefleet: {result['error']}", file=sys.stderr)
+    return 0 if result.get("stopped") == "finished" and result.get("converged", True) is not False else 1
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -595,8 +715,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
     extra: dict[str, Any] = {"fleet": spec.fleet, "topology": prepared.topology, "faults": _fault_dict(spec.faults)}
     central = _participants(world, spec, central, robots, extra)
     wall = max(float(r.get("wall_s") or 0.0) for r in robots)
-    _finish(out, world, spec, central, robots, wall_s=wall, extra=extra)
-    return 0
+    result = _finish(out, world, spec, central, robots, wall_s=wall, extra=extra)
+    return _exit_code(result)
 
 
 def cmd_gridstudy(args: argparse.Namespace) -> int:
@@ -622,7 +742,7 @@ def _fault_dict(faults: LinkFaults) -> dict[str, float]:
 
 # -- entry point ------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="shapefleet", description="A robot fleet learns an object's outline together.")
+    parser = _Parser(prog="shapefleet", description="A robot fleet learns an object's outline together.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     p = sub.add_parser("simulate", help="all robots in this process (deterministic, fast)")
     _add_scenario_args(p)
@@ -637,6 +757,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-restart", action="store_true", help="leave crashed robots dead: the others finish without them")
     g.add_argument("--fleet-id", help="fleet id on the network (default: unique per run)")
     g.add_argument("--zenoh-port", type=int, help="the router's loopback port (default: a free one)")
+    g.add_argument("--max-robots", type=int, metavar="N",
+                   help="allow up to N robot processes (default: derived from this machine's cores and memory)")
     _add_timing_args(g)
     p.set_defaults(func=cmd_launch)
     p = sub.add_parser("central", help="solve the same problem with all data in one place")
@@ -701,7 +823,7 @@ def _given_on_command_line(command: str, argv: Sequence[str] | None) -> set[str]
     parser = build_parser()
     for action in _subparser(parser, command)._actions:
         action.default = argparse.SUPPRESS
-    return set(vars(parser.parse_args(argv))) - {"command", "func"}
+    return set(vars(parser.parse_args(_join_negative_values(parser, argv)))) - {"command", "func"}
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
@@ -709,6 +831,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     from launcher import config
 
     parser = build_parser()
+    argv = _join_negative_values(parser, argv)
     args = parser.parse_args(argv)
     if getattr(args, "config", None) is None:
         return args

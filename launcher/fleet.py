@@ -17,6 +17,13 @@
    asked to stop, SIGTERM, and writes a result saying so), stop the router and collect the result
    files. A robot that is dead for good wrote none and is absent from the outcome.
 
+A router that dies during the run is started again on the same endpoint (at most
+``ROUTER_RESTARTS`` times); the robots' Zenoh clients reconnect to it by themselves and the
+fleet resumes from the agreed round (robots do not drop neighbours while they have no router).
+SIGTERM, SIGHUP and SIGINT (Ctrl-C) received while the fleet runs stop it the same way: every
+robot is asked to stop (SIGTERM: it writes a result saying ``stopped = "signal"``), the router is
+stopped, and the outcome says which signal (``interrupted``) so the caller writes a partial result.
+
 Every process started here is stopped by its own PID (SIGTERM, a grace period, SIGKILL, reaped) in
 a ``finally``: on success, on error, on the time bound and on Ctrl-C. Children run in their own
 session, so a terminal's Ctrl-C reaches only the launcher, which then stops them in order. As a
@@ -59,6 +66,7 @@ __all__ = [
     "fleet_timing",
     "time_bound_s",
     "stop_process",
+    "max_robots",
 ]
 
 log = logging.getLogger("shapefleet.launch")
@@ -72,6 +80,13 @@ STOP_GRACE_S = 3.0  # SIGTERM -> SIGKILL
 START_ALLOWANCE_S = 5.0  # a robot process: interpreter, imports, session, core (2 loaded cores)
 NO_RESTART_DEAD_AFTER_S = 2.5  # --no-restart: neighbours give a crashed robot up this soon
 WALL_MARGIN_S = 15.0  # on top of max_wall_s + start + restarts + linger
+ROUTER_RESTARTS = 5  # a router that keeps dying is a machine problem: give up after this many
+# --robots bound on this machine: robot processes per core, and memory per robot process (an
+# interpreter with numpy, scipy, piqp and a Zenoh session: about 25 MB resident measured with
+# 129 robots, counted double for the launcher's pipes, logs and the router's share)
+ROBOTS_PER_CORE = 8
+ROBOT_MEMORY_MB = 50.0
+STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
 REFRESH_PER_S = 4
 
 STATES = ("starting", "running", "crashed", "restarted", "dead", "finished", "stopped")
@@ -112,6 +127,8 @@ class LaunchOutcome(FleetOutcome):
     workdir: Path | None = None
     timed_out: bool = False
     pids: list[int] = field(default_factory=list)  # every process started (router first)
+    interrupted: str | None = None  # the signal that stopped the launcher (SIGTERM, SIGHUP, SIGINT)
+    router_restarts: list[float] = field(default_factory=list)  # seconds since launch
 
 
 _CRASH_RE = re.compile(r"\s*(\d+)\s*@\s*(\d+)\s*")
@@ -126,6 +143,33 @@ def parse_crash(text: str) -> CrashPlan:
     if rnd < 1:
         raise ValueError(f"--crash: {text!r} is not ID@ROUND with ROUND >= 1, e.g. 1@40")
     return CrashPlan(robot, rnd)
+
+
+def _available_memory_mb() -> float | None:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+def max_robots() -> tuple[int, str]:
+    """How many robot processes this machine runs at once, and why (cores, memory).
+
+    One process per robot: past a few per core the rounds crawl and the robots' time-outs
+    fire (measured: 129 processes on 2 cores, load 180). The caller may override it.
+    """
+    cores = os.cpu_count() or 1
+    by_cores = ROBOTS_PER_CORE * cores
+    mem = _available_memory_mb()
+    by_memory = int(0.5 * mem / ROBOT_MEMORY_MB) if mem is not None else by_cores
+    bound = max(1, min(by_cores, by_memory))
+    why = (f"{cores} cores x {ROBOTS_PER_CORE}"
+           + ("" if mem is None else f", half of {mem:.0f} MB available memory / {ROBOT_MEMORY_MB:g} MB per robot"))
+    return bound, why
 
 
 def fleet_timing(spec: FleetSpec, crashes: list[CrashPlan], *, restart: bool, restart_after: float) -> Any:
@@ -237,7 +281,7 @@ class _Router:
             self.ready_file.unlink()
         except FileNotFoundError:
             pass
-        self._log = open(self.log_path, "wb")
+        self._log = open(self.log_path, "ab")  # a restarted router appends
         argv = [sys.executable, "-m", "launcher.router", "--port", str(port), "--host", HOST,
                 "--ready-file", str(self.ready_file), "--max-wall-s", f"{lifetime_s:.0f}"]
         try:
@@ -578,6 +622,18 @@ def launch_fleet(
 
     started: list[int] = []
     t0 = time.monotonic()
+    interrupted: list[str] = []
+    previous_handlers: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        def on_signal(signum: int, _frame: Any) -> None:
+            if not interrupted:
+                interrupted.append(signal.Signals(signum).name)
+                log.warning("launcher: %s received; stopping every robot", interrupted[0])
+
+        for name in STOP_SIGNALS:
+            sig = getattr(signal, name)
+            previous_handlers[sig] = signal.signal(sig, on_signal)
+    router_restarts: list[float] = []
     if router is None:
         own_router: _Router | None = _start_router(zenoh_port, workdir, bound_s + 2 * WALL_MARGIN_S, started)
         endpoint, port = own_router.endpoint, own_router.port
@@ -603,6 +659,19 @@ def launch_fleet(
         next_draw = 0.0
         while True:
             now = time.monotonic()
+            if interrupted:
+                break
+            if own_router is not None and own_router.proc.poll() is not None and fleet.live():
+                if len(router_restarts) >= ROUTER_RESTARTS:
+                    raise LaunchError(f"the Zenoh router died {len(router_restarts) + 1} times (log: {own_router.log_path})")
+                code = own_router.proc.returncode
+                own_router.stop()
+                own_router = _Router(port, workdir, bound_s + 2 * WALL_MARGIN_S)
+                started.append(own_router.proc.pid)
+                own_router.wait_ready(ROUTER_START_TIMEOUT_S)
+                router_restarts.append(time.monotonic() - t0)
+                fleet._say(f"the router exited (code {code}); restarted on {endpoint} (pid {own_router.proc.pid})")
+                continue
             fleet.restart_due(now)
             fleet.reap()
             if not fleet.busy():
@@ -643,6 +712,8 @@ def launch_fleet(
                     live_display.stop()
                 if fleet is not None:
                     fleet.close()
+                for sig, handler in previous_handlers.items():
+                    signal.signal(sig, handler)
     assert fleet is not None
     while True:  # status lines written just before the end
         try:
@@ -676,4 +747,6 @@ def launch_fleet(
         workdir=workdir,
         timed_out=timed_out,
         pids=list(started),
+        interrupted=interrupted[0] if interrupted else None,
+        router_restarts=router_restarts,
     )

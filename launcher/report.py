@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import networkx as nx
 import numpy as np
 
 from agents.kernel import GridBasis
@@ -24,6 +26,93 @@ from launcher import scenario
 from launcher.world import World
 
 SCHEMA_VERSION = 1
+#: the agreement tolerance of a run that does not say its own (the ADMM's default tol)
+DEFAULT_AGREEMENT_TOL = 1e-3
+#: a robot stopped for one of these reasons has no answer the fleet can stand behind
+FAILED_STOPS = ("solver_error", "diverged", "isolated")
+
+
+def _met_stopping_rule(robot: dict[str, Any], fleet_size: int) -> bool:
+    """The robot's own ``converged``; or a fleet of one robot, which never had a neighbour and
+    solved the whole problem exactly at round 0 (the cores mark it finished with residual 0 but
+    have no stop flags to raise)."""
+    if robot.get("converged"):
+        return True
+    alone = fleet_size == 1 and not robot.get("neighbours") and not robot.get("dropped")
+    return alone and robot.get("residual") == 0.0 and robot.get("stopped", "finished") == "finished"
+
+
+def agreement_verdict(
+    robots: list[dict[str, Any]],
+    pair_error: Callable[[dict[str, Any], dict[str, Any]], float],
+    *,
+    tol: float,
+    absent: list[int] | tuple[int, ...] = (),
+) -> dict[str, Any]:
+    """The one rule for ``converged`` (the project's contract: success means agreement).
+
+    A run has converged only if (1) it has participants (robots with a result), (2) every one
+    stopped by its stopping rule (``converged`` in its own result; not isolated, diverged or
+    failed), (3) the graph of live links among them -- i--j when each still lists the other as a
+    neighbour -- is connected, and (4) every live link's two robots agree: ``pair_error`` (the
+    relative function error between the robots' *own* reported answers, both ways) within
+    ``tol``. Robots absent for good (no result) are not participants: the survivors answer for
+    their own data. Returns ``converged`` and what went wrong (``verdict``: one line; which
+    robots, which partition, since which round).
+    """
+    rows = {int(r["id"]): r for r in robots}
+    graph = nx.Graph()
+    graph.add_nodes_from(rows)
+    for i, r in rows.items():
+        for j in r.get("neighbours") or []:
+            j = int(j)
+            if j in rows and i in {int(n) for n in rows[j].get("neighbours") or []}:
+                graph.add_edge(i, j)
+    disagreement = 0.0
+    worst: tuple[int, int] | None = None
+    for i, j in graph.edges:
+        e = max(float(pair_error(rows[i], rows[j])), float(pair_error(rows[j], rows[i])))
+        if not np.isfinite(e):
+            e = float("inf")
+        if e > disagreement or worst is None:
+            disagreement, worst = max(disagreement, e), (min(i, j), max(i, j))
+    components = sorted((sorted(int(n) for n in c) for c in nx.connected_components(graph)), key=lambda c: c[0])
+    connected = len(components) == 1
+    failed = [i for i, r in rows.items() if r.get("stopped") in FAILED_STOPS or r.get("error")]
+    not_converged = [i for i, r in rows.items() if not _met_stopping_rule(r, len(rows) + len(absent))]
+    since = [int(k) for r in rows.values() for k in (r.get("dropped_at") or {}).values()]
+    reasons = []
+    if not rows:
+        reasons.append("no robot produced a result")
+    for i in failed:
+        reasons.append(rows[i].get("error") or f"robot {i} stopped: {rows[i].get('stopped')}")
+    if rows and not connected:
+        reasons.append(
+            "the participants are split into " + " | ".join(str(c) for c in components)
+            + (f" since round {min(since)}" if since else "")
+        )
+    if worst is not None and not disagreement <= tol:
+        reasons.append(f"robots {worst[0]} and {worst[1]} disagree by {disagreement:.3g} > tol {tol:g}")
+    rest = [i for i in not_converged if i not in failed]
+    if rest:
+        how = sorted({str(rows[i].get("stopped")) for i in rest if rows[i].get("stopped") not in (None, "finished")})
+        reasons.append(f"robots {rest} did not meet their stopping rule" + (f" (stopped: {', '.join(how)})" if how else ""))
+    converged = not reasons
+    return {
+        "converged": converged,
+        "verdict": "every participant agrees with its neighbours within tol, graph connected"
+        if converged else "; ".join(reasons),
+        "agreement": {
+            "tol": tol,
+            "disagreement": _num(disagreement) if graph.number_of_edges() else 0.0,
+            "connected": connected,
+            "components": components,
+            "failed": failed,
+            "not_converged": not_converged,
+            "absent": sorted(int(a) for a in absent),
+            "partition_since_round": min(since) if since and not connected else None,
+        },
+    }
 
 
 def _robot_c(basis: GridBasis, robot: dict[str, Any]) -> np.ndarray:
@@ -71,8 +160,10 @@ def build_result(
     C: float | None,
     wall_s: float,
     extra: dict[str, Any] | None = None,
+    tol: float = DEFAULT_AGREEMENT_TOL,
 ) -> dict[str, Any]:
-    """The run's result.json content (see docs/result-schema.md)."""
+    """The run's result.json content (see docs/result-schema.md); ``converged`` is
+    :func:`agreement_verdict` of the robots' own answers with the run's ``tol``."""
     fs = [(_robot_c(basis, r), float(r["gamma"])) for r in robots]
     function, consensus = _errors(basis, fs, central)
     pts, labels = world.points, world.labels
@@ -93,9 +184,16 @@ def build_result(
             row["function_error"] = basis.function_error(c, g, central.c, central.gamma)
         robot_rows.append(row)
     rounds = max((int(r["rounds"]) for r in robots), default=0)
+    own = {int(r["id"]): f for r, f in zip(robots, fs, strict=True)}
+
+    def pair(a: dict[str, Any], b: dict[str, Any]) -> float:
+        (ca, ga), (cb, gb) = own[int(a["id"])], own[int(b["id"])]
+        return basis.function_error(ca, ga, cb, gb)
+
+    verdict = agreement_verdict(robots, pair, tol=tol, absent=(extra or {}).get("absent", ()))
     result: dict[str, Any] = {
         "schema": SCHEMA_VERSION,
-        "converged": bool(robots) and all(bool(r.get("converged")) for r in robots),
+        **verdict,
         "rounds": rounds,
         "wall_s": wall_s,
         "algorithm": algorithm,
@@ -179,6 +277,16 @@ def robots_agree(robots: list[dict[str, Any]]) -> bool:
     )
 
 
+def _autogrid_pair_error(a: dict[str, Any], b: dict[str, Any], references: dict[int, Reference]) -> float:
+    """Disagreement of two autogrid robots' own answers: infinite unless both hold a function on
+    the same grid and sigma; then the relative function error on that basis."""
+    ra, rb = references.get(int(a["id"])), references.get(int(b["id"]))
+    if ra is None or rb is None or ra.basis is not rb.basis:
+        return float("inf")
+    return ra.basis.function_error(np.asarray(a["c"], dtype=float), float(a["gamma"]),
+                                   np.asarray(b["c"], dtype=float), float(b["gamma"]))
+
+
 def build_autogrid_result(
     world: World,
     robots: list[dict[str, Any]],
@@ -223,7 +331,8 @@ def build_autogrid_result(
     central = ref0.central if ref0 is not None else None
     result: dict[str, Any] = {
         "schema": SCHEMA_VERSION,
-        "converged": bool(robots) and all(bool(r.get("converged")) for r in robots),
+        **agreement_verdict(robots, lambda a, b: _autogrid_pair_error(a, b, references),
+                            tol=DEFAULT_AGREEMENT_TOL, absent=(extra or {}).get("absent", ())),
         "rounds": max((int(r["rounds"]) for r in robots), default=0),
         "wall_s": wall_s,
         "algorithm": "autogrid",

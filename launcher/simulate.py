@@ -14,6 +14,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from agents.problem import InfeasibleError, SolverError
+from agents.robot import check_iterate
 from agents.spec import FleetSpec, build_core
 from protocol.frames import Decoded, FrameDecoder, encode_state
 from protocol.links import LinkLayer
@@ -46,6 +48,13 @@ class DeadlockError(RuntimeError):
     """No robot can advance and nothing is in flight: a protocol bug, never a network state."""
 
 
+class FleetFailure(RuntimeError):
+    """A robot's local solve failed or its iterate diverged: the run has no answer.
+
+    The message is one line naming the robot, the round and why (the CLI prints it, exit 1).
+    """
+
+
 def simulate_fleet(
     spec: FleetSpec,
     *,
@@ -55,14 +64,15 @@ def simulate_fleet(
     """Run every robot of `spec` to completion in this process and return their results."""
     started = time.perf_counter()
     cap = spec.timing.max_wall_s if max_virtual_s is None else max_virtual_s
-    robots = {
-        rid: _Robot(
-            build_core(spec, rid),
-            FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=spec.frame_auth(rid)),
-        )
-        for rid in spec.robot_ids
-    }
     auths = {rid: spec.frame_auth(rid) for rid in spec.robot_ids}
+    robots = {}
+    for rid in spec.robot_ids:
+        try:
+            core = build_core(spec, rid)
+        except (SolverError, InfeasibleError) as exc:
+            raise FleetFailure(f"robot {rid} round 0: local solver failed: {exc}") from None
+        decoder = FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=auths[rid])
+        robots[rid] = _Robot(core, decoder)
     links = LinkLayer(spec.faults, spec.seed)
     now = 0.0
 
@@ -95,7 +105,13 @@ def simulate_fleet(
         advanced = False
         for rid, r in robots.items():
             if r.core.ready():
-                r.core.advance()
+                try:
+                    update = r.core.advance()
+                except (SolverError, InfeasibleError, FloatingPointError) as exc:
+                    raise FleetFailure(f"robot {rid} round {r.core.round}: local solver failed: {exc}") from None
+                why = check_iterate(update.values)
+                if why is not None:
+                    raise FleetFailure(f"robot {rid} round {update.round}: diverged: {why}")
                 r.round_times[r.core.round] = now
                 publish(rid)
                 advanced = True

@@ -294,9 +294,12 @@ def test_autogrid_over_zenoh_same_grid_and_function_as_simulate(tmp_path, capsys
     assert main(["collect", "--fleet-file", str(fleet / "fleet.json"), "--results", str(part), "--out", str(tmp_path / "two")]) == 0
     capsys.readouterr()
     result = json.loads((tmp_path / "two" / "result.json").read_text())
-    assert result["participants"] == [0, 1] and result["absent"] == [2]
-    assert result["reference"] == "central solution of the participants' data"
-    assert result["central"]["status"] == "solved" and result["metrics"]["function_error"] is not None
+    # robot 2 took part to the end (robots 0 and 1 still list it): only its file is missing, so
+    # the reference stays the solve of all data (issue 18: the former "absent" reference put
+    # these two robots 1.05 away from a problem they did not solve, and a check of `is not None`
+    # let it pass)
+    assert result["participants"] == [0, 1, 2] and result["absent"] == [] and result["results_missing"] == [2]
+    assert result["central"]["status"] == "solved" and result["metrics"]["function_error"] < 1e-3
 
 
 # ----------------------------------------------------------------------------- 4.-5. crashes
@@ -336,13 +339,13 @@ def test_crash_without_restart_survivors_finish(tmp_path):
     assert r0["converged"] and r2["converged"] and r0["rounds"] == r2["rounds"]
     b = spec.basis
     c0, c2 = b.c_from_x(np.asarray(r0["x"])), b.c_from_x(np.asarray(r2["x"]))
-    assert b.function_error(c0, r0["gamma"], c2, r2["gamma"]) < 1e-2  # survivors agree
+    assert b.function_error(c0, r0["gamma"], c2, r2["gamma"]) < 1e-3  # survivors agree (tol 1e-3)
     # ... on the solution of *their* data
     from agents.problem import solve_central
 
     kept = [r for r in world.robots if r.id in (0, 2)]
     ref = solve_central(b, np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept]), spec.C)
-    assert max_function_error(spec, ref, out.robots) < 2e-2
+    assert max_function_error(spec, ref, out.robots) < 1e-3
 
 
 # ----------------------------------------------------------------------------- 6. bad frames
@@ -500,10 +503,20 @@ def test_ctrl_c_stops_every_process(tmp_path):
         started.append(proc.pid)
         return proc
 
+    def interrupt_when_running() -> None:
+        """Ctrl-C once every robot has checkpointed a round (a fixed delay fails on a loaded
+        machine, where a robot may still be importing when it is asked to stop)."""
+        end = time.monotonic() + 25
+        while time.monotonic() < end:
+            if all((tmp_path / "fleet" / f"robot-{i}.ckpt").exists() for i in spec.robot_ids):
+                break
+            time.sleep(0.05)
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGALRM)
+
     previous = signal.signal(signal.SIGALRM, interrupt)
     fleet_mod._spawn = spawn
     try:
-        signal.setitimer(signal.ITIMER_REAL, 3.0)
+        threading.Thread(target=interrupt_when_running, daemon=True).start()
         with pytest.raises(KeyboardInterrupt):
             launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
                          zenoh_port=None, progress=False)
@@ -567,19 +580,23 @@ def _shapefleet(*args: str, timeout: float) -> subprocess.CompletedProcess:
 @bound(60)
 def test_cli_launch_end_to_end(tmp_path):
     out = tmp_path / "run"
-    proc = _shapefleet("launch", "--preset", "paper", "--out", str(out), "--tol", "1e-3", "--max-rounds", "120", "--loss", "0.2",
+    proc = _shapefleet("launch", "--preset", "paper", "--out", str(out), "--tol", "1e-3", "--loss", "0.2",
                        "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50)
     assert proc.returncode == 0, proc.stderr
     for name in ("result.json", "data.csv", "shapes.png", "convergence.png", "fleet/fleet.json"):
         assert (out / name).stat().st_size > 0, name
     result = json.loads((out / "result.json").read_text())
-    assert result["participants"] == [0, 1, 2] and result["absent"] == []
-    assert result["rounds"] == 120 and len(result["history"]) == 121
+    assert result["participants"] == [0, 1, 2] and result["absent"] == [] and result["converged"] is True
+    # the rounds are the in-process fleet's on the same data (recovery is exact), not a number
+    # copied from a run: they move when the ADMM does
+    _w, spec, _c = make_run(data=str(out / "data.csv"), tol=1e-3)
+    rounds = max(r["rounds"] for r in simulate_fleet(spec).robots)
+    assert result["rounds"] == rounds and len(result["history"]) == rounds + 1
     rows = {r["id"]: r for r in result["robots"]}
     assert sum(r["frames_lost"] for r in rows.values()) > 0
     assert [rows[i]["restarts"] for i in (0, 1, 2)] == [0, 1, 0]
     assert all(isinstance(r["frames_rejected"], int) for r in rows.values())
-    assert result["metrics"]["consensus_error"] is not None
+    assert result["metrics"]["consensus_error"] < 1e-3 and result["metrics"]["function_error"] < 1e-3
 
 
 @bound(40)

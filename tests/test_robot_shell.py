@@ -376,7 +376,8 @@ async def test_silent_neighbour_is_dropped(router):
 async def test_neighbour_that_dropped_us_is_dropped_too(router):
     """Robot 2 comes too late: robot 1 has dropped it and moved on. Robot 2 keeps hearing robot 1
     (so it is not silent) but at rounds that can never give it what it needs: it drops robot 1
-    instead of hanging until max_wall_s, and finishes alone."""
+    instead of hanging until max_wall_s. Cut off from every neighbour, it stops "isolated": it
+    never declares convergence on its own data."""
     async with asyncio.timeout(TEST_TIMEOUT_S):
         spec = FakeSpec("shell-ahead", LINE3, rounds=150, slow_s=0.005, timing=Timing(dead_after_s=0.3))
         early = [asyncio.ensure_future(_run(spec, i, router)) for i in (0, 1)]
@@ -388,7 +389,41 @@ async def test_neighbour_that_dropped_us_is_dropped_too(router):
         assert r1["neighbours_dropped"] == [2] and r2["neighbours_dropped"] == [1]
         want = expected(spec, {0: (1,), 1: (0,)})
         _assert_exact({0: r0, 1: r1}, want, 150)
-        _assert_exact({2: r2}, {2: spec.x0(2)}, 150)
+        assert r2["stopped"] == "isolated" and r2["converged"] is False and r2["isolated"] is True
+        assert r2["rounds"] == 0 and r2["x"] == spec.x0(2).tolist() and "isolated" in r2["error"]
+
+
+class FailingCore(AveragingCore):
+    """Robot 1's local solve fails at round 3 (SolverError), or its iterate explodes."""
+
+    mode = "solver"
+
+    def advance(self) -> StateUpdate:
+        if self.robot_id == 1 and self.round == 3:
+            if self.mode == "solver":
+                from agents.problem import SolverError
+
+                raise SolverError("piqp returned PIQP_MAX_ITER_REACHED")
+            self._x = self._x * 1e80
+        return super().advance()
+
+
+class ExplodingCore(FailingCore):
+    mode = "explode"
+
+
+@pytest.mark.parametrize("core, stopped, words", [(FailingCore, "solver_error", "local solver failed: piqp"),
+                                                   (ExplodingCore, "diverged", "diverged: exploding iterate")])
+async def test_solver_failure_or_divergence_stops_the_robot_never_converged(router, core, stopped, words):
+    """Issue 11: robot 1 stops with a one-line error; its neighbours, cut off from their only
+    neighbour once its token is gone, stop isolated: nobody converges on a broken fleet."""
+    async with asyncio.timeout(TEST_TIMEOUT_S):
+        spec = FakeSpec(f"shell-fail-{stopped}", LINE3, rounds=20, timing=Timing(dead_after_s=0.3))
+        r0, r1, r2 = await asyncio.gather(*(_run(spec, i, router, build=core) for i in (0, 1, 2)))
+        assert r1["stopped"] == stopped and r1["converged"] is False and words in r1["error"]
+        assert r1["error"].startswith("robot 1 round ")
+        for r in (r0, r2):
+            assert r["stopped"] == "isolated" and r["converged"] is False and r["neighbours_dropped"] == [1]
 
 
 async def test_wall_clock_cap(router):

@@ -93,3 +93,43 @@ def test_faults_change_time_not_iterates(faults):
     assert faulty.virtual_s > clean.virtual_s
     if faults.delay:
         assert faulty.virtual_s >= 120 * faults.delay * 0.5
+
+
+@pytest.mark.parametrize("bad", [np.nan, 3e77], ids=["nan", "exploding"])
+def test_diverging_iterate_is_an_error_not_a_result(monkeypatch, bad):
+    """Issue 11: a non-finite or exploding iterate ends the in-process run with FleetFailure
+    (one line naming robot and round), never a result that could read as converged."""
+    from agents.admm import ConsensusADMM
+    from launcher.simulate import FleetFailure
+
+    step = ConsensusADMM._step
+
+    def poisoned(self, mine, theirs):
+        new, below = step(self, mine, theirs)
+        if self.robot_id == 1 and self.round == 4:
+            new = new.copy()
+            new[0] = bad
+        return new, below
+
+    monkeypatch.setattr(ConsensusADMM, "_step", poisoned)
+    _world, spec, _central = make_run()
+    with pytest.raises(FleetFailure, match=r"^robot 1 round 5: diverged: (non-finite|exploding) iterate"):
+        simulate_fleet(spec)
+
+
+def test_solver_failure_is_an_error_not_a_result(monkeypatch):
+    from agents.admm import ConsensusADMM
+    from agents.problem import SolverError
+    from launcher.simulate import FleetFailure
+
+    step = ConsensusADMM._step
+
+    def failing(self, mine, theirs):
+        if self.robot_id == 2 and self.round == 7:
+            raise SolverError("piqp returned PIQP_MAX_ITER_REACHED")
+        return step(self, mine, theirs)
+
+    monkeypatch.setattr(ConsensusADMM, "_step", failing)
+    _world, spec, _central = make_run()
+    with pytest.raises(FleetFailure, match=r"^robot 2 round 7: local solver failed: piqp returned PIQP_MAX_ITER_REACHED$"):
+        simulate_fleet(spec)
