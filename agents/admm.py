@@ -153,7 +153,7 @@ class _Hub:
         self.hist_f: list[np.ndarray] = []
         self._dg: list[np.ndarray] = []  # successive differences of residuals and of images
         self._df: list[np.ndarray] = []
-        self._gram: list[list[float]] = []  # lower triangle of dg_i . dg_j
+        self._gram = np.zeros((0, 0))  # dg_i . dg_j, exactly rounded
         self.best = math.inf  # smallest fixed-point residual since the last restart
         self.stalled = 0  # rounds since `best` last improved
 
@@ -199,16 +199,22 @@ class _Hub:
             dg = g - (self.hist_f[-2] - self.hist_s[-2])
             self._dg.append(dg)
             self._df.append(f - self.hist_f[-2])
-            self._gram = [row for row in self._gram] + [[_dot(dg, d) for d in self._dg]]
+            row = np.array([_dot(dg, d) for d in self._dg])
+            m = len(row)
+            gram = np.empty((m, m))
+            gram[: m - 1, : m - 1] = self._gram
+            gram[m - 1, :] = gram[:, m - 1] = row
+            self._gram = gram
         if len(self._dg) > self.memory:  # keep the last `memory` differences
             self.hist_s, self.hist_f = self.hist_s[1:], self.hist_f[1:]
             self._dg, self._df = self._dg[1:], self._df[1:]
-            self._gram = [row[1:] for row in self._gram[1:]]
+            self._gram = self._gram[1:, 1:].copy()
         self.s = self._extrapolate(g) if self._dg else f
         return res
 
     def _forget(self) -> None:
-        self.hist_s, self.hist_f, self._dg, self._df, self._gram, self.best = [], [], [], [], [], math.inf
+        self.hist_s, self.hist_f, self._dg, self._df, self.best = [], [], [], [], math.inf
+        self._gram = np.zeros((0, 0))
         self.stalled = 0
 
     def _rebuild(self) -> None:
@@ -216,17 +222,17 @@ class _Hub:
         gs = [f - s for s, f in zip(self.hist_s, self.hist_f)]
         self._dg = [b - a for a, b in zip(gs[:-1], gs[1:])]
         self._df = [b - a for a, b in zip(self.hist_f[:-1], self.hist_f[1:])]
-        self._gram = [[_dot(self._dg[i], self._dg[j]) for j in range(i + 1)] for i in range(len(self._dg))]
+        m = len(self._dg)
+        self._gram = np.array([[_dot(self._dg[i], self._dg[j]) for j in range(m)] for i in range(m)]).reshape(m, m)
 
     def _extrapolate(self, g: np.ndarray) -> np.ndarray:
         """Type-II Anderson: T(s) minus the combination of past steps that best cancels g."""
         m = len(self._dg)
-        H = [[self._gram[max(i, j)][min(i, j)] for j in range(m)] for i in range(m)]
-        scale = math.fsum(H[i][i] for i in range(m)) / m
-        for i in range(m):
-            H[i][i] += ANDERSON_REG * max(scale, 1e-300)
+        H = self._gram.copy()
+        scale = math.fsum(np.diag(H).tolist()) / m
+        H[np.diag_indices(m)] += ANDERSON_REG * max(scale, 1e-300)
         try:
-            coef = _solve_spd(np.array(H), np.array([_dot(d, g) for d in self._dg]))
+            coef = _solve_spd(H, np.array([_dot(d, g) for d in self._dg]))
         except np.linalg.LinAlgError:
             return self.hist_f[-1]
         out = self.hist_f[-1].copy()
