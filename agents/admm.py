@@ -290,14 +290,15 @@ def error_estimate(residuals: list[float], *, typical_older: bool = False) -> fl
     that falls below the old window's typical level -- Anderson's final, fast phase -- counts.
     Infinite until two windows exist or while the residual is not shrinking.
     """
-    if len(residuals) < 2 * RATE_WINDOW:
+    w = RATE_WINDOW
+    if len(residuals) < 2 * w:
         return float("inf")
-    recent = max(residuals[-RATE_WINDOW:])
-    window = residuals[-2 * RATE_WINDOW : -RATE_WINDOW]
-    older = float(np.median(window)) if typical_older else max(window)
+    recent = max(residuals[-w:])
+    before = residuals[-2 * w : -w]
+    older = float(np.median(before)) if typical_older else max(before)
     if not older > 0:
         return 0.0 if recent == 0 else float("inf")
-    rate = (recent / older) ** (1.0 / RATE_WINDOW)
+    rate = (recent / older) ** (1.0 / w)
     if rate >= 1.0:
         return float("inf")
     return recent / (1.0 - rate)
