@@ -237,3 +237,15 @@ def test_bad_parameters_are_refused(kwargs, match):
 def test_robot_cannot_be_its_own_neighbour():
     with pytest.raises(ValueError, match="itself"):
         ConsensusADMM(0, (0, 1), np.ones((2, 3)), np.array([1, -1]), n_robots=2, params=ADMMParams())
+
+
+def test_hub_form_only_when_every_robot_sees_the_whole_fleet():
+    """A hub robot of a star has N - 1 neighbours, but its leaves do not: all must agree on the
+    form, so the verdict needs every neighbour's degree too (missing degrees: edge form)."""
+    from agents.admm import complete_graph
+
+    assert complete_graph(4, (1, 2, 3), {1: 3, 2: 3, 3: 3})
+    assert not complete_graph(4, (1, 2, 3), {1: 1, 2: 1, 3: 1})  # the centre of a star
+    assert not complete_graph(4, (0,), {0: 3})  # a leaf of that star
+    assert not complete_graph(4, (1, 2, 3), {})
+    assert not complete_graph(1, (), {})
