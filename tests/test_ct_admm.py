@@ -210,11 +210,12 @@ SCENARIOS = {
 
 @pytest.mark.parametrize("name", list(SCENARIOS))
 def test_stable_across_scenarios(name):
-    """Finite, bounded, and the error does not grow: it is smaller at the end than at mid-run.
+    """Finite, bounded, and converging: the largest error of each quarter of the run is below
+    that of the quarter before, so the error envelope shrinks all the way to the end.
 
     Three robots also reach the 1e-2 target within the 10 s (measured: 4.4-7.3 s); 8 and 16
-    robots are slower (the discrete ADMM needs thousands of rounds there too): they are only
-    required to be stable, over a shorter horizon to keep this file fast.
+    robots are slower (the discrete ADMM needs hundreds of rounds there too) and run a shorter
+    horizon to keep this file fast: there the claim is the shrinking envelope, not a level.
     """
     options = dict(SCENARIOS[name])
     stop = options.pop("stop_time", 10.0)
@@ -228,8 +229,9 @@ def test_stable_across_scenarios(name):
         assert np.abs(values).max() < 5 * np.abs(v_star).max() + 10
     errs = errors_per_round(spec, central, [c.trace for c in cores.values()])
     mid, end = errs[len(errs) // 2], errs[-1]
-    assert end < mid and end < 0.5, f"error {mid:.2e} at mid-run, {end:.2e} at the end"
-    assert errs[-len(errs) // 5 :].max() <= 1.05 * errs[len(errs) // 2 : -len(errs) // 5].max()
+    assert end < mid, f"error {mid:.2e} at mid-run, {end:.2e} at the end"
+    quarters = [q.max() for q in np.array_split(errs[1:], 4)]
+    assert all(b < a for a, b in zip(quarters, quarters[1:])), f"quarter maxima {quarters}"
     if spec.n_robots == 3:
         assert end < TARGET, f"3 robots: {end:.2e} after {stop:g} s"
 
@@ -307,15 +309,22 @@ def test_finished_core_refuses_to_advance():
         cores[0].advance()
 
 
-def test_drop_neighbour_keeps_the_rest_running():
-    _, spec, _ = ct_run(params={"tol": 1e-12, "stop_time": 2.0}, robots=4)
+def test_drop_neighbour_converges_on_the_survivors_data():
+    """Dropping a dead robot's edges keeps the survivors' duals summing to zero, so they converge
+    on the central solution of *their* data (slowly: the 1e-2 target is reached near 30 s)."""
+    world, spec, _ = ct_run(params={"tol": 1e-12, "stop_time": 40.0}, robots=4)
     cores = {r: build_core(spec, r) for r in spec.robot_ids}
     lockstep(spec, cores, rounds=20)
     dead = cores.pop(3)
     for c in cores.values():
         c.drop_neighbour(dead.robot_id)
     survivors = lockstep(spec, cores)
-    assert all(c.round == 200 and 3 in c.dropped and np.all(np.isfinite(c.values)) for c in survivors.values())
+    assert all(c.round == 4000 and 3 in c.dropped for c in survivors.values())
+    kept = [r for r in world.robots if r.id != dead.robot_id]
+    ref = solve_central(spec.basis, np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept]))
+    assert ref.solved
+    errs = errors_per_round(spec, ref, [c.trace for c in survivors.values()])
+    assert errs[-1] < TARGET, f"survivors {errs[-1]:.2e} from their own central solution"
 
 
 # -- pictures and the grid study --------------------------------------------------------------
