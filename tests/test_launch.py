@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from agents.admm import RATE_WINDOW  # noqa: E402
 from agents.robot import alive_key  # noqa: E402
 from agents.spec import Timing  # noqa: E402
 from launcher.fleet import CrashPlan, launch_fleet, parse_crash, stop_process  # noqa: E402
@@ -185,7 +186,8 @@ def test_parse_crash():
 def test_three_robots_same_iterates_as_simulate_and_central(tmp_path):
     _world, spec, central = _run(tol=1e-3, fleet_id="launch-clean")
     want = _simulate(spec)
-    assert all(w["converged"] and w["rounds"] > 200 for w in want.values())  # a real run
+    # a real run: the stopping rule needs two windows of residuals before it may stop
+    assert all(w["converged"] and w["rounds"] >= 2 * RATE_WINDOW for w in want.values())
     out = _launch(spec, tmp_path)
     _assert_same_iterates(out.robots, want)
     assert max_function_error(spec, central, out.robots) < 1e-3
