@@ -65,11 +65,13 @@ from protocol.frames import StateUpdate
 #: stands for "no data" in the max-consensus on bounds (frames carry finite values only)
 _NO_DATA = -1e300
 
-BOUNDS, VALIDATE, TALLY, VOTE, ADMM, FLOOD, DONE = "bounds", "validate", "tally", "vote", "admm", "flood", "done"
+BOUNDS, VALIDATE, TALLY, SEED, VOTE, ADMM, FLOOD, DONE = (
+    "bounds", "validate", "tally", "seed", "vote", "admm", "flood", "done"
+)
 
 #: how a phase's rounds are computed: a max-consensus, the stacked sweep, the ADMM sub-machine,
 #: or the flood (lowest id's vector, largest gap)
-EXCHANGE = {BOUNDS: "max", VALIDATE: "sweep", TALLY: "max", VOTE: "max", ADMM: "admm", FLOOD: "flood"}
+EXCHANGE = {BOUNDS: "max", VALIDATE: "sweep", TALLY: "max", SEED: "flood", VOTE: "max", ADMM: "admm", FLOOD: "flood"}
 
 #: (phase, outcome of its last round) -> next phase. Counted phases (max, flood) end after their
 #: rounds, VALIDATE and ADMM when their sub-machines stop (the same round on every robot).
@@ -77,7 +79,10 @@ TRANSITIONS = {
     (BOUNDS, "sweep sigma"): VALIDATE,
     (BOUNDS, "sigma by rule"): VOTE,
     (VALIDATE, "solved"): TALLY,
-    (TALLY, "sigma chosen"): VOTE,
+    (TALLY, "sigma chosen"): VOTE,  # a start grid given: solve on it first
+    (TALLY, "seed"): SEED,  # agree on the chosen candidate's sweep function, refine from it
+    (SEED, "refined"): VOTE,
+    (SEED, "not refined"): VOTE,
     (VOTE, "separable"): ADMM,  # hard margin
     (VOTE, "inseparable"): ADMM,  # a robot's own data not separable: soft margin
     (VOTE, "soft"): ADMM,  # soft margin asked for (C given)
@@ -261,9 +266,6 @@ class AdaptiveGridCore(RoundCore):
         self._values, self._flags = self._pad(x, gamma, float(self.robot_id)), 0
         self.residual = 0.0 if self.disagreement is None else self.disagreement
 
-    _ENTER = {VALIDATE: _enter_validate, TALLY: _enter_tally, VOTE: _enter_vote, ADMM: _enter_admm,
-              FLOOD: _enter_flood, DONE: _enter_done}
-
     # -- finishing phases (each returns its outcome, the key into TRANSITIONS) ----------------
     def _finish_bounds(self) -> str:
         nx0, nx1, ny0, ny1 = (float(t) for t in self._values[:4])
@@ -286,14 +288,36 @@ class AdaptiveGridCore(RoundCore):
         self._first_grid()
         cand = next(i for i, r in enumerate(self.sigma_validation) if r["sigma"] == self.sigma)
         task = sweep.task(cand, 0)
-        if np.array_equal(task.basis.grid, self.grid):  # the same lattice: start from fold 0's solve
-            self._warm = task.sub.values
-            self._carry = {j: (e.z.copy(), e.lam.copy()) for j, e in task.sub._edges.items()}
-        return "sigma chosen"
+        if self._start_grid is not None or not np.array_equal(task.basis.grid, self.grid):
+            return "sigma chosen"
+        # the same lattice: the fold-0 solve seeds the refinement (after a flood makes it common)
+        self._own = task.sub.values
+        self._edges_out = {}  # its duals belong to another problem (soft, 4/5 of the data): not carried
+        return "seed"
+
+    def _enter_seed(self) -> None:
+        """Flood the lowest id's fold-0 vector; max-consensus of the near-data marks beside it."""
+        v, m = self._own, len(self.grid)
+        out = self._pad(v[:-1], v[-1], float(self.robot_id))
+        if 2 * m + 3 <= self.dim:
+            radius = self.params.near_data * self.sigma + self._h0 / math.sqrt(2.0)
+            out[m : 2 * m] = near_data_marks(self._points, self.grid, radius)
+        self._counted(SEED, out)
+
+    def _finish_seed(self) -> str:
+        m = len(self.grid)
+        self._allowed = self._values[m : 2 * m] > 0 if 2 * m + 3 <= self.dim else None
+        seed = self._unpad(self._values)
+        self._note(status="seed (the chosen candidate's fold-0 sweep solution)", rounds=0)
+        if not self._move_to_refined(seed[:-1], float(seed[-1])):
+            self._warm = seed
+            return "not refined"
+        return "refined"
 
     def _finish_vote(self) -> str:
         coarse = lattice(self._box, self._h0, 0)
-        self._allowed = self._values[: len(coarse)] > 0 if len(coarse) <= self.dim - 3 else None
+        if self._allowed is None and len(coarse) <= self.dim - 3:
+            self._allowed = self._values[: len(coarse)] > 0
         if self.margin == "soft":
             return "soft"
         if self._values[-1] > 0:
@@ -352,9 +376,19 @@ class AdaptiveGridCore(RoundCore):
             self._best_norm2 = norm2 if self._best_norm2 is None else min(norm2, self._best_norm2)
         if not helps or self._refinements >= self.params.max_refinements:
             return False
+        min_new = max(1, math.ceil(self.params.min_growth * len(self.grid))) if self._mode == "hard" else 1
+        if not self._move_to_refined(x, gamma, min_new):
+            return False
+        if self._mode == "soft" and self.params.C is None:
+            self.margin = "hard"  # the refined grid may separate the data: try the hard margin again
+        self._mode = self.margin
+        return True
+
+    def _move_to_refined(self, x: np.ndarray, gamma: float, min_new: int = 1) -> bool:
+        """The refined grid, the function (x, gamma) and the last ADMM's edges carried onto it."""
         c = self._basis.c_from_x(x)
         new_grid, level = refine_grid(self.grid, self._basis, c, gamma, self._box, self._h0, self._level,
-                                      self.params, self._allowed)
+                                      self.params, self._allowed, min_new)
         if len(new_grid) == len(self.grid):
             return False
         old = self._basis
@@ -363,12 +397,13 @@ class AdaptiveGridCore(RoundCore):
         P, _ = superset_maps(old, self._basis)
         self._warm = carry_vector(np.append(x, gamma), P)
         self._carry = carry_edges({j: _EdgeView(z, lam) for j, (z, lam) in self._edges_out.items()}, old, self._basis)
-        if self._mode == "soft" and self.params.C is None:
-            self.margin = "hard"  # the refined grid may separate the data: try the hard margin again
-        self._mode = self.margin
         return True
 
-    _FINISH = {BOUNDS: _finish_bounds, VALIDATE: _finish_validate, TALLY: _finish_tally, VOTE: _finish_vote,
+    _ENTER = {VALIDATE: _enter_validate, TALLY: _enter_tally, SEED: _enter_seed, VOTE: _enter_vote, ADMM: _enter_admm,
+              FLOOD: _enter_flood, DONE: _enter_done}
+
+    _FINISH = {BOUNDS: _finish_bounds, VALIDATE: _finish_validate, TALLY: _finish_tally, SEED: _finish_seed,
+               VOTE: _finish_vote,
                ADMM: _finish_admm, FLOOD: _finish_flood}
 
     # -- grids ------------------------------------------------------------------------------------
@@ -439,10 +474,14 @@ class AdaptiveGridCore(RoundCore):
         from the neighbours' own final values (they enter the flood with them)."""
         new = min([mine, *theirs.values()], key=lambda v: v[-1]).copy()
         gap = max(float(v[-3]) for v in [mine, *theirs.values()])
-        if self.round == self._phase_start and theirs:
+        if self.phase == FLOOD and self.round == self._phase_start and theirs:
             own = self._unpad(mine)
             gap = max(gap, relative_gap(own, np.array([self._unpad(v) for v in theirs.values()])))
         new[-3] = gap
+        if self.phase == SEED and self._allowed is None:  # the near-data marks ride beside the seed
+            m = len(self.grid)
+            if 2 * m + 3 <= self.dim:
+                new[m : 2 * m] = np.max(np.vstack([v[m : 2 * m] for v in [mine, *theirs.values()]]), axis=0)
         self._left -= 1
         return new
 

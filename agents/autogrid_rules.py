@@ -44,6 +44,7 @@ class AutoGridParams:
     near_data: float = 1.0  # refine only within near_data * sigma of some robot's data
     band: float = 1.0  # refine where |f| < band
     improve_tol: float = 0.02  # stop refining when |x|^2 falls by less than this (relative)
+    min_growth: float = 0.25  # after a hard-margin solve, refine only to add >= this share of the grid
     max_level: int = 4  # finest lattice: spacing h_0 / 2^max_level (and >= min_spacing * sigma)
     rho: float = 15.0
     relax: float = 1.95
@@ -64,7 +65,7 @@ class AutoGridParams:
     validate_folds: int = 2
     solid_raster: int = 64  # the solid-region check rasterizes the lattice box at this resolution
     validate_tol: float = 1e-2
-    validate_rounds: int = 1000
+    validate_rounds: int = 300  # a capped candidate is judged on its iterate (rounds = the slowest task)
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
@@ -220,6 +221,7 @@ def refine_grid(
     level: int,
     params: AutoGridParams,
     allowed: np.ndarray | None = None,
+    min_new: int = 1,
 ) -> tuple[np.ndarray, int]:
     """The refined grid from f alone: (old grid + chosen nodes, the lattice level used).
 
@@ -228,11 +230,11 @@ def refine_grid(
     in a level-0 cell the fleet marked as near data (`allowed`, one flag per level-0 node: the
     cell of the nearest node) and near the zero level set: in the margin band |f| < band, or
     next to a lattice neighbour where f has the other sign. The closest to the zero level set
-    (smallest |f|) come first, ties by lattice index; at most len(grid) of them, within the
-    budget. A refined grid whose K_G would lose numerical rank is refused. Returns the grid
+    (smallest |f|) come first, ties by lattice index, within the budget of points (all of
+    them at once: the finest level the kernel can use is usually level 1). A refined grid whose K_G would lose numerical rank is refused. Returns the grid
     unchanged when there is nothing to add.
     """
-    room = min(params.max_points - len(grid), len(grid))
+    room = params.max_points - len(grid)
     if room <= 0:
         return grid, level
     coarse = lattice(box, h0, 0)
@@ -243,7 +245,7 @@ def refine_grid(
             near |= ~allowed[np.argmin(_sq_distances(nodes, coarse), axis=1)]
         f = basis.decision(nodes, c, gamma)
         pick = np.flatnonzero(~near & ((np.abs(f) < params.band) | _crossing(f.reshape(shape)).ravel()))
-        if len(pick) == 0:
+        if len(pick) < min_new:
             continue
         order = pick[np.lexsort((pick, np.abs(f[pick])))][:room]
         new = np.vstack([grid, nodes[np.sort(order)]])
