@@ -172,6 +172,8 @@ class AdaptiveGridCore(RoundCore):
         self._best_norm2: float | None = None
         self._refinements = 0
         self._final: np.ndarray | None = None  # (x, gamma) agreed by the fleet
+        self.phases: list[tuple[str, int]] = []  # (phase, first round), for the convergence plot
+        self.residuals: list[float] = []  # per round: the ADMM residual (the largest in the sweep), else nan
 
     # -- vectors ------------------------------------------------------------------------------
     def _pad(self, x: np.ndarray, gamma: float, meta: float = 0.0) -> np.ndarray:
@@ -184,8 +186,12 @@ class AdaptiveGridCore(RoundCore):
         """(x, gamma) on the current grid from a padded frame vector."""
         return np.append(v[: len(self.grid)], v[-2])
 
-    def _counted(self, phase: str, values: np.ndarray, rounds: int | None = None) -> None:
+    def _mark(self, phase: str) -> None:
         self.phase, self._phase_start = phase, self.round
+        self.phases.append((phase, self.round))
+
+    def _counted(self, phase: str, values: np.ndarray, rounds: int | None = None) -> None:
+        self._mark(phase)
         self._left = self.params.diameter if rounds is None else rounds
         self._values, self._flags = values, 0
 
@@ -201,7 +207,7 @@ class AdaptiveGridCore(RoundCore):
 
     def _enter_validate(self) -> None:
         self._sweep = self._new_sweep()
-        self.phase, self._phase_start = VALIDATE, self.round
+        self._mark(VALIDATE)
         self._values, self._flags = self._sweep.stacked(), 0
 
     def _new_sweep(self) -> SigmaSweep:
@@ -242,7 +248,7 @@ class AdaptiveGridCore(RoundCore):
             start=self._warm, edges=self._carry if p.warm_duals else None,
         )
         self._carry = {}
-        self.phase, self._phase_start = ADMM, self.round
+        self._mark(ADMM)
         v = self._sub.values
         self._values, self._flags = self._pad(v[:-1], v[-1]), 0
 
@@ -261,7 +267,8 @@ class AdaptiveGridCore(RoundCore):
             )
         if self._capped:
             self.message = (self.message + "; " if self.message else "") + self._capped
-        self.phase, self.finished = DONE, True
+        self._mark(DONE)
+        self.finished = True
         x, gamma = self._final[:-1], self._final[-1]
         self._values, self._flags = self._pad(x, gamma, float(self.robot_id)), 0
         self.residual = 0.0 if self.disagreement is None else self.disagreement
@@ -308,8 +315,7 @@ class AdaptiveGridCore(RoundCore):
         m = len(self.grid)
         self._allowed = self._values[m : 2 * m] > 0 if 2 * m + 3 <= self.dim else None
         seed = self._unpad(self._values)
-        self._note(status="seed (the chosen candidate's fold-0 sweep solution)", rounds=0)
-        if not self._move_to_refined(seed[:-1], float(seed[-1])):
+        if self.params.max_refinements < 1 or not self._move_to_refined(seed[:-1], float(seed[-1])):
             self._warm = seed
             return "not refined"
         return "refined"
@@ -462,6 +468,7 @@ class AdaptiveGridCore(RoundCore):
         self._values, self._flags = new, flags
         self.round += 1
         self._inbox.forget_before(self.round)
+        self.residuals.append(self.residual if kind in ("sweep", "admm") else math.nan)
         self._settle()
         if not self.finished and self.round >= self._round_cap:
             self.finished = True
@@ -531,6 +538,8 @@ class AdaptiveGridCore(RoundCore):
             "margin": self.margin, "message": self.message,
             "disagreement_before_flood": self.disagreement, "agreed": self._agreed,
             "grid_history": [dict(h) for h in self.grid_history],
+            "phases": [[p, r] for p, r in self.phases],
+            "residuals": [None if not math.isfinite(r) else r for r in self.residuals],
         }
         if self.phase == DONE:
             grid, c, gamma = self.function()

@@ -108,6 +108,16 @@ class AutoGridParams:
         return [self.sweep_slot(d) + 2 for d in self.validate_divisors for _ in range(self.validate_folds)]
 
     @property
+    def planned_rounds(self) -> int:
+        """The rounds a run is planned to take (a progress bar's total, not a bound): the phases
+        of fixed length, the sweep at its cap and one solve on the refined grid budgeted like a
+        sweep task."""
+        d = self.diameter
+        solve = self.validate_rounds + 3 * d + 1  # vote, ADMM, flood
+        sweep = d + self.validate_rounds + 2 * d if self.validates else d  # bounds, sweep, tally, seed
+        return min(self.max_total_rounds, sweep + solve)
+
+    @property
     def validates(self) -> bool:
         """True when sigma is chosen by the held-out sweep."""
         return self.sigma is None and len(self.validate_divisors) > 0

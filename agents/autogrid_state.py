@@ -43,6 +43,8 @@ def save_state(core: AdaptiveGridCore) -> dict[str, Any]:
         "allowed": None if core._allowed is None else to_bytes(core._allowed.astype(float)),
         "carry": _edges_out(core._carry),
         "edges_out": _edges_out(core._edges_out),
+        "phases": [[p, r] for p, r in core.phases],
+        "residuals": to_bytes(np.asarray(core.residuals, dtype=float)),
         "sweep": None if core._sweep is None else core._sweep.checkpoint(),
         "sub": None if core._sub is None else core._sub.checkpoint(),
         "history": [
@@ -65,6 +67,8 @@ def load_state(core: AdaptiveGridCore, state: dict[str, Any]) -> None:
         {**{k: v for k, v in h.items() if k != "grid"}, "grid": from_bytes(h["grid"]).reshape(-1, 2).tolist()}
         for h in state["history"]
     ]
+    core.phases = [(str(p), int(r)) for p, r in state["phases"]]
+    core.residuals = from_bytes(state["residuals"]).tolist()
     core._allowed = None if state["allowed"] is None else from_bytes(state["allowed"]) > 0
     core._carry = _edges_in(state["carry"])
     core._edges_out = _edges_in(state["edges_out"])
@@ -78,10 +82,10 @@ def load_state(core: AdaptiveGridCore, state: dict[str, Any]) -> None:
         core._sweep.restore(state["sweep"])
     core._sub = None
     if state["sub"] is not None:
-        phase, start, carry, warm = core.phase, core._phase_start, core._carry, core._warm
+        phase, start, carry, warm, phases = core.phase, core._phase_start, core._carry, core._warm, list(core.phases)
         core._enter_admm()  # rebuild with the same data and parameters, then resume exactly
         core._sub.restore(state["sub"])
-        core.phase, core._phase_start, core._carry, core._warm = phase, start, carry, warm
+        core.phase, core._phase_start, core._carry, core._warm, core.phases = phase, start, carry, warm, phases
     if core.phase == "done":
         core.finished = True
 
