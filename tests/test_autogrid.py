@@ -461,8 +461,11 @@ def test_sweep_solves_every_candidate_and_fold_in_one_pass(sweep_runs):
 
 
 def _sweep_params(spec, **kw):
+    # no refinement: the seed's refinement orders lattice nodes by |f| of a sweep iterate, whose
+    # last bits (and stop round) are not scale-invariant, so x1000 could swap a near tie at the
+    # budget's cut; the level-0 lattice is (test_sigma_sweep_is_scale_free)
     return AutoGridParams(
-        diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=1, **kw
+        diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0, **kw
     )
 
 
