@@ -15,6 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from agents.kernel import GridBasis
+from protocol.frames import MAX_DIM
 
 #: sigma = (diagonal of the data's bounding box) / SIGMA_DIVISOR
 SIGMA_DIVISOR = 8.0
@@ -90,6 +91,8 @@ class AutoGridParams:
             raise ValueError(f"solid_raster must be at least 8, got {self.solid_raster}")
         if not 0 < self.relax < 2:
             raise ValueError(f"relax must be in (0, 2), got {self.relax}")
+        if self.dim > MAX_DIM:
+            raise ValueError(f"max_points {self.max_points}: frames of {self.dim} numbers exceed MAX_DIM={MAX_DIM}")
 
     @property
     def dim(self) -> int:
