@@ -321,6 +321,10 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     if result["history"]:
         report.plot_convergence(out / "convergence.png", result["history"])
         written.append("convergence.png")
+    elif not spec.fixed_grid and robots and robots[0].get("residuals"):
+        hist = report.autogrid_progress(robots[0], result["robots"][0].get("function_error"))
+        report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases"))
+        written.append("convergence.png")
     first = next((r for r in robots if r.get("trace")), None)
     if spec.algorithm == "ct-admm" and first is not None:
         from launcher.trajectory import plot_trajectory, trajectory_from_trace
@@ -358,13 +362,14 @@ def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], 
 
 
 def _round_budget(spec: Any) -> int:
-    """Rounds the run may take: the cap, or for ct-admm the stop time in periods."""
+    """Rounds the run is planned to take: the cap, for ct-admm the stop time in periods, for
+    autogrid its phases' planned rounds (AutoGridParams.planned_rounds, not the 50,000 cap)."""
     if spec.algorithm == "ct-admm":
         from agents.ct_admm import CTADMMParams
 
         return CTADMMParams.from_params(spec.params).rounds
     if spec.algorithm == "autogrid":
-        return spec.autogrid_params.max_total_rounds
+        return spec.autogrid_params.planned_rounds
     return int(spec.params["max_rounds"])
 
 
@@ -442,10 +447,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         TimeElapsedColumn(),
         transient=True,
     ) as bar:
-        task = bar.add_task(f"{spec.n_robots} robots, {spec.algorithm}", total=_round_budget(spec), residual="-")
+        planned = _round_budget(spec)
+        task = bar.add_task(f"{spec.n_robots} robots, {spec.algorithm}", total=planned, residual="-")
 
         def progress(rnd: int, residual: float) -> None:
-            bar.update(task, completed=rnd, residual=f"{residual:.2e}")
+            # autogrid's plan is an estimate: the bar grows past it rather than stopping at 100 %
+            bar.update(task, completed=rnd, total=max(planned, rnd), residual=f"{residual:.2e}")
 
         try:
             outcome = simulate_fleet(spec, progress=progress)

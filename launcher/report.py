@@ -178,7 +178,7 @@ def build_result(
         iou = min(ious)
     robot_rows = []
     for r, (c, g) in zip(robots, fs, strict=True):
-        row = {k: v for k, v in r.items() if k not in ("trace", "x", "round_times")}
+        row = {k: v for k, v in r.items() if k not in ("trace", "x", "round_times", "residuals")}
         row.update(id=int(r["id"]), c=c.tolist(), gamma=g)
         if central.solved:
             row["function_error"] = basis.function_error(c, g, central.c, central.gamma)
@@ -222,7 +222,7 @@ def build_result(
 
 # -- autogrid: every robot measured on its own final grid and sigma -----------------------------
 #: what autogrid adds at the top level of result.json, taken from robot 0's result
-AUTOGRID_FIELDS = ("sigma_reason", "sigma_validation", "grid_history", "margin", "message")
+AUTOGRID_FIELDS = ("sigma_reason", "sigma_validation", "grid_history", "margin", "message", "phases")
 
 
 @dataclass(frozen=True)
@@ -250,7 +250,8 @@ def autogrid_references(
     robots: list[dict[str, Any]], points: np.ndarray, labels: np.ndarray, *, C: float | None, soft_C: float
 ) -> dict[int, Reference]:
     """Per robot id with a function: the central solve of (points, labels) on its final grid and
-    sigma, with its margin's penalty. Robots that agree share one solve."""
+    sigma, with its margin's penalty. Robots that agree share one solve. The solve is exact only
+    when K_G keeps full numerical rank (basis.rank == M): `reference_exact` says so."""
     solved: dict[tuple[bytes, float, float | None], Reference] = {}
     out: dict[int, Reference] = {}
     for r in robots:
@@ -265,8 +266,14 @@ def autogrid_references(
     return out
 
 
+def reference_exact(ref: Reference | None) -> bool:
+    """True when the central solve dropped no eigenvalue of K_G (rank M): the exact QP optimum."""
+    return ref is not None and ref.basis.rank == ref.basis.size
+
+
 def robots_agree(robots: list[dict[str, Any]]) -> bool:
-    """Every robot ended with the same grid, sigma, margin and (c, gamma), bit for bit."""
+    """Every robot ended with the same grid, sigma, margin and (c, gamma), bit for bit. After the
+    flood this holds by construction; `disagreement_before_flood` is the measured agreement."""
     if not robots or not all(has_function(r) for r in robots):
         return False
     first = robots[0]
@@ -285,6 +292,12 @@ def _autogrid_pair_error(a: dict[str, Any], b: dict[str, Any], references: dict[
         return float("inf")
     return ra.basis.function_error(np.asarray(a["c"], dtype=float), float(a["gamma"]),
                                    np.asarray(b["c"], dtype=float), float(b["gamma"]))
+
+
+def disagreement_before_flood(robots: list[dict[str, Any]]) -> float | None:
+    """The largest relative gap between neighbours the robots measured before the last flood."""
+    gaps = [r.get("disagreement_before_flood") for r in robots]
+    return None if not gaps or any(g is None for g in gaps) else float(max(gaps))
 
 
 def build_autogrid_result(
@@ -308,7 +321,7 @@ def build_autogrid_result(
     ref0 = references.get(int(first["id"])) if with_f else None
     rows, errors, accuracies, ious = [], [], [], []
     for r in robots:
-        row = {k: v for k, v in r.items() if k not in ("trace", "x", "round_times")}
+        row = {k: v for k, v in r.items() if k not in ("trace", "x", "round_times", "residuals")}
         row["id"] = int(r["id"])
         ref = references.get(int(r["id"]))
         if ref is not None:
@@ -322,9 +335,10 @@ def build_autogrid_result(
                 errors.append(row["function_error"])
         rows.append(row)
     agree = robots_agree(robots)
+    gap = disagreement_before_flood(robots)
     consensus = float("nan")
-    if agree:
-        consensus = 0.0
+    if agree:  # identical after the flood by construction: report what was measured before it
+        consensus = float("nan") if gap is None else gap
     elif ref0 is not None and all(references.get(int(r["id"])) is not None and references[int(r["id"])].basis is ref0.basis for r in robots):
         fs = [(np.asarray(r["c"], dtype=float), float(r["gamma"])) for r in robots]
         consensus = _errors(ref0.basis, fs, ref0.central)[1]
@@ -341,6 +355,13 @@ def build_autogrid_result(
         "grid": first.get("grid") or [],
         "grid_bounds": list(world.bounds),
         "robots_agree": agree,
+        "disagreement_before_flood": _num(gap) if gap is not None else None,
+        "reference_exact": reference_exact(ref0),
+        "reference_note": (
+            None if ref0 is None or reference_exact(ref0) else
+            f"K_G has numerical rank {ref0.basis.rank} < M = {ref0.basis.size}: the central solve drops "
+            "eigenvalues, the reference (and function_error) is not measured against the exact QP optimum"
+        ),
         **{k: first.get(k) for k in AUTOGRID_FIELDS},
         "robots": rows,
         "central": {
@@ -439,8 +460,14 @@ def plot_shapes(
     plt.close(fig)
 
 
-def plot_convergence(path: Path, hist: list[dict[str, Any]], tol: float | None = None) -> None:
-    """Function error and consensus error against rounds, log scale."""
+def plot_convergence(
+    path: Path,
+    hist: list[dict[str, Any]],
+    tol: float | None = None,
+    phases: list[tuple[str, int]] | None = None,
+) -> None:
+    """Function error, consensus error and (autogrid) the ADMM residual against rounds, log
+    scale; autogrid's phase boundaries as vertical lines labelled with the phase."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -448,18 +475,37 @@ def plot_convergence(path: Path, hist: list[dict[str, Any]], tol: float | None =
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
     rounds = [h["round"] for h in hist]
-    for key, label in (("function_error", "function error vs central"), ("consensus_error", "consensus error")):
-        vals = [h[key] if h[key] is not None and h[key] > 0 else np.nan for h in hist]
-        if not np.all(np.isnan(vals)):
-            ax.semilogy(rounds, vals, label=label)
-    ax.axhline(1e-3, color="grey", ls=":", lw=1, label="1e-3")
+    for key, label in (
+        ("function_error", "function error vs central"),
+        ("consensus_error", "consensus error"),
+        ("residual", "ADMM residual (sweep: its largest)"),
+    ):
+        vals = [h.get(key) if h.get(key) is not None and h[key] > 0 else np.nan for h in hist]
+        if hist and not np.all(np.isnan(vals)):
+            single = int(np.sum(~np.isnan(vals))) == 1  # autogrid: the final error only
+            ax.semilogy(rounds, vals, label=label, lw=1, marker="o" if single else None)
+    ax.axhline(1e-3 if tol is None else tol, color="grey", ls=":", lw=1, label=f"{1e-3 if tol is None else tol:g}")
+    for name, start in phases or []:
+        if name in ("validate", "admm", "seed", "done"):
+            ax.axvline(start, color="tab:red", lw=0.6, alpha=0.5)
+            ax.text(start, 1.0, f" {name}", rotation=90, va="top", fontsize=7, transform=ax.get_xaxis_transform())
     ax.set_xlabel("round")
     ax.set_ylabel("error")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def autogrid_progress(robot: dict[str, Any], function_error: float | None) -> list[dict[str, Any]]:
+    """Per round of one autogrid robot: its residual (nan outside ADMM rounds); the last round
+    also carries the final function error against the central solve."""
+    res = robot.get("residuals") or []
+    hist = [{"round": k + 1, "residual": r} for k, r in enumerate(res)]
+    if hist and function_error is not None:
+        hist[-1]["function_error"] = function_error
+    return hist
 
 
 # -- terminal ---------------------------------------------------------------------------------

@@ -1,0 +1,365 @@
+"""Autogrid's parameters and its shared, deterministic rules (pure functions of agreed numbers).
+
+Every function here is computed identically by every robot from numbers the fleet agreed on bit
+for bit (the data box, sigma, the agreed function), so every robot derives the same sigma,
+lattice and refined grid without sending them. See agents/autogrid.py for the phases.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from agents.kernel import GridBasis
+from protocol.frames import MAX_DIM
+
+#: sigma = (diagonal of the data's bounding box) / SIGMA_DIVISOR
+SIGMA_DIVISOR = 8.0
+#: spacing of the coarsest lattice, in units of sigma
+SPACING_RATIO = 1.5
+#: the finest lattice spacing, in units of sigma: below ~0.6 sigma K_G of a full lattice loses
+#: numerical rank at agents.kernel.RCOND (measured: 0.6 sigma, 400 points, rank 399), and a
+#: truncated K_G changes the problem the reference solves
+MIN_SPACING = 0.7
+#: the sweep tally packs (errors, held-out points, not-solid) in one exact integer per slot
+PACK = 2.0**20
+#: slots per (robot, candidate) in the tally: the packed integer and the hinge loss
+TALLY_BLOCKS = 2
+
+
+@dataclass(frozen=True)
+class AutoGridParams:
+    """Everything the robots must agree on (the same on every robot)."""
+
+    diameter: int = 1
+    max_points: int = 300  # budget M_max of grid points
+    max_refinements: int = 4
+    sigma: float | None = None  # None: the scale-free rule; a number: the paper's fixed width
+    sigma_divisor: float = SIGMA_DIVISOR
+    spacing_ratio: float = SPACING_RATIO
+    min_spacing: float = MIN_SPACING  # no lattice finer than min_spacing * sigma (K_G full rank)
+    near_data: float = 1.0  # refine only within near_data * sigma of some robot's data
+    band: float = 1.0  # refine where |f| < band
+    improve_tol: float = 0.02  # stop refining when |x|^2 falls by less than this (relative)
+    min_growth: float = 0.25  # after a hard-margin solve, refine only to add >= this share of the grid
+    max_level: int = 4  # finest lattice: spacing h_0 / 2^max_level (and >= min_spacing * sigma)
+    rho: float = 15.0
+    relax: float = 1.95
+    tol: float = 1e-3
+    hard_rounds: int = 3000  # no convergence within this many rounds: hard margin infeasible
+    soft_rounds: int = 3000
+    soft_C: float = 1e3
+    C: float | None = None  # a number: soft margin from the start (no hard attempt)
+    max_total_rounds: int = 50_000
+    warm_duals: bool = True  # carry the edges' z and lambda onto a refined grid
+    # sigma by held-out validation (only when sigma is None): candidates diag / d for d in
+    # validate_divisors (empty: the fixed rule diag / sigma_divisor); in fold k every robot holds
+    # out its pairs u with u % holdout_every == holdout_every - 1 - k; every candidate and fold is
+    # a soft-margin ADMM (C = soft_C) on its coarse lattice, all solved in the same rounds
+    # (stacked frames), each stopped at validate_tol or validate_rounds
+    validate_divisors: tuple[float, ...] = (4.0, 6.0, 8.0, 12.0, 16.0)
+    holdout_every: int = 5
+    validate_folds: int = 2
+    solid_raster: int = 64  # the solid-region check rasterizes the lattice box at this resolution
+    validate_tol: float = 1e-2
+    validate_rounds: int = 300  # a capped candidate is judged on its iterate (rounds = the slowest task)
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.diameter <= 52:
+            raise ValueError(f"diameter must be in [0, 52] (flag bits carried as exact floats), got {self.diameter}")
+        if self.max_points < 4:
+            raise ValueError(f"max_points must be at least 4, got {self.max_points}")
+        for name in ("sigma_divisor", "spacing_ratio", "min_spacing", "near_data", "band", "rho", "tol", "soft_C"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        for name in ("sigma", "C"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number or None, got {value!r}")
+        if any(not (math.isfinite(d) and d > 0) for d in self.validate_divisors):
+            raise ValueError(f"validate_divisors must be positive numbers, got {self.validate_divisors!r}")
+        if self.holdout_every < 2 or self.validate_rounds < 1:
+            raise ValueError("holdout_every must be >= 2 and validate_rounds >= 1")
+        if not 1 <= self.validate_folds <= self.holdout_every:
+            raise ValueError(f"validate_folds must be in [1, holdout_every], got {self.validate_folds}")
+        if self.solid_raster < 8:
+            raise ValueError(f"solid_raster must be at least 8, got {self.solid_raster}")
+        if not 0 < self.relax < 2:
+            raise ValueError(f"relax must be in (0, 2), got {self.relax}")
+        if self.dim > MAX_DIM:
+            raise ValueError(f"max_points {self.max_points}: frames of {self.dim} numbers exceed MAX_DIM={MAX_DIM}")
+
+    @property
+    def dim(self) -> int:
+        """Length of every frame vector of this fleet: a grid's (x, gamma) with 3 slots, or the
+        sweep's stacked blocks, whichever is longer (at most 16 x (max_points + 1))."""
+        return max(self.max_points + 3, sum(self.sweep_blocks()))
+
+    def sweep_slot(self, divisor: float) -> int:
+        """Grid points of candidate diag/divisor's coarse lattice, at most (any box shape)."""
+        return min(self.max_points, max_lattice_nodes(divisor, self.spacing_ratio))
+
+    def sweep_blocks(self) -> list[int]:
+        """Frame length of each sweep task (candidate-major, then fold): x, gamma, flags."""
+        if not self.validates:
+            return []
+        return [self.sweep_slot(d) + 2 for d in self.validate_divisors for _ in range(self.validate_folds)]
+
+    @property
+    def planned_rounds(self) -> int:
+        """The rounds a run is planned to take (a progress bar's total, not a bound): the phases
+        of fixed length, the sweep at its cap and one solve on the refined grid budgeted like a
+        sweep task."""
+        d = self.diameter
+        solve = self.validate_rounds + 3 * d + 1  # vote, ADMM, flood
+        sweep = d + self.validate_rounds + 2 * d if self.validates else d  # bounds, sweep, tally, seed
+        return min(self.max_total_rounds, sweep + solve)
+
+    @property
+    def validates(self) -> bool:
+        """True when sigma is chosen by the held-out sweep."""
+        return self.sigma is None and len(self.validate_divisors) > 0
+
+    @property
+    def tally_slots(self) -> int:
+        """Robot ids must be below this: the tally has TALLY_BLOCKS slots per (id, candidate)."""
+        return self.dim // (TALLY_BLOCKS * max(1, len(self.validate_divisors)))
+
+    @staticmethod
+    def points_for_robot_ids(highest_id: int) -> int:
+        """The smallest max_points whose (default) sigma-sweep tally has a slot for `highest_id`."""
+        m = 4
+        while AutoGridParams(max_points=m).tally_slots <= highest_id:
+            m += 1 if m < 1000 else m // 10
+        return m
+
+
+def max_lattice_nodes(divisor: float, spacing_ratio: float) -> int:
+    """An upper bound of the level-0 lattice size for sigma = diag / divisor, over every box shape.
+
+    The box is the data box (width diag cos t, height diag sin t) widened by sigma on each side;
+    `lattice` puts ceil(side / h0) + 1 nodes on a side. Sampled finely in t, plus one node per
+    side for the samples in between.
+    """
+    t = np.linspace(0.0, 0.5 * math.pi, 721)
+    sides = [(divisor * np.cos(t) + 2.0) / spacing_ratio, (divisor * np.sin(t) + 2.0) / spacing_ratio]
+    nx, ny = (np.ceil(s - 1e-9) + 2 for s in sides)
+    return int(np.max(nx * ny))
+
+
+def scale_from_bounds(
+    bounds: tuple[float, float, float, float], params: AutoGridParams
+) -> tuple[float, str]:
+    """sigma from the agreed data box, and the reason in words (for result.json)."""
+    x0, x1, y0, y1 = bounds
+    diag = math.hypot(x1 - x0, y1 - y0)
+    if params.sigma is not None:
+        return float(params.sigma), f"fixed sigma = {params.sigma:g} (given)"
+    if not diag > 0:
+        return 1.0, "all data at one point: no scale in the data, sigma = 1"
+    sigma = diag / params.sigma_divisor
+    why = (
+        f"sigma = diag / {params.sigma_divisor:g} = {diag:.6g} / {params.sigma_divisor:g} = {sigma:.6g}, "
+        "diag = diagonal of the data's bounding box agreed by max/min-consensus (scale-free: "
+        "every length of the rule is proportional to diag)"
+    )
+    return sigma, why
+
+
+def lattice_box(bounds: tuple[float, float, float, float], sigma: float) -> tuple[float, float, float, float]:
+    """The region the lattice covers: the data box widened by sigma on each side."""
+    x0, x1, y0, y1 = bounds
+    return (x0 - sigma, x1 + sigma, y0 - sigma, y1 + sigma)
+
+
+def lattice(
+    box: tuple[float, float, float, float], h0: float, level: int, *, with_shape: bool = False
+) -> np.ndarray | tuple[np.ndarray, tuple[int, int]]:
+    """Nodes of the level-`level` lattice (spacing h0 / 2^level) centred on `box`, row-major.
+
+    Level L+1 contains level L: its node 2i is node i of level L.
+    """
+    x0, x1, y0, y1 = box
+    axes = []
+    for lo, hi in ((x0, x1), (y0, y1)):
+        n0 = max(1, int(math.ceil((hi - lo) / h0 - 1e-9))) + 1
+        n = (n0 - 1) * 2**level + 1
+        centre = 0.5 * (lo + hi)
+        axes.append(centre + (np.arange(n) - (n - 1) / 2.0) * (h0 / 2**level))
+    gx, gy = np.meshgrid(axes[0], axes[1])
+    nodes = np.column_stack([gx.ravel(), gy.ravel()])
+    return (nodes, gx.shape) if with_shape else nodes
+
+
+def coarse_lattice(
+    bounds: tuple[float, float, float, float], sigma: float, spacing_ratio: float, budget: int
+) -> tuple[tuple[float, float, float, float], float, np.ndarray]:
+    """(box, h0, level-0 lattice) for sigma, coarsened (h0 doubled) until it fits `budget`."""
+    box = lattice_box(bounds, sigma)
+    h0 = spacing_ratio * sigma
+    grid = lattice(box, h0, 0)
+    while len(grid) > budget:  # keep the budget: coarsen (still scale-free)
+        h0 *= 2.0
+        grid = lattice(box, h0, 0)
+    return box, h0, grid
+
+
+def finest_level(h0: float, sigma: float, params: AutoGridParams) -> int:
+    """The finest lattice level whose spacing h0 / 2^L stays >= min_spacing * sigma."""
+    level = 0
+    while level < params.max_level and h0 / 2 ** (level + 1) >= params.min_spacing * sigma * (1 - 1e-12):
+        level += 1
+    return level
+
+
+def near_data_marks(points: np.ndarray, nodes: np.ndarray, radius: float) -> np.ndarray:
+    """1.0 at the nodes with one of `points` within `radius`, else 0.0 (a robot's own marks)."""
+    if len(points) == 0 or len(nodes) == 0:
+        return np.zeros(len(nodes))
+    return (min_distance(nodes, points) <= radius).astype(float)
+
+
+def refine_grid(
+    grid: np.ndarray,
+    basis: GridBasis,
+    c: np.ndarray,
+    gamma: float,
+    box: tuple[float, float, float, float],
+    h0: float,
+    level: int,
+    params: AutoGridParams,
+    allowed: np.ndarray | None = None,
+    min_new: int = 1,
+) -> tuple[np.ndarray, int]:
+    """The refined grid from f alone: (old grid + chosen nodes, the lattice level used).
+
+    Candidates are the nodes of the lattice levels from max(level, 1) to the finest the kernel
+    can use (`finest_level`) that are not already in the grid (within a quarter spacing), lie
+    in a level-0 cell the fleet marked as near data (`allowed`, one flag per level-0 node: the
+    cell of the nearest node) and near the zero level set: in the margin band |f| < band, or
+    next to a lattice neighbour where f has the other sign. The closest to the zero level set
+    (smallest |f|) come first, ties by lattice index, within the budget of points (all of
+    them at once: the finest level the kernel can use is usually level 1). A refined grid whose K_G would lose numerical rank is refused. Returns the grid
+    unchanged when there is nothing to add.
+    """
+    room = params.max_points - len(grid)
+    if room <= 0:
+        return grid, level
+    coarse = lattice(box, h0, 0)
+    for lv in range(max(level, 1), finest_level(h0, basis.sigma, params) + 1):
+        nodes, shape = lattice(box, h0, lv, with_shape=True)
+        near = min_distance(nodes, grid) < 0.25 * h0 / 2**lv
+        if allowed is not None and len(allowed) == len(coarse):
+            near |= ~allowed[np.argmin(_sq_distances(nodes, coarse), axis=1)]
+        f = basis.decision(nodes, c, gamma)
+        pick = np.flatnonzero(~near & ((np.abs(f) < params.band) | _crossing(f.reshape(shape)).ravel()))
+        if len(pick) < min_new:
+            continue
+        order = pick[np.lexsort((pick, np.abs(f[pick])))][:room]
+        new = np.vstack([grid, nodes[np.sort(order)]])
+        if GridBasis(new, basis.sigma).rank < len(new):
+            return grid, level
+        return new, lv
+    return grid, level
+
+
+def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridParams) -> tuple[float, str]:
+    """The sweep's rule, the same on every robot (`records` are the fleet-wide tallies).
+
+    1. Keep the candidates whose learned inside region is one solid piece on every robot and in
+       every fold (one connected component, no holes): the object is a solid seen from outside,
+       and a too-narrow kernel betrays itself by holes and islands where there are no data.
+       If no candidate is solid, keep them all.
+    2. Among those, the fewest held-out errors; ties -> the smaller sigma (it follows the outline
+       more closely; step 1 guards against the narrow widths that break the region up).
+    Returns (sigma, reason in words).
+    """
+    solid = [r for r in records if r["solid"]]
+    pool = solid or records
+    best = min(pool, key=lambda r: (r["errors"], r["sigma"]))
+    held = best["held_out"]
+    ties = [r for r in pool if r["errors"] == best["errors"]]
+    table = ", ".join(
+        f"diag/{r['divisor']:g}: {r['errors']}" + ("" if r["solid"] else " (not solid)") for r in records
+    )
+    folds = min(params.validate_folds, params.holdout_every)
+    why = (
+        f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: "
+        + (f"of the {len(solid)} candidates whose inside region is one solid piece (no holes, no islands), "
+           if solid else "no candidate gave a solid inside region; of all candidates, ")
+        + f"fewest held-out errors ({best['errors']}/{held})"
+        + (f" (tied with {len(ties) - 1}, the smaller sigma wins)" if len(ties) > 1 else "")
+        + f"; held-out errors {table}; {folds} fold(s), each robot holding out every "
+        f"{params.holdout_every}th of its (inside point, nearest outside point) pairs; every candidate and "
+        f"fold a soft-margin ADMM (C = {params.soft_C:g}) on its coarse lattice, all solved in the same "
+        f"rounds, errors summed exactly by max-consensus over one slot per robot id; diag = {diag:.6g} = "
+        "diagonal of the data's bounding box (scale-free: every candidate is proportional to diag)"
+    )
+    return float(best["sigma"]), why
+
+
+def holdout_units(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Unit index of every point for the held-out folds (-1: never held out).
+
+    A unit is an inside point (in data order) with its nearest outside point of the same robot:
+    a LiDAR return's two sides, so a held-out unit removes a whole piece of the outline rather
+    than leaving its twin 0.6 away in the training set. A robot without inside points uses its
+    points one by one. Ties in distance go to the first outside point.
+    """
+    n = len(labels)
+    units = np.full(n, -1, dtype=int)
+    inside = np.flatnonzero(labels < 0)
+    outside = np.flatnonzero(labels > 0)
+    if len(inside) == 0 or len(outside) == 0:
+        units[:] = np.arange(n)
+        return units
+    for u, i in enumerate(inside):
+        units[i] = u
+        j = outside[int(np.argmin(np.sum((points[outside] - points[i]) ** 2, axis=1)))]
+        if units[j] < 0:
+            units[j] = u
+    return units
+
+
+def is_solid(inside: np.ndarray) -> bool:
+    """True when a raster's inside cells form one 4-connected piece with no enclosed hole."""
+    if not inside.any():
+        return False
+    _, pieces = ndimage.label(inside)
+    outside, n_out = ndimage.label(~inside)
+    rim = np.concatenate([outside[0], outside[-1], outside[:, 0], outside[:, -1]])
+    touching = set(np.unique(rim).tolist()) - {0}
+    return pieces == 1 and n_out == len(touching)
+
+
+def solid_on_raster(basis: GridBasis, c: np.ndarray, gamma: float, box: tuple[float, float, float, float], r: int) -> bool:
+    """`is_solid` of the learned inside region {f < 0} on an r x r raster of `box`."""
+    x0, x1, y0, y1 = box
+    gx, gy = np.meshgrid(np.linspace(x0, x1, r), np.linspace(y0, y1, r))
+    f = basis.decision(np.column_stack([gx.ravel(), gy.ravel()]), c, gamma)
+    return is_solid((f < 0).reshape(r, r))
+
+
+def _crossing(f: np.ndarray) -> np.ndarray:
+    """Nodes with a 4-neighbour of the other sign (the zero level set passes next to them)."""
+    s = f > 0
+    out = np.zeros_like(s)
+    out[:, 1:] |= s[:, 1:] != s[:, :-1]
+    out[:, :-1] |= s[:, 1:] != s[:, :-1]
+    out[1:, :] |= s[1:, :] != s[:-1, :]
+    out[:-1, :] |= s[1:, :] != s[:-1, :]
+    return out
+
+
+def _sq_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=2)
+
+
+def min_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from every row of `a` to the nearest row of `b`."""
+    return np.sqrt(_sq_distances(a, b).min(axis=1))

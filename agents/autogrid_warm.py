@@ -1,0 +1,74 @@
+"""Warm starts of autogrid's ADMM sub-machines: a given first iterate, and edge state carried
+from a coarser grid (exact on the superset lattice).
+
+On a grid G' that contains G (new nodes appended), the function with c' = [c; 0] is the same
+function, so in the preconditioned variable x = K_G^{1/2} c the primal maps by
+    P = K_G'^{1/2} E K_G^{-1/2}            (E = [I; 0], the embedding of c)
+and a dual lambda (paired with x: lambda' x = (K_G^{1/2} lambda)' c) maps by
+    Q = K_G'^{-1/2} E K_G^{1/2}            so that (Q lambda)' (P x) = lambda' x.
+Both ends of an edge apply the same matrices to the same (z, lambda), so their copies stay equal
+bit for bit and lambda_lj = -lambda_jl -- the sum-of-duals-zero invariant -- holds on every edge.
+The offset gamma is the same variable on both grids and is carried unchanged.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from agents.admm import ConsensusADMM
+from agents.kernel import GridBasis
+
+
+class WarmADMM(ConsensusADMM):
+    """ConsensusADMM whose round 0 is a given (x, gamma) instead of the robot's own solution,
+    optionally with every edge's (z, lambda) given too (`edges`: neighbour -> (z, lambda)).
+
+    Round 0's edge update (relaxation 1) sets z to the midpoint of the two ends' starts and adds
+    rho (v_low - z) to lambda: from a common start that keeps the carried lambda as it is.
+    """
+
+    def __init__(
+        self,
+        *args: Any,
+        start: np.ndarray | None = None,
+        edges: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+        **kwargs: Any,
+    ) -> None:
+        self._start = None if start is None else np.asarray(start, dtype=float).copy()
+        self._carry = edges or {}
+        super().__init__(*args, **kwargs)
+
+    def _local_step(self) -> np.ndarray:
+        for j, (z, lam) in self._carry.items():
+            edge = self._edges.get(j)
+            if edge is not None and len(z) == len(edge.z):
+                edge.z, edge.lam = np.array(z, dtype=float), np.array(lam, dtype=float)
+        self._carry = {}
+        if self._start is not None and self.neighbours:  # a lone robot solves it all at round 0
+            return self._start.copy()
+        return super()._local_step()
+
+
+def superset_maps(old: GridBasis, new: GridBasis) -> tuple[np.ndarray, np.ndarray]:
+    """(P, Q): the primal and dual maps from `old`'s x to `new`'s x (new grid = old + appended)."""
+    m_old, m_new = old.size, new.size
+    if not np.array_equal(new.grid[:m_old], old.grid):
+        raise ValueError("the new grid must start with the old grid (a superset in the same order)")
+    P = new.sqrt[:, :m_old] @ old.inv_sqrt
+    Q = new.inv_sqrt[:, :m_old] @ old.sqrt
+    return P, Q
+
+
+def carry_vector(v: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """(x, gamma) -> (M x, gamma)."""
+    return np.append(M @ v[:-1], v[-1])
+
+
+def carry_edges(
+    edges: dict[int, Any], old: GridBasis, new: GridBasis
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Every edge's (z, lambda) of a ConsensusADMM on `old`, expressed on `new`."""
+    P, Q = superset_maps(old, new)
+    return {j: (carry_vector(e.z, P), carry_vector(e.lam, Q)) for j, e in edges.items()}
