@@ -509,6 +509,17 @@ class AdaptiveGridCore(RoundCore):
         by its stopping rule (not by a round cap)."""
         return self.phase == DONE and self._agreed and not self._capped
 
+    def divergence(self) -> str | None:
+        """Only the functions being solved can diverge (the sweep's tasks or the current ADMM);
+        bounds, tallies, flags and the flood are bookkeeping of finite agreed numbers."""
+        if self._sweep is not None:
+            for t in self._sweep.tasks:
+                why = t.sub.divergence()
+                if why is not None:
+                    return f"sigma sweep (diag/{t.divisor:g}, fold {t.fold}): {why}"
+            return None
+        return None if self._sub is None else self._sub.divergence()
+
     def function(self) -> tuple[np.ndarray, np.ndarray, float]:
         """(grid, c, gamma) of the agreed function (after the run) or of the current iterate."""
         if self.phase == DONE:

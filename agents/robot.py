@@ -58,6 +58,7 @@ import msgpack
 import numpy as np
 
 from agents.problem import InfeasibleError, SolverError
+from agents.rounds import DIVERGED_ABS, check_iterate
 from protocol.frames import Decoded, FrameDecoder, StateUpdate, encode_state
 from protocol.keys import alive_key, alive_wildcard, state_key
 from protocol.links import LinkLayer
@@ -95,22 +96,6 @@ LINGER_RETRANSMITS = 5
 # waiting for a paused or partitioned robot), unless spec.timing has its own give_up_s.
 GIVE_UP_FACTOR = 10.0
 CONNECTED_POLL_S = 0.2  # how often a stalled robot asks Zenoh whether it still has a router
-# An iterate this large is taken as divergence: the function values are O(1)-O(100) in any sane
-# problem; far beyond that float64 arithmetic is about to lose every digit (the issue saw 1e77).
-DIVERGED_ABS = 1e12
-
-
-def check_iterate(values: np.ndarray) -> str | None:
-    """Why ``values`` (x, gamma) cannot be a result (non-finite or exploding), or None."""
-    v = np.asarray(values, dtype=float)
-    if not np.all(np.isfinite(v)):
-        return "non-finite iterate (NaN or inf)"
-    big = float(np.max(np.abs(v))) if v.size else 0.0
-    if big > DIVERGED_ABS:
-        return f"exploding iterate (largest component {big:.3g} > {DIVERGED_ABS:g})"
-    return None
-
-
 def _finite(obj: Any) -> Any:
     """JSON-safe copy: non-finite floats (e.g. an initial residual of inf) become None."""
     if isinstance(obj, float):
@@ -526,7 +511,7 @@ class RobotShell:
             self.error = f"robot {self.me} round {self.core.round}: local solver failed: {exc}"
             log.error("%s", self.error)
             return "solver_error"
-        why = check_iterate(update.values)
+        why = self.core.divergence()
         if why is not None:
             self.error = f"robot {self.me} round {update.round}: diverged: {why}"
             log.error("%s", self.error)

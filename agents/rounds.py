@@ -26,6 +26,20 @@ import numpy as np
 from protocol.frames import StateUpdate
 
 _TINY = 1e-12
+# An iterate this large is taken as divergence: the function values are O(1)-O(100) in any sane
+# problem; far beyond that float64 arithmetic is about to lose every digit (the issue saw 1e77).
+DIVERGED_ABS = 1e12
+
+
+def check_iterate(values: np.ndarray) -> str | None:
+    """Why ``values`` (x, gamma) cannot be a result (non-finite or exploding), or None."""
+    v = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(v)):
+        return "non-finite iterate (NaN or inf)"
+    big = float(np.max(np.abs(v))) if v.size else 0.0
+    if big > DIVERGED_ABS:
+        return f"exploding iterate (largest component {big:.3g} > {DIVERGED_ABS:g})"
+    return None
 
 
 def to_bytes(a: np.ndarray | None) -> bytes | None:
@@ -183,6 +197,14 @@ class RoundCore:
     def values(self) -> np.ndarray:
         """The current (x, gamma)."""
         return self._values.copy()
+
+    def divergence(self) -> str | None:
+        """Why the current function cannot be a result (non-finite or exploding), or None.
+
+        The shells ask the core rather than inspect frames: a frame may carry more than a function
+        (autogrid's stacked sweep holds stop flags as floats), and only the algorithm knows which
+        part is the function."""
+        return check_iterate(self.values)
 
     def status(self) -> dict[str, Any]:
         return {

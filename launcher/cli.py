@@ -164,7 +164,7 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     )
     model.add_argument(
         "--max-grid-points", metavar="N", default=str(d.max_grid_points),
-        help=f"autogrid: budget of grid points, at least 4 (default {d.max_grid_points}); frames carry N + 2 numbers",
+        help=f"autogrid: budget of grid points, at least 4 (default {d.max_grid_points}); frames grow with it",
     )
     algo = p.add_argument_group("fleet and algorithm")
     algo.add_argument("--topology", default=d.topology, help=f"{' | '.join(topology.TOPOLOGIES)} (default {d.topology})")

@@ -44,12 +44,12 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     ),
     "faults": ("delay", "jitter", "loss", "duplicate", "reorder", "retransmit"),
     "fleet": ("fleet-id", "dead-after", "max-wall"),
-    "launch": ("crash", "restart-after", "no-restart", "zenoh-port"),
+    "launch": ("crash", "restart-after", "no-restart", "zenoh-port", "max-robots"),
 }
 SECTION_OF = {key: section for section, keys in SECTIONS.items() for key in keys}
 
 # TOML types each key accepts (besides what the flag's own parser then checks)
-_INT = ("robots", "points", "seed", "max-rounds", "zenoh-port", "max-grid-points")
+_INT = ("robots", "points", "seed", "max-rounds", "zenoh-port", "max-grid-points", "max-robots")
 _FLOAT = ("standoff", "range", "offset", "noise", "sigma", "C", "comm-range", "rho", "relax", "tol", "restart-after")
 _DURATION = ("delay", "jitter", "retransmit", "dead-after", "max-wall", "ct-step", "ct-period", "ct-stop-time")
 _PROBABILITY = ("loss", "duplicate", "reorder")

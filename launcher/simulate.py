@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from agents.problem import InfeasibleError, SolverError
-from agents.robot import check_iterate
 from agents.spec import FleetSpec, build_core
 from protocol.frames import Decoded, FrameDecoder, encode_state
 from protocol.links import LinkLayer
@@ -109,7 +108,7 @@ def simulate_fleet(
                     update = r.core.advance()
                 except (SolverError, InfeasibleError, FloatingPointError) as exc:
                     raise FleetFailure(f"robot {rid} round {r.core.round}: local solver failed: {exc}") from None
-                why = check_iterate(update.values)
+                why = r.core.divergence()
                 if why is not None:
                     raise FleetFailure(f"robot {rid} round {update.round}: diverged: {why}")
                 r.round_times[r.core.round] = now

@@ -255,6 +255,6 @@ def _check_autogrid(opts: Options, spec: FleetSpec) -> None:
         need = AutoGridParams.points_for_robot_ids(max(ids))
         raise scenario.ScenarioError(
             f"--max-grid-points: {opts.max_grid_points} leaves room for robot ids below {params.tally_slots} in the "
-            f"fleet's sigma vote (a few slots per robot in frames of max-grid-points + 2 numbers); robot {max(ids)} "
+            f"fleet's sigma vote (one tally slot per robot id, in frames sized by max-grid-points); robot {max(ids)} "
             f"needs --max-grid-points {need} or more, or give --sigma"
         )
