@@ -600,3 +600,31 @@ def test_warm_start_maps_are_exact_on_the_superset_grid():
     a, b = carry_edges({1: Edge()}, old, new), carry_edges({0: Edge()}, old, new)
     assert np.array_equal(a[1][1], b[0][1]) and np.array_equal(a[1][0], b[0][0])
     assert a[1][1][-1] == -1.0 and a[1][0][-1] == 0.3  # gamma carried unchanged
+
+
+def test_sigma_sweep_tallies_match_independent_central_solves(sweep_runs):
+    """The fleet's held-out error counts, checked against a count made without the fleet: for
+    every candidate and fold, one central soft-margin solve (C = soft_C) on the training points of
+    all robots on the candidate's coarse lattice, its sign on the held-out points. The fleet stops
+    its sweep at validate_tol, so a held-out point within 0.05 of the decision boundary may land
+    on either side; every other point must be counted the same."""
+    from agents.autogrid_rules import coarse_lattice
+    from agents.autogrid_sweep import held_mask
+
+    world, robots, params, cores, _ = sweep_runs
+    first = cores[0]
+    for record in first.sigma_validation:
+        sigma = first._diag / record["divisor"]  # the candidate, from the agreed data box
+        _, _, grid = coarse_lattice(first.bounds, sigma, params.spacing_ratio, params.sweep_slot(record["divisor"]))
+        basis = GridBasis(grid, sigma)
+        errors, ambiguous = 0, 0
+        for fold in range(params.validate_folds):
+            held = {i: held_mask(holdout_units(p, y), fold, params) for i, (_, p, y) in robots.items()}
+            train_p = np.vstack([p[~held[i]] for i, (_, p, _y) in robots.items()])
+            train_y = np.concatenate([y[~held[i]] for i, (_, _p, y) in robots.items()])
+            central = solve_central(basis, train_p, train_y, C=params.soft_C)
+            for i, (_, p, y) in robots.items():
+                yf = y[held[i]] * basis.decision(p[held[i]], central.c, central.gamma)
+                errors += int(np.sum(yf <= 0))
+                ambiguous += int(np.sum(np.abs(yf) < 0.05))
+        assert abs(record["errors"] - errors) <= ambiguous, (record, errors, ambiguous)
