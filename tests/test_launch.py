@@ -489,8 +489,10 @@ def test_time_bound_stops_robots_and_keeps_their_results(tmp_path, monkeypatch):
 
 @bound(30)
 def test_ctrl_c_stops_every_process(tmp_path):
-    _world, spec, _central = _run(tol=1e-9, max_rounds=100000, faults=LinkFaults(delay=0.01),
-                                  fleet_id="launch-ctrl-c")
+    # a ring of 4 runs the plain edge form: thousands of rounds at 10 ms each, still running when
+    # Ctrl-C comes (a complete graph's accelerated ADMM could finish first)
+    _world, spec, _central = _run(robots=4, topology="ring", tol=1e-9, max_rounds=100000,
+                                  faults=LinkFaults(delay=0.01), fleet_id="launch-ctrl-c")
     started: list[int] = []
 
     def interrupt(signum, frame):
@@ -505,28 +507,35 @@ def test_ctrl_c_stops_every_process(tmp_path):
         started.append(proc.pid)
         return proc
 
+    done = threading.Event()
+
     def interrupt_when_running() -> None:
         """Ctrl-C once every robot has checkpointed a round (a fixed delay fails on a loaded
-        machine, where a robot may still be importing when it is asked to stop)."""
+        machine, where a robot may still be importing when it is asked to stop). Never after
+        the test: a late SIGALRM would land in whatever test runs next."""
         end = time.monotonic() + 25
-        while time.monotonic() < end:
+        while time.monotonic() < end and not done.is_set():
             if all((tmp_path / "fleet" / f"robot-{i}.ckpt").exists() for i in spec.robot_ids):
                 break
             time.sleep(0.05)
-        signal.pthread_kill(threading.main_thread().ident, signal.SIGALRM)
+        if not done.is_set():
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGALRM)
 
     previous = signal.signal(signal.SIGALRM, interrupt)
     fleet_mod._spawn = spawn
+    watcher = threading.Thread(target=interrupt_when_running, daemon=True)
     try:
-        threading.Thread(target=interrupt_when_running, daemon=True).start()
+        watcher.start()
         with pytest.raises(KeyboardInterrupt):
             launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
                          zenoh_port=None, progress=False)
     finally:
+        done.set()
+        watcher.join()
         fleet_mod._spawn = real_spawn
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
-    assert len(started) == 4  # router + 3 robots
+    assert len(started) == 1 + spec.n_robots  # the router and every robot
     _assert_gone(started)
     # the robots were asked to stop (SIGTERM) and said so in their results
     for i in spec.robot_ids:
