@@ -9,6 +9,10 @@ Bounds are always ``(x0, x1, y0, y1)`` -- the order of ``--grid-bounds`` -- neve
 
 Sizes follow the paper: the Gaussian kernel has sigma = 1, so the built-in objects are about
 4 units wide and 2-3 tall, centred (centroid) at the origin, and a 5x3 grid can describe them.
+
+The world's lengths (robot standoff, LiDAR range, label offset, range noise, radio range) follow
+the object's size, so an outline in millimetres gives the data of the same outline in metres,
+scaled: see :func:`world_lengths` and :data:`REFERENCE_LENGTH`.
 """
 
 from __future__ import annotations
@@ -139,6 +143,130 @@ def shape_bounds(shape: Polygon) -> tuple[float, float, float, float]:
     """The shape's bounding box as (x0, x1, y0, y1)."""
     minx, miny, maxx, maxy = shape.bounds
     return (float(minx), float(maxx), float(miny), float(maxy))
+
+
+# ---------------------------------------------------------------------------------------------
+# world lengths: the simulated world scales with the object
+
+#: the characteristic length the paper's world lengths below were chosen for: the built-in shapes'
+#: nominal size (about 4 by 3, a diagonal of 5; measured diagonals 4.4 to 5.3)
+REFERENCE_LENGTH = 5.0
+#: the world's lengths for an object of characteristic length REFERENCE_LENGTH (today's and the
+#: paper's values): key = the flag without dashes
+REFERENCE_LENGTHS: dict[str, float] = {
+    "standoff": 1.5,  # robot distance from the object's convex hull
+    "range": 4.0,  # LiDAR range
+    "offset": 0.3,  # labelled points before / past a LiDAR return
+    "noise": 0.01,  # standard deviation of the LiDAR range noise
+    "comm-range": 8.0,  # radio range of the geometric topology
+}
+
+
+@dataclass(frozen=True)
+class WorldLengths:
+    """The lengths of one run's world, in the outline's unit, and where they come from.
+
+    ``length`` is the characteristic length the defaults follow and ``basis`` says what it is
+    ("built-in shape", "outline diagonal" or "data diagonal"); ``given`` names the flags the
+    person gave (kept as given, in the outline's unit). A length the run does not use is None
+    (the LiDAR's with a data file, the radio range outside the geometric topology).
+    """
+
+    length: float
+    basis: str
+    standoff: float | None
+    lidar_range: float | None
+    offset: float | None
+    noise: float | None
+    comm_range: float | None
+    given: tuple[str, ...] = ()
+
+    @property
+    def scale(self) -> float:
+        """How much larger than the reference world this one is (1 for the built-in shapes)."""
+        return self.length / REFERENCE_LENGTH
+
+    def as_dict(self) -> dict[str, object]:
+        """The ``world`` object of result.json (docs/result-schema.md)."""
+        return {
+            "length": self.length,
+            "basis": self.basis,
+            "scale": self.scale,
+            "standoff": self.standoff,
+            "range": self.lidar_range,
+            "offset": self.offset,
+            "noise": self.noise,
+            "comm_range": self.comm_range,
+            "given": list(self.given),
+        }
+
+
+def characteristic_length(shape: Polygon | None = None, points: np.ndarray | None = None) -> float:
+    """The size the world's default lengths follow: the diagonal of the bounding box.
+
+    Of the outline if one is given, else of the points (a data file). Built-in shapes do not
+    come here: theirs is REFERENCE_LENGTH by definition (see :func:`builtin_length`).
+    """
+    if shape is not None:
+        minx, miny, maxx, maxy = shape.bounds
+    elif points is not None and len(points):
+        points = np.asarray(points, dtype=np.float64)
+        (minx, miny), (maxx, maxy) = points.min(axis=0), points.max(axis=0)
+    else:
+        raise ScenarioError("characteristic_length needs an outline or points")
+    return float(math.hypot(maxx - minx, maxy - miny))
+
+
+def builtin_length(name: str) -> float | None:
+    """REFERENCE_LENGTH for a built-in shape's name (so it keeps the paper's lengths exactly), else None."""
+    return REFERENCE_LENGTH if name in SHAPES else None
+
+
+def world_lengths(
+    length: float,
+    basis: str,
+    *,
+    standoff: float | None = None,
+    lidar_range: float | None = None,
+    offset: float | None = None,
+    noise: float | None = None,
+    comm_range: float | None = None,
+    lidar: bool = True,
+    radio: bool = True,
+) -> WorldLengths:
+    """The lengths of a world of characteristic `length`: each one given, or its reference value
+    times ``length / REFERENCE_LENGTH``.
+
+    The ratio multiplies the reference value (not a precomputed fraction), so a built-in shape
+    (length = REFERENCE_LENGTH, ratio exactly 1) gets today's values bit for bit and an outline
+    x1000 gets lengths x1000. ``lidar=False`` (a data file) and ``radio=False`` (a topology
+    without radio range) leave those lengths None. A flag given is kept in the outline's unit.
+    """
+    given = {"standoff": standoff, "range": lidar_range, "offset": offset, "noise": noise, "comm-range": comm_range}
+    used = {"standoff": lidar, "range": lidar, "offset": lidar, "noise": lidar, "comm-range": radio}
+    if not (math.isfinite(length) and length >= 0):
+        raise ScenarioError(f"characteristic length {length!r} must be a finite, non-negative number")
+    scale = length / REFERENCE_LENGTH
+    values: dict[str, float | None] = {}
+    for key, value in given.items():
+        if not used[key]:
+            values[key] = None
+        elif value is not None:
+            values[key] = float(value)
+        elif length > 0:
+            values[key] = REFERENCE_LENGTHS[key] * scale
+        else:  # all the data in one point: nothing to scale from
+            raise ScenarioError(f"--{key}: the data has no extent to scale a default from; give --{key}")
+    return WorldLengths(
+        length=float(length),
+        basis=basis,
+        standoff=values["standoff"],
+        lidar_range=values["range"],
+        offset=values["offset"],
+        noise=values["noise"],
+        comm_range=values["comm-range"],
+        given=tuple(k for k, v in given.items() if v is not None and used[k]),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -549,12 +677,14 @@ def parse_bounds(text: str) -> tuple[float, float, float, float]:
     return x0, x1, y0, y1
 
 
-#: smallest padding per side of default_bounds, so data on a line still gets a 2-D box
+#: smallest padding per side of default_bounds, so data on a line still gets a 2-D box; a world
+#: length like the others (REFERENCE_LENGTHS): times the world's scale
 MIN_PAD = 0.1
 
 
-def default_bounds(points: np.ndarray, pad: float = 0.15) -> tuple[float, float, float, float]:
-    """The data's bounding box widened on each side by `pad` times its size (at least MIN_PAD)."""
+def default_bounds(points: np.ndarray, pad: float = 0.15, *, scale: float = 1.0) -> tuple[float, float, float, float]:
+    """The data's bounding box widened on each side by `pad` times its size, at least MIN_PAD
+    times `scale` (WorldLengths.scale: the same box for the same data in any unit)."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
         raise ScenarioError(
@@ -562,7 +692,9 @@ def default_bounds(points: np.ndarray, pad: float = 0.15) -> tuple[float, float,
         )
     if not np.all(np.isfinite(points)) or not (math.isfinite(pad) and pad >= 0):
         raise ScenarioError("default_bounds needs finite points and a non-negative pad")
-    return padded_bounds(points, pad, MIN_PAD)
+    if not (math.isfinite(scale) and scale > 0):
+        raise ScenarioError(f"default_bounds needs a positive scale, got {scale!r}")
+    return padded_bounds(points, pad, MIN_PAD * scale)
 
 
 def make_grid(nx: int, ny: int, bounds: tuple[float, float, float, float]) -> np.ndarray:

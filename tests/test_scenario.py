@@ -438,6 +438,9 @@ def test_default_bounds_pads_the_data() -> None:
     assert sc.default_bounds(points) == pytest.approx((-1.5, 11.5, -0.3, 2.3))
     assert sc.default_bounds(points, pad=0.0) == pytest.approx((-0.1, 10.1, -0.1, 2.1))
     assert sc.default_bounds(np.array([[1.0, 1.0]])) == pytest.approx((0.9, 1.1, 0.9, 1.1))
+    line = np.array([[0.0, 0.0], [5.0, 0.0]])  # the smallest pad is a world length: it scales
+    assert sc.default_bounds(line) == pytest.approx((-0.75, 5.75, -0.1, 0.1))
+    assert sc.default_bounds(1e-3 * line, scale=1e-3) == pytest.approx((-0.75e-3, 5.75e-3, -0.1e-3, 0.1e-3), rel=1e-12)
     with pytest.raises(ScenarioError):
         sc.default_bounds(np.zeros((0, 2)))
     with pytest.raises(ScenarioError):
