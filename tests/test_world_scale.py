@@ -97,9 +97,10 @@ def test_explicit_flags_keep_their_meaning_in_the_outline_unit(tmp_path: Path) -
     assert world.lengths.given == ("offset", "noise", "comm-range")
     pairs = world.robots[0].points.reshape(-1, 2, 2)
     assert np.allclose(np.hypot(*(pairs[:, 1] - pairs[:, 0]).T), 0.6, rtol=1e-6)
-    # today's absolute metres in a millimetre world: the robot sees nothing, and the message says so
-    with pytest.raises(sc.ScenarioError, match="robot 0 .* sees no part of the object"):
-        world_of(shape_file=mm, **PAPER_FLAGS)
+    # yesterday's defaults given in a millimetre world mean millimetres: each robot sees a 4 mm patch
+    tiny, _ = world_of(shape_file=mm, **PAPER_FLAGS)
+    for robot in tiny.robots:
+        assert np.hypot(*(robot.points - robot.pose).T).max() <= 4.0 + 0.3 + 0.1
 
 
 def test_a_data_file_scales_the_radio_range_by_its_points(tmp_path: Path) -> None:
