@@ -489,6 +489,25 @@ def simulate_lidar(
     is dropped, so every label is right. With fov < 360 the sensor faces the centroid.
     Returns points (2k, 2) and labels (2k,), pairs consecutive, in ray order.
     """
+    points, labels, _ = _scan(
+        shape, pose, max_range=max_range, angular_res_deg=angular_res_deg, fov_deg=fov_deg,
+        range_noise=range_noise, offset=offset, rng=rng,
+    )
+    return points, labels
+
+
+def _scan(
+    shape: Polygon,
+    pose: np.ndarray,
+    *,
+    max_range: float = 4.0,
+    angular_res_deg: float = 1.0,
+    fov_deg: float = 360.0,
+    range_noise: float = 0.01,
+    offset: float = 0.1,
+    rng: np.random.Generator | int,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """simulate_lidar, and how many rays returned within range (kept pairs or not)."""
     pose = _as_pose(pose)
     for flag, value, ok, need in (
         ("--range", max_range, max_range > 0, "a positive distance"),
@@ -528,7 +547,7 @@ def simulate_lidar(
     )
     points = np.stack([outside[good], inside[good]], axis=1).reshape(-1, 2)
     labels = np.tile(np.array([1, -1], dtype=np.int64), int(good.sum()))
-    return points, labels
+    return points, labels, int(hit.sum())
 
 
 def sample_robot_data(
@@ -560,12 +579,20 @@ def sample_robot_data(
     pairs_wanted = (points_per_robot + 1) // 2
     robots = []
     for robot_id, pose in enumerate(poses):
-        points, labels = simulate_lidar(shape, pose, rng=rng, **lidar_kwargs)
+        points, labels, returns = _scan(shape, pose, rng=rng, **lidar_kwargs)
         pairs = len(points) // 2
+        if pairs == 0 and returns:  # it sees the object, but no pair straddles the outline
+            offset, noise = lidar_kwargs.get("offset", 0.1), lidar_kwargs.get("range_noise", 0.01)
+            raise ScenarioError(
+                f"robot {robot_id} at ({pose[0]:.3g}, {pose[1]:.3g}) sees the object ({returns} LiDAR returns) "
+                f"but none gives a correctly labelled pair: the object is thinner than 2 x --offset "
+                f"{offset:.3g} where it looks, or --noise {noise:.3g} swamps the offset; lower --offset"
+            )
         if pairs == 0:
             raise ScenarioError(
                 f"robot {robot_id} at ({pose[0]:.3g}, {pose[1]:.3g}) sees no part of the object; "
-                "move it closer (--standoff) or raise the LiDAR range (--range)"
+                f"move it closer (--standoff) or raise the LiDAR range (--range, "
+                f"{lidar_kwargs.get('max_range', 4.0):.3g} here)"
             )
         chosen = np.floor(np.linspace(0, pairs - 1, min(pairs, pairs_wanted)) + 0.5).astype(int)
         rows = (2 * chosen[:, None] + np.array([0, 1])).reshape(-1)[:points_per_robot]

@@ -309,6 +309,13 @@ def test_a_blind_robot_is_named() -> None:
         sc.sample_robot_data(shape, poses[:1], points_per_robot=0, rng=0)
 
 
+def test_a_robot_that_sees_only_a_sliver_thinner_than_the_offset_is_told_to_lower_it() -> None:
+    sliver = shapely.box(-2.0, -0.05, 2.0, 0.05)  # 0.1 thick: no pair with offset 0.3 straddles it
+    with pytest.raises(ScenarioError, match=r"robot 0 .*sees the object \(\d+ LiDAR returns\).*lower --offset"):
+        sc.sample_robot_data(sliver, np.array([[0.0, 1.0]]), rng=0, offset=0.3)
+    assert len(sc.sample_robot_data(sliver, np.array([[0.0, 1.0]]), rng=0, offset=0.02, range_noise=0.001)[0].points)
+
+
 def test_robot_data_validates_itself() -> None:
     with pytest.raises(ScenarioError, match="finite"):
         RobotData(id=1, points=np.array([[0.0, np.inf]]), labels=np.array([1]))
