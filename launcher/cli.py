@@ -138,22 +138,23 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     world.add_argument("--points", type=_positive_int("--points"), default=d.points, help=f"labelled points per robot (default {d.points})")
     world.add_argument("--seed", type=int, default=d.seed, help="seed of LiDAR noise and network faults (default 0)")
     ref, L = scenario.REFERENCE_LENGTHS, scenario.REFERENCE_LENGTH
-    follows = f"scaled with the object's size: x diagonal/{L:g} for an outline or data file"
+    follows = (f"times the object's scale: its bounding-box diagonal/{L:g} rounded to 1, 2, 5, 10, 20...; "
+               "1 for the built-in shapes")
     world.add_argument(
         "--standoff", type=_finite_float,
-        help=f"robot distance from the object's hull (default {ref['standoff']:g} for the built-in shapes, {follows})",
+        help=f"robot distance from the object's hull (default {ref['standoff']:g} {follows})",
     )
     world.add_argument(
         "--range", dest="lidar_range", type=_finite_float,
-        help=f"LiDAR range (default {ref['range']:g}, {follows})",
+        help=f"LiDAR range (default {ref['range']:g} {follows})",
     )
     world.add_argument(
         "--offset", type=_finite_float,
-        help=f"distance of labelled points from a LiDAR hit (default {ref['offset']:g}, {follows})",
+        help=f"distance of labelled points from a LiDAR hit (default {ref['offset']:g} {follows})",
     )
     world.add_argument(
         "--noise", type=_finite_float,
-        help=f"LiDAR range noise std (default {ref['noise']:g}, {follows})",
+        help=f"LiDAR range noise std (default {ref['noise']:g} {follows})",
     )
     model = p.add_argument_group("model (default: the fleet chooses grid and sigma itself)")
     model.add_argument(
@@ -184,7 +185,7 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     algo.add_argument("--topology", default=d.topology, help=f"{' | '.join(topology.TOPOLOGIES)} (default {d.topology})")
     algo.add_argument(
         "--comm-range", type=_finite_float,
-        help=f"link robots within this distance (geometric topology; default {ref['comm-range']:g}, {follows})",
+        help=f"link robots within this distance (geometric topology; default {ref['comm-range']:g} {follows})",
     )
     algo.add_argument(
         "--algorithm", default=d.algorithm, choices=ALGORITHM_CHOICES,

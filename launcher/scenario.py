@@ -148,43 +148,64 @@ def shape_bounds(shape: Polygon) -> tuple[float, float, float, float]:
 # ---------------------------------------------------------------------------------------------
 # world lengths: the simulated world scales with the object
 
-#: the characteristic length the paper's world lengths below were chosen for: the built-in shapes'
-#: nominal size (about 4 by 3, a diagonal of 5; measured diagonals 4.4 to 5.3)
+#: the object size the paper's world lengths below were chosen for: the built-in shapes are about
+#: 4 by 3, a bounding-box diagonal of 5 (measured 4.4 to 5.3)
 REFERENCE_LENGTH = 5.0
-#: the world's lengths for an object of characteristic length REFERENCE_LENGTH (today's and the
-#: paper's values): key = the flag without dashes
+#: the world's lengths for an object of REFERENCE_LENGTH (today's and the paper's values): key =
+#: the flag without dashes
 REFERENCE_LENGTHS: dict[str, float] = {
     "standoff": 1.5,  # robot distance from the object's convex hull
     "range": 4.0,  # LiDAR range
     "offset": 0.3,  # labelled points before / past a LiDAR return
     "noise": 0.01,  # standard deviation of the LiDAR range noise
-    "comm-range": 8.0,  # radio range of the geometric topology
+    # radio range of the geometric topology: more than the widest default ring (robots on the hull
+    # buffered by the standoff: at most diagonal + 2 standoffs = 7.9 + 3 in a step, see
+    # preferred_scale), so robots placed by default are always linked, every pair of them
+    "comm-range": 12.0,
 }
+#: the 1-2-5 series of preferred numbers: log10 of the geometric midpoints between its steps
+_STEPS = ((math.log10(math.sqrt(2.0)), 1), (0.5, 2), (math.log10(math.sqrt(50.0)), 5))
+
+
+def preferred_scale(ratio: float) -> float:
+    """`ratio` rounded (in log scale) to the 1-2-5 series: ..., 0.5, 1, 2, 5, 10, 20, ...
+
+    Why round: every built-in shape and every outline in this repository (diagonals 3.6 to 5.3)
+    lands on exactly 1, so they keep today's data bit for bit, with no special case for built-in
+    shapes; an outline x10^k lands on exactly 10^k times the same step, so the same outline in
+    metres and millimetres gets lengths exactly x1000 apart, in round numbers of its unit. Within a
+    step an object is at most a factor sqrt(2.5) smaller or larger than the reference object.
+    """
+    if not (math.isfinite(ratio) and ratio > 0):
+        raise ScenarioError(f"preferred_scale needs a positive finite ratio, got {ratio!r}")
+    exponent = math.log10(ratio)
+    decade = math.floor(exponent)
+    fraction = exponent - decade
+    step = next((step for bound, step in _STEPS if fraction < bound), 10)
+    return step * 10.0**decade if decade >= 0 else step / 10.0 ** (-decade)
 
 
 @dataclass(frozen=True)
 class WorldLengths:
     """The lengths of one run's world, in the outline's unit, and where they come from.
 
-    ``length`` is the characteristic length the defaults follow and ``basis`` says what it is
-    ("built-in shape", "outline diagonal" or "data diagonal"); ``given`` names the flags the
-    person gave (kept as given, in the outline's unit). A length the run does not use is None
-    (the LiDAR's with a data file, the radio range outside the geometric topology).
+    ``length`` is the object's characteristic length (the diagonal of the bounding box of the
+    outline, or of a data file's points; ``basis`` says which) and ``scale`` the
+    :func:`preferred_scale` of ``length / REFERENCE_LENGTH``: every default is its reference value
+    times ``scale``. ``given`` names the flags the person gave (kept as given, in the outline's
+    unit). A length the run does not use is None (the LiDAR's with a data file, the radio range
+    outside the geometric topology).
     """
 
     length: float
     basis: str
+    scale: float
     standoff: float | None
     lidar_range: float | None
     offset: float | None
     noise: float | None
     comm_range: float | None
     given: tuple[str, ...] = ()
-
-    @property
-    def scale(self) -> float:
-        """How much larger than the reference world this one is (1 for the built-in shapes)."""
-        return self.length / REFERENCE_LENGTH
 
     def as_dict(self) -> dict[str, object]:
         """The ``world`` object of result.json (docs/result-schema.md)."""
@@ -202,11 +223,8 @@ class WorldLengths:
 
 
 def characteristic_length(shape: Polygon | None = None, points: np.ndarray | None = None) -> float:
-    """The size the world's default lengths follow: the diagonal of the bounding box.
-
-    Of the outline if one is given, else of the points (a data file). Built-in shapes do not
-    come here: theirs is REFERENCE_LENGTH by definition (see :func:`builtin_length`).
-    """
+    """The size the world's default lengths follow: the diagonal of the bounding box of the
+    outline if one is given, else of the points (a data file)."""
     if shape is not None:
         minx, miny, maxx, maxy = shape.bounds
     elif points is not None and len(points):
@@ -215,11 +233,6 @@ def characteristic_length(shape: Polygon | None = None, points: np.ndarray | Non
     else:
         raise ScenarioError("characteristic_length needs an outline or points")
     return float(math.hypot(maxx - minx, maxy - miny))
-
-
-def builtin_length(name: str) -> float | None:
-    """REFERENCE_LENGTH for a built-in shape's name (so it keeps the paper's lengths exactly), else None."""
-    return REFERENCE_LENGTH if name in SHAPES else None
 
 
 def world_lengths(
@@ -234,19 +247,17 @@ def world_lengths(
     lidar: bool = True,
     radio: bool = True,
 ) -> WorldLengths:
-    """The lengths of a world of characteristic `length`: each one given, or its reference value
-    times ``length / REFERENCE_LENGTH``.
+    """The lengths of a world whose object has characteristic `length`: each one given, or its
+    reference value times ``preferred_scale(length / REFERENCE_LENGTH)``.
 
-    The ratio multiplies the reference value (not a precomputed fraction), so a built-in shape
-    (length = REFERENCE_LENGTH, ratio exactly 1) gets today's values bit for bit and an outline
-    x1000 gets lengths x1000. ``lidar=False`` (a data file) and ``radio=False`` (a topology
-    without radio range) leave those lengths None. A flag given is kept in the outline's unit.
+    ``lidar=False`` (a data file) and ``radio=False`` (a topology without radio range) leave those
+    lengths None. A flag given is kept, in the outline's unit.
     """
     given = {"standoff": standoff, "range": lidar_range, "offset": offset, "noise": noise, "comm-range": comm_range}
     used = {"standoff": lidar, "range": lidar, "offset": lidar, "noise": lidar, "comm-range": radio}
     if not (math.isfinite(length) and length >= 0):
         raise ScenarioError(f"characteristic length {length!r} must be a finite, non-negative number")
-    scale = length / REFERENCE_LENGTH
+    scale = preferred_scale(length / REFERENCE_LENGTH) if length > 0 else 1.0
     values: dict[str, float | None] = {}
     for key, value in given.items():
         if not used[key]:
@@ -260,6 +271,7 @@ def world_lengths(
     return WorldLengths(
         length=float(length),
         basis=basis,
+        scale=scale,
         standoff=values["standoff"],
         lidar_range=values["range"],
         offset=values["offset"],

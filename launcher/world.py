@@ -12,9 +12,9 @@ that chooses them itself (``autogrid``, agents/autogrid.py). `resolve_options` i
 * ``autogrid`` takes a given grid as its start grid and a given sigma as fixed.
 
 The world's lengths (standoff, range, offset, noise, comm-range) left None follow the object's
-size (scenario.world_lengths): the paper's values for the built-in shapes, scaled by the
-bounding-box diagonal over scenario.REFERENCE_LENGTH for an outline or data file. The values
-chosen are in ``World.lengths`` (result.json ``world``).
+size (scenario.world_lengths): the paper's values times the bounding-box diagonal over
+scenario.REFERENCE_LENGTH, rounded to the 1-2-5 series (exactly 1 for every built-in shape). The
+values chosen are in ``World.lengths`` (result.json ``world``).
 """
 
 from __future__ import annotations
@@ -181,14 +181,9 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         length = scenario.characteristic_length(points=np.vstack([r.points for r in robots]))
         lengths = scenario.world_lengths(length, "data diagonal", comm_range=opts.comm_range, lidar=False, radio=radio)
     else:
-        if opts.shape_file:
-            shape, length = scenario.load_polygon_csv(opts.shape_file), None
-        else:
-            shape, length = scenario.get_shape(opts.shape), scenario.builtin_length(opts.shape)
-        basis = "built-in shape" if length is not None else "outline diagonal"
-        length = scenario.characteristic_length(shape) if length is None else length
+        shape = scenario.load_polygon_csv(opts.shape_file) if opts.shape_file else scenario.get_shape(opts.shape)
         lengths = scenario.world_lengths(
-            length, basis, standoff=opts.standoff, lidar_range=opts.lidar_range, offset=opts.offset,
+            scenario.characteristic_length(shape), "outline diagonal", standoff=opts.standoff, lidar_range=opts.lidar_range, offset=opts.offset,
             noise=opts.noise, comm_range=opts.comm_range, radio=radio,
         )
         assert lengths.standoff is not None and lengths.lidar_range is not None
@@ -204,7 +199,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             offset=lengths.offset,
         )
     points = np.vstack([r.points for r in robots])
-    bounds = given_bounds if given_bounds is not None else scenario.default_bounds(points, scale=lengths.scale if lengths.length > 0 else 1.0)
+    bounds = given_bounds if given_bounds is not None else scenario.default_bounds(points, scale=lengths.scale)
     grid = np.zeros((0, 2)) if grid_shape is None else scenario.make_grid(*grid_shape, bounds)
 
     ids = [r.id for r in robots]
