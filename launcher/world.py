@@ -183,8 +183,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
     else:
         shape = scenario.load_polygon_csv(opts.shape_file) if opts.shape_file else scenario.get_shape(opts.shape)
         lengths = scenario.world_lengths(
-            scenario.characteristic_length(shape), "outline diagonal", standoff=opts.standoff, lidar_range=opts.lidar_range, offset=opts.offset,
-            noise=opts.noise, comm_range=opts.comm_range, radio=radio,
+            scenario.characteristic_length(shape), "outline diagonal", standoff=opts.standoff,
+            lidar_range=opts.lidar_range, offset=opts.offset, noise=opts.noise, comm_range=opts.comm_range, radio=radio,
         )
         assert lengths.standoff is not None and lengths.lidar_range is not None
         assert lengths.offset is not None and lengths.noise is not None

@@ -215,7 +215,7 @@ def test_world_lengths_left_out_follow_the_outline_and_given_ones_keep_its_unit(
     assert (opts.standoff, opts.lidar_range, opts.offset, opts.noise, opts.comm_range) == (None,) * 5
     lengths = build_world(opts)[0].lengths
     assert (lengths.standoff, lengths.lidar_range, lengths.offset, lengths.noise, lengths.comm_range) == (
-        1500.0, 4000.0, 300.0, 10.0, 8000.0,
+        1500.0, 4000.0, 300.0, 10.0, 12000.0,
     )
     path = write(tmp_path, path.read_text().replace("[model]", "standoff = 1000\nnoise = 0\n\n[model]")
                  + "comm-range = 9000\n")
