@@ -498,7 +498,7 @@ def summary_table(result: dict[str, Any]) -> Any:
     )
     w = result.get("world")
     if w:
-        lengths = ", ".join(f"{k.replace('_', '-')} {w[k]:.4g}{'' if k.replace('_', '-') in w['given'] else '*'}"
+        lengths = ", ".join(f"{k.replace('_', '-')} {w[k]:.6g}{'' if k.replace('_', '-') in w['given'] else '*'}"
                             for k in ("standoff", "range", "offset", "noise", "comm_range") if w.get(k) is not None)
         table.caption += f"\nworld: {lengths or '-'} (* = default: the paper's x {w['scale']:.4g}, the scale of {w['basis']} {w['length']:.4g})"
     if result["algorithm"] == "autogrid":
