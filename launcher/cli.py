@@ -137,10 +137,25 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     world.add_argument("--robots", type=_positive_int("--robots"), default=d.robots, help=f"number of robots (default {d.robots})")
     world.add_argument("--points", type=_positive_int("--points"), default=d.points, help=f"labelled points per robot (default {d.points})")
     world.add_argument("--seed", type=int, default=d.seed, help="seed of LiDAR noise and network faults (default 0)")
-    world.add_argument("--standoff", type=_finite_float, default=d.standoff, help=f"robot distance from the object (default {d.standoff})")
-    world.add_argument("--range", dest="lidar_range", type=_finite_float, default=d.lidar_range, help=f"LiDAR range (default {d.lidar_range})")
-    world.add_argument("--offset", type=_finite_float, default=d.offset, help=f"distance of labelled points from a LiDAR hit (default {d.offset})")
-    world.add_argument("--noise", type=_finite_float, default=d.noise, help=f"LiDAR range noise std (default {d.noise})")
+    ref, L = scenario.REFERENCE_LENGTHS, scenario.REFERENCE_LENGTH
+    follows = (f"times the object's scale: its bounding-box diagonal/{L:g} rounded to 1, 2, 5, 10, 20...; "
+               "1 for the built-in shapes")
+    world.add_argument(
+        "--standoff", type=_finite_float,
+        help=f"robot distance from the object's hull (default {ref['standoff']:g} {follows})",
+    )
+    world.add_argument(
+        "--range", dest="lidar_range", type=_finite_float,
+        help=f"LiDAR range (default {ref['range']:g} {follows})",
+    )
+    world.add_argument(
+        "--offset", type=_finite_float,
+        help=f"distance of labelled points from a LiDAR hit (default {ref['offset']:g} {follows})",
+    )
+    world.add_argument(
+        "--noise", type=_finite_float,
+        help=f"LiDAR range noise std (default {ref['noise']:g} {follows})",
+    )
     model = p.add_argument_group("model (default: the fleet chooses grid and sigma itself)")
     model.add_argument(
         "--grid", metavar="NXxNY",
@@ -168,7 +183,10 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
     )
     algo = p.add_argument_group("fleet and algorithm")
     algo.add_argument("--topology", default=d.topology, help=f"{' | '.join(topology.TOPOLOGIES)} (default {d.topology})")
-    algo.add_argument("--comm-range", type=_finite_float, help="link robots within this distance (geometric topology)")
+    algo.add_argument(
+        "--comm-range", type=_finite_float,
+        help=f"link robots within this distance (geometric topology; default {ref['comm-range']:g} {follows})",
+    )
     algo.add_argument(
         "--algorithm", default=d.algorithm, choices=ALGORITHM_CHOICES,
         help="auto (default): admm when --grid and --sigma are given, else autogrid; autogrid: the fleet agrees on "

@@ -16,7 +16,8 @@ A subcommand takes the keys it has flags for and ignores the others (a `launch` 
 file that `simulate` reads is fine). Relative paths (``shape-file``, ``data``, a ``shape`` ending in
 ``.csv``) are relative to the scenario file's folder. Unknown keys, keys in the wrong section, wrong
 types and bad values end in :class:`ConfigError`, one message naming the file and the key; the CLI
-turns it into exit code 2.
+turns it into exit code 2. The world's lengths (``standoff``, ``range``, ``offset``, ``noise``,
+``comm-range``) are in the outline's unit; left out, they follow the object's size (scenario.world_lengths).
 
 How it plugs into argparse: :func:`defaults_for` turns the file into ``dest -> value`` defaults of a
 subcommand's parser (``parser.set_defaults``), leaving out what the command line gave, and the

@@ -201,6 +201,7 @@ def build_result(
         "C": C,
         "grid": basis.grid.tolist(),
         "grid_bounds": list(world.bounds),
+        "world": None if world.lengths is None else world.lengths.as_dict(),
         "robots": robot_rows,
         "central": {
             "c": central.c.tolist() if central.solved else None,
@@ -354,6 +355,7 @@ def build_autogrid_result(
         "C": None if ref0 is None else ref0.C,
         "grid": first.get("grid") or [],
         "grid_bounds": list(world.bounds),
+        "world": None if world.lengths is None else world.lengths.as_dict(),
         "robots_agree": agree,
         "disagreement_before_flood": _num(gap) if gap is not None else None,
         "reference_exact": reference_exact(ref0),
@@ -540,6 +542,11 @@ def summary_table(result: dict[str, Any]) -> Any:
         f"function error {fmt(m['function_error'], '.2e')}  consensus error {fmt(m['consensus_error'], '.2e')}  "
         f"train accuracy {fmt(m['train_accuracy'], '.3f')}  IoU {fmt(m['iou'], '.3f')}"
     )
+    w = result.get("world")
+    if w:
+        lengths = ", ".join(f"{k.replace('_', '-')} {w[k]:.6g}{'' if k.replace('_', '-') in w['given'] else '*'}"
+                            for k in ("standoff", "range", "offset", "noise", "comm_range") if w.get(k) is not None)
+        table.caption += f"\nworld: {lengths or '-'} (* = default: the paper's x {w['scale']:.4g}, the scale of {w['basis']} {w['length']:.4g})"
     if result["algorithm"] == "autogrid":
         sizes = " -> ".join(str(h["size"]) for h in result.get("grid_history") or [])
         table.caption += (

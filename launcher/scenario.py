@@ -9,6 +9,10 @@ Bounds are always ``(x0, x1, y0, y1)`` -- the order of ``--grid-bounds`` -- neve
 
 Sizes follow the paper: the Gaussian kernel has sigma = 1, so the built-in objects are about
 4 units wide and 2-3 tall, centred (centroid) at the origin, and a 5x3 grid can describe them.
+
+The world's lengths (robot standoff, LiDAR range, label offset, range noise, radio range) follow
+the object's size, so an outline in millimetres gives the data of the same outline in metres,
+scaled: see :func:`world_lengths` and :data:`REFERENCE_LENGTH`.
 """
 
 from __future__ import annotations
@@ -139,6 +143,142 @@ def shape_bounds(shape: Polygon) -> tuple[float, float, float, float]:
     """The shape's bounding box as (x0, x1, y0, y1)."""
     minx, miny, maxx, maxy = shape.bounds
     return (float(minx), float(maxx), float(miny), float(maxy))
+
+
+# ---------------------------------------------------------------------------------------------
+# world lengths: the simulated world scales with the object
+
+#: the object size the paper's world lengths below were chosen for: the built-in shapes are about
+#: 4 by 3, a bounding-box diagonal of 5 (measured 4.4 to 5.3)
+REFERENCE_LENGTH = 5.0
+#: the world's lengths for an object of REFERENCE_LENGTH (today's and the paper's values): key =
+#: the flag without dashes
+REFERENCE_LENGTHS: dict[str, float] = {
+    "standoff": 1.5,  # robot distance from the object's convex hull
+    "range": 4.0,  # LiDAR range
+    "offset": 0.3,  # labelled points before / past a LiDAR return
+    "noise": 0.01,  # standard deviation of the LiDAR range noise
+    # radio range of the geometric topology: more than the widest default ring (robots on the hull
+    # buffered by the standoff: at most diagonal + 2 standoffs = 7.9 + 3 in a step, see
+    # preferred_scale), so robots placed by default are always linked, every pair of them
+    "comm-range": 12.0,
+}
+#: the 1-2-5 series of preferred numbers: log10 of the geometric midpoints between its steps
+_STEPS = ((math.log10(math.sqrt(2.0)), 1), (0.5, 2), (math.log10(math.sqrt(50.0)), 5))
+
+
+def preferred_scale(ratio: float) -> float:
+    """`ratio` rounded (in log scale) to the 1-2-5 series: ..., 0.5, 1, 2, 5, 10, 20, ...
+
+    Why round: every built-in shape and every outline in this repository (diagonals 3.6 to 5.3)
+    lands on exactly 1, so they keep today's data bit for bit, with no special case for built-in
+    shapes; an outline x10^k lands on exactly 10^k times the same step, so the same outline in
+    metres and millimetres gets lengths exactly x1000 apart, in round numbers of its unit. Within a
+    step an object is at most a factor sqrt(2.5) smaller or larger than the reference object.
+    """
+    if not (math.isfinite(ratio) and ratio > 0):
+        raise ScenarioError(f"preferred_scale needs a positive finite ratio, got {ratio!r}")
+    exponent = math.log10(ratio)
+    decade = math.floor(exponent)
+    fraction = exponent - decade
+    step = next((step for bound, step in _STEPS if fraction < bound), 10)
+    return step * 10.0**decade if decade >= 0 else step / 10.0 ** (-decade)
+
+
+@dataclass(frozen=True)
+class WorldLengths:
+    """The lengths of one run's world, in the outline's unit, and where they come from.
+
+    ``length`` is the object's characteristic length (the diagonal of the bounding box of the
+    outline, or of a data file's points; ``basis`` says which) and ``scale`` the
+    :func:`preferred_scale` of ``length / REFERENCE_LENGTH``: every default is its reference value
+    times ``scale``. ``given`` names the flags the person gave (kept as given, in the outline's
+    unit). A length the run does not use is None (the LiDAR's with a data file, the radio range
+    outside the geometric topology).
+    """
+
+    length: float
+    basis: str
+    scale: float
+    standoff: float | None
+    lidar_range: float | None
+    offset: float | None
+    noise: float | None
+    comm_range: float | None
+    given: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict[str, object]:
+        """The ``world`` object of result.json (docs/result-schema.md)."""
+        return {
+            "length": self.length,
+            "basis": self.basis,
+            "scale": self.scale,
+            "standoff": self.standoff,
+            "range": self.lidar_range,
+            "offset": self.offset,
+            "noise": self.noise,
+            "comm_range": self.comm_range,
+            "given": list(self.given),
+        }
+
+
+def characteristic_length(shape: Polygon | None = None, points: np.ndarray | None = None) -> float:
+    """The size the world's default lengths follow: the diagonal of the bounding box of the
+    outline if one is given, else of the points (a data file)."""
+    if shape is not None:
+        minx, miny, maxx, maxy = shape.bounds
+    elif points is not None and len(points):
+        points = np.asarray(points, dtype=np.float64)
+        (minx, miny), (maxx, maxy) = points.min(axis=0), points.max(axis=0)
+    else:
+        raise ScenarioError("characteristic_length needs an outline or points")
+    return float(math.hypot(maxx - minx, maxy - miny))
+
+
+def world_lengths(
+    length: float,
+    basis: str,
+    *,
+    standoff: float | None = None,
+    lidar_range: float | None = None,
+    offset: float | None = None,
+    noise: float | None = None,
+    comm_range: float | None = None,
+    lidar: bool = True,
+    radio: bool = True,
+) -> WorldLengths:
+    """The lengths of a world whose object has characteristic `length`: each one given, or its
+    reference value times ``preferred_scale(length / REFERENCE_LENGTH)``.
+
+    ``lidar=False`` (a data file) and ``radio=False`` (a topology without radio range) leave those
+    lengths None. A flag given is kept, in the outline's unit.
+    """
+    given = {"standoff": standoff, "range": lidar_range, "offset": offset, "noise": noise, "comm-range": comm_range}
+    used = {"standoff": lidar, "range": lidar, "offset": lidar, "noise": lidar, "comm-range": radio}
+    if not (math.isfinite(length) and length >= 0):
+        raise ScenarioError(f"characteristic length {length!r} must be a finite, non-negative number")
+    scale = preferred_scale(length / REFERENCE_LENGTH) if length > 0 else 1.0
+    values: dict[str, float | None] = {}
+    for key, value in given.items():
+        if not used[key]:
+            values[key] = None
+        elif value is not None:
+            values[key] = float(value)
+        elif length > 0:
+            values[key] = REFERENCE_LENGTHS[key] * scale
+        else:  # all the data in one point: nothing to scale from
+            raise ScenarioError(f"--{key}: the data has no extent to scale a default from; give --{key}")
+    return WorldLengths(
+        length=float(length),
+        basis=basis,
+        scale=scale,
+        standoff=values["standoff"],
+        lidar_range=values["range"],
+        offset=values["offset"],
+        noise=values["noise"],
+        comm_range=values["comm-range"],
+        given=tuple(k for k, v in given.items() if v is not None and used[k]),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -361,6 +501,25 @@ def simulate_lidar(
     is dropped, so every label is right. With fov < 360 the sensor faces the centroid.
     Returns points (2k, 2) and labels (2k,), pairs consecutive, in ray order.
     """
+    points, labels, _ = _scan(
+        shape, pose, max_range=max_range, angular_res_deg=angular_res_deg, fov_deg=fov_deg,
+        range_noise=range_noise, offset=offset, rng=rng,
+    )
+    return points, labels
+
+
+def _scan(
+    shape: Polygon,
+    pose: np.ndarray,
+    *,
+    max_range: float = 4.0,
+    angular_res_deg: float = 1.0,
+    fov_deg: float = 360.0,
+    range_noise: float = 0.01,
+    offset: float = 0.1,
+    rng: np.random.Generator | int,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """simulate_lidar, and how many rays returned within range (kept pairs or not)."""
     pose = _as_pose(pose)
     for flag, value, ok, need in (
         ("--range", max_range, max_range > 0, "a positive distance"),
@@ -400,7 +559,7 @@ def simulate_lidar(
     )
     points = np.stack([outside[good], inside[good]], axis=1).reshape(-1, 2)
     labels = np.tile(np.array([1, -1], dtype=np.int64), int(good.sum()))
-    return points, labels
+    return points, labels, int(hit.sum())
 
 
 def sample_robot_data(
@@ -432,12 +591,20 @@ def sample_robot_data(
     pairs_wanted = (points_per_robot + 1) // 2
     robots = []
     for robot_id, pose in enumerate(poses):
-        points, labels = simulate_lidar(shape, pose, rng=rng, **lidar_kwargs)
+        points, labels, returns = _scan(shape, pose, rng=rng, **lidar_kwargs)
         pairs = len(points) // 2
+        if pairs == 0 and returns:  # it sees the object, but no pair straddles the outline
+            offset, noise = lidar_kwargs.get("offset", 0.1), lidar_kwargs.get("range_noise", 0.01)
+            raise ScenarioError(
+                f"robot {robot_id} at ({pose[0]:.3g}, {pose[1]:.3g}) sees the object ({returns} LiDAR returns) "
+                f"but none gives a correctly labelled pair: the object is thinner than 2 x --offset "
+                f"{offset:.3g} where it looks, or --noise {noise:.3g} swamps the offset; lower --offset"
+            )
         if pairs == 0:
             raise ScenarioError(
                 f"robot {robot_id} at ({pose[0]:.3g}, {pose[1]:.3g}) sees no part of the object; "
-                "move it closer (--standoff) or raise the LiDAR range (--range)"
+                f"move it closer (--standoff) or raise the LiDAR range (--range, "
+                f"{lidar_kwargs.get('max_range', 4.0):.3g} here)"
             )
         chosen = np.floor(np.linspace(0, pairs - 1, min(pairs, pairs_wanted)) + 0.5).astype(int)
         rows = (2 * chosen[:, None] + np.array([0, 1])).reshape(-1)[:points_per_robot]
@@ -549,12 +716,14 @@ def parse_bounds(text: str) -> tuple[float, float, float, float]:
     return x0, x1, y0, y1
 
 
-#: smallest padding per side of default_bounds, so data on a line still gets a 2-D box
+#: smallest padding per side of default_bounds, so data on a line still gets a 2-D box; a world
+#: length like the others (REFERENCE_LENGTHS): times the world's scale
 MIN_PAD = 0.1
 
 
-def default_bounds(points: np.ndarray, pad: float = 0.15) -> tuple[float, float, float, float]:
-    """The data's bounding box widened on each side by `pad` times its size (at least MIN_PAD)."""
+def default_bounds(points: np.ndarray, pad: float = 0.15, *, scale: float = 1.0) -> tuple[float, float, float, float]:
+    """The data's bounding box widened on each side by `pad` times its size, at least MIN_PAD
+    times `scale` (WorldLengths.scale: the same box for the same data in any unit)."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
         raise ScenarioError(
@@ -562,7 +731,9 @@ def default_bounds(points: np.ndarray, pad: float = 0.15) -> tuple[float, float,
         )
     if not np.all(np.isfinite(points)) or not (math.isfinite(pad) and pad >= 0):
         raise ScenarioError("default_bounds needs finite points and a non-negative pad")
-    return padded_bounds(points, pad, MIN_PAD)
+    if not (math.isfinite(scale) and scale > 0):
+        raise ScenarioError(f"default_bounds needs a positive scale, got {scale!r}")
+    return padded_bounds(points, pad, MIN_PAD * scale)
 
 
 def make_grid(nx: int, ny: int, bounds: tuple[float, float, float, float]) -> np.ndarray:

@@ -10,6 +10,11 @@ that chooses them itself (``autogrid``, agents/autogrid.py). `resolve_options` i
 * ``auto`` is ``admm`` when both grid and sigma are given, else ``autogrid``;
 * ``admm`` and ``ct-admm`` need a fixed grid: without grid / sigma they use the paper's;
 * ``autogrid`` takes a given grid as its start grid and a given sigma as fixed.
+
+The world's lengths (standoff, range, offset, noise, comm-range) left None follow the object's
+size (scenario.world_lengths): the paper's values times the bounding-box diagonal over
+scenario.REFERENCE_LENGTH, rounded to the 1-2-5 series (exactly 1 for every built-in shape). The
+values chosen are in ``World.lengths`` (result.json ``world``).
 """
 
 from __future__ import annotations
@@ -56,10 +61,11 @@ class Options:
     robots: int = 3
     points: int = 20
     seed: int = 0
-    standoff: float = 1.5
-    lidar_range: float = 4.0
-    offset: float = 0.3
-    noise: float = 0.01
+    # world lengths, in the outline's unit; None: follow the object's size (module doc)
+    standoff: float | None = None
+    lidar_range: float | None = None
+    offset: float | None = None
+    noise: float | None = None
     grid: str | None = None  # None: automatic (autogrid), or the paper's 5x3 for admm / ct-admm
     grid_bounds: str | None = None  # None: the data's padded bounding box
     sigma: float | None = None  # None: chosen by the fleet (autogrid), or the paper's 1 for admm / ct-admm
@@ -67,7 +73,7 @@ class Options:
     preset: str | None = None  # "paper": grid 5x3 and sigma 1 where not given
     max_grid_points: int = DEFAULT_MAX_GRID_POINTS  # autogrid: budget of grid points
     topology: str = "complete"
-    comm_range: float | None = None
+    comm_range: float | None = None  # geometric topology; None: follows the object's size
     algorithm: str = "auto"
     rho: float = 15.0
     relax: float = 1.95
@@ -90,6 +96,7 @@ class World:
     grid: np.ndarray  # the fixed grid; autogrid: the start grid, or empty (0, 2)
     bounds: tuple[float, float, float, float]  # the region drawn and rastered for IoU
     graph: nx.Graph
+    lengths: scenario.WorldLengths | None = None  # the world's lengths used (None: not known, e.g. collect)
 
     @property
     def points(self) -> np.ndarray:
@@ -160,6 +167,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         except ValueError as exc:
             raise scenario.ScenarioError(f"--fleet-id: {exc}") from None
 
+    radio = opts.topology == "geometric"
     if opts.data is not None:
         shape = None
         robots = scenario.load_data_csv(opts.data)
@@ -170,20 +178,28 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
                 f"{opts.data}: robot {gaps[0]} has no data (robot ids must run 0..{max(ids)} without gaps; "
                 f"the file has {', '.join(map(str, ids))})"
             )
+        length = scenario.characteristic_length(points=np.vstack([r.points for r in robots]))
+        lengths = scenario.world_lengths(length, "data diagonal", comm_range=opts.comm_range, lidar=False, radio=radio)
     else:
         shape = scenario.load_polygon_csv(opts.shape_file) if opts.shape_file else scenario.get_shape(opts.shape)
-        poses = scenario.place_robots(shape, opts.robots, standoff=opts.standoff)
+        lengths = scenario.world_lengths(
+            scenario.characteristic_length(shape), "outline diagonal", standoff=opts.standoff,
+            lidar_range=opts.lidar_range, offset=opts.offset, noise=opts.noise, comm_range=opts.comm_range, radio=radio,
+        )
+        assert lengths.standoff is not None and lengths.lidar_range is not None
+        assert lengths.offset is not None and lengths.noise is not None
+        poses = scenario.place_robots(shape, opts.robots, standoff=lengths.standoff)
         robots = scenario.sample_robot_data(
             shape,
             poses,
             points_per_robot=opts.points,
             rng=opts.seed,
-            max_range=opts.lidar_range,
-            range_noise=opts.noise,
-            offset=opts.offset,
+            max_range=lengths.lidar_range,
+            range_noise=lengths.noise,
+            offset=lengths.offset,
         )
     points = np.vstack([r.points for r in robots])
-    bounds = given_bounds if given_bounds is not None else scenario.default_bounds(points)
+    bounds = given_bounds if given_bounds is not None else scenario.default_bounds(points, scale=lengths.scale)
     grid = np.zeros((0, 2)) if grid_shape is None else scenario.make_grid(*grid_shape, bounds)
 
     ids = [r.id for r in robots]
@@ -192,7 +208,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         positions = np.array([r.pose for r in robots])
     elif opts.topology == "geometric":  # data from a file has no poses: use each robot's data centroid
         positions = np.array([r.points.mean(axis=0) for r in robots])
-    graph = topology.build_topology(opts.topology, ids, positions=positions, comm_range=opts.comm_range)
+    graph = topology.build_topology(opts.topology, ids, positions=positions, comm_range=lengths.comm_range)
     neighbours = topology.neighbours(graph)
 
     params: dict[str, Any] = {
@@ -237,7 +253,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             f"triangle of a {len(grid) + 1}-square matrix per contribution), more than a frame holds ({MAX_DIM}); "
             "use a coarser --grid or --algorithm admm"
         )
-    return World(shape, robots, grid, bounds, graph), spec
+    return World(shape, robots, grid, bounds, graph, lengths), spec
 
 
 def _check_autogrid(opts: Options, spec: FleetSpec) -> None:

@@ -203,3 +203,25 @@ def test_bad_values_on_the_command_line_still_name_the_flag(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         parse_args(["simulate", "--config", str(path), "--robots", "0"])
     assert exc.value.code == 2 and "--robots" in capsys.readouterr().err
+
+
+def test_world_lengths_left_out_follow_the_outline_and_given_ones_keep_its_unit(tmp_path):
+    """Issue 19: a millimetre outline in a scenario file gets millimetre lengths unless the file says otherwise."""
+    from launcher.world import build_world
+
+    write(tmp_path, "x,y\n0,0\n4000,0\n4000,3000\n0,3000\n", "part_mm.csv")  # diagonal 5000: x1000 the paper's world
+    path = write(tmp_path, '[world]\nshape-file = "part_mm.csv"\n\n[model]\npreset = "paper"\n\n[algorithm]\ntopology = "geometric"\n')
+    opts = _options(parse_args(["simulate", "--config", str(path)]))
+    assert (opts.standoff, opts.lidar_range, opts.offset, opts.noise, opts.comm_range) == (None,) * 5
+    lengths = build_world(opts)[0].lengths
+    assert (lengths.standoff, lengths.lidar_range, lengths.offset, lengths.noise, lengths.comm_range) == (
+        1500.0, 4000.0, 300.0, 10.0, 12000.0,
+    )
+    path = write(tmp_path, path.read_text().replace("[model]", "standoff = 1000\nnoise = 0\n\n[model]")
+                 + "comm-range = 9000\n")
+    opts = _options(parse_args(["simulate", "--config", str(path), "--offset", "200"]))
+    lengths = build_world(opts)[0].lengths
+    assert (lengths.standoff, lengths.lidar_range, lengths.offset, lengths.noise, lengths.comm_range) == (
+        1000.0, 4000.0, 200.0, 0.0, 9000.0,
+    )
+    assert lengths.given == ("standoff", "offset", "noise", "comm-range")

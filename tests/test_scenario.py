@@ -309,6 +309,13 @@ def test_a_blind_robot_is_named() -> None:
         sc.sample_robot_data(shape, poses[:1], points_per_robot=0, rng=0)
 
 
+def test_a_robot_that_sees_only_a_sliver_thinner_than_the_offset_is_told_to_lower_it() -> None:
+    sliver = shapely.box(-2.0, -0.05, 2.0, 0.05)  # 0.1 thick: no pair with offset 0.3 straddles it
+    with pytest.raises(ScenarioError, match=r"robot 0 .*sees the object \(\d+ LiDAR returns\).*lower --offset"):
+        sc.sample_robot_data(sliver, np.array([[0.0, 1.0]]), rng=0, offset=0.3)
+    assert len(sc.sample_robot_data(sliver, np.array([[0.0, 1.0]]), rng=0, offset=0.02, range_noise=0.001)[0].points)
+
+
 def test_robot_data_validates_itself() -> None:
     with pytest.raises(ScenarioError, match="finite"):
         RobotData(id=1, points=np.array([[0.0, np.inf]]), labels=np.array([1]))
@@ -438,6 +445,9 @@ def test_default_bounds_pads_the_data() -> None:
     assert sc.default_bounds(points) == pytest.approx((-1.5, 11.5, -0.3, 2.3))
     assert sc.default_bounds(points, pad=0.0) == pytest.approx((-0.1, 10.1, -0.1, 2.1))
     assert sc.default_bounds(np.array([[1.0, 1.0]])) == pytest.approx((0.9, 1.1, 0.9, 1.1))
+    line = np.array([[0.0, 0.0], [5.0, 0.0]])  # the smallest pad is a world length: it scales
+    assert sc.default_bounds(line) == pytest.approx((-0.75, 5.75, -0.1, 0.1))
+    assert sc.default_bounds(1e-3 * line, scale=1e-3) == pytest.approx((-0.75e-3, 5.75e-3, -0.1e-3, 0.1e-3), rel=1e-12)
     with pytest.raises(ScenarioError):
         sc.default_bounds(np.zeros((0, 2)))
     with pytest.raises(ScenarioError):
