@@ -24,6 +24,7 @@ from agents.admm import ADMMParams  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
 from agents.spec import build_core  # noqa: E402
 from launcher.world import Options, build_world, resolve_options  # noqa: E402
+from launcher.scenario import REFERENCE_LENGTHS  # noqa: E402
 
 #: (rounds to 1e-3, rounds at stop, error at stop) of the plain edge ADMM, commit 7bf3740
 BEFORE = {
@@ -99,7 +100,7 @@ def main() -> None:
     p = ADMMParams()
     lines = [
         f"Defaults: rho {d.rho}, over-relaxation {d.relax}, tol {d.tol:g} (estimated error), grid {d.grid}, "
-        f"sigma {d.sigma}, {d.points} points per robot, LiDAR offset {d.offset} (the paper's preset, admm); "
+        f"sigma {d.sigma}, {d.points} points per robot, LiDAR offset {REFERENCE_LENGTHS['offset']:g} x the outline's scale (1 for the built-in shapes; the paper's preset, admm); "
         f"Anderson memory {p.anderson}, safeguard {p.safeguard:g} (complete graphs). Errors are against the exact "
         "central QP (the grid's kernel matrix has full rank: column 'rank' = GridBasis.rank / M).",
         "Before: the plain edge ADMM of commit 7bf3740 (same scenarios, same data). "
