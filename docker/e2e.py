@@ -338,6 +338,9 @@ def run_fleet(engine: Engine, compose: str, tmp: Path, logs: Path, *, tls: bool)
     if any(codes.values()) or len(codes) != ROBOTS + 2:
         tail = (logs / f"fleet-{label}.log").read_text(errors="replace")[-4000:]
         raise Failed(f"{label} fleet: exit codes {codes}\n{tail}")
+    ready = f'"endpoint": "{"tls" if tls else "tcp"}/127.0.0.1:{port}"'
+    if ready not in (logs / f"fleet-{label}.log").read_text(errors="replace"):
+        raise Failed(f"{label} fleet: the router never said it listens on {ready}")
     log(f"{label} fleet done in {wall:.1f} s (containers created and started in {t_up:.1f} s)")
     return {"folders": folders, "wall_s": round(wall, 1), "up_s": round(t_up, 1), "exit_codes": codes}
 
