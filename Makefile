@@ -28,7 +28,7 @@ bench: install
 
 # Not part of `make test`: as root, installs a Docker engine and debootstrap if missing, builds a
 # base image and the project image, runs docker/compose.yaml's fleet (plain and mutual TLS) on
-# loopback and checks it against `simulate`, then removes everything (docker/e2e.py; ~10 min).
+# loopback and checks it against `simulate`, then removes everything (docker/e2e.py; about 15 min).
 docker-test: install
 	$(PY) docker/e2e.py
 
