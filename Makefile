@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test bench clean docker-test
 
 install: $(STAMP)
 
@@ -25,6 +25,12 @@ bench: install
 	$(PY) benchmarks/zenoh_fleet.py
 	$(PY) benchmarks/ct_delay.py
 	$(PY) benchmarks/newton.py
+
+# Not part of `make test`: as root, installs a Docker engine and debootstrap if missing, builds a
+# base image and the project image, runs docker/compose.yaml's fleet (plain and mutual TLS) on
+# loopback and checks it against `simulate`, then removes everything (docker/e2e.py; about 15 min).
+docker-test: install
+	$(PY) docker/e2e.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

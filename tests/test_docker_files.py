@@ -1,9 +1,11 @@
-"""docker/: the compose file, the router config and the Dockerfile, checked without a Docker engine.
+"""docker/: the compose files, the router config, the certificates and the Dockerfile, checked
+without a Docker engine (`make docker-test`, docker/e2e.py, builds and runs them for real).
 
-Every command in compose.yaml goes through the CLI's own parser (with the service's environment),
-the compose flow is replayed on local folders (prepare's output is what each robot mounts and what
-the collector reads), the router image is the binding's version, discovery is off, and the image
-is multi-stage and runs as a non-root user.
+Every command in compose.yaml (and with compose.tls.yaml over it) goes through the CLI's own parser
+(with the service's environment), the compose flow is replayed on local folders (prepare's output
+is what each robot mounts and what the collector reads), the router is shapefleet's own and the
+official image of the alternative is the binding's version, discovery is off, docker/certs.sh
+writes the files the TLS commands name, and the image is multi-stage and runs as a non-root user.
 """
 
 from __future__ import annotations
@@ -30,7 +32,25 @@ from protocol.zenoh_config import flatten, parse_endpoint, robot_config_dict, ro
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCKER = ROOT / "docker"
-COMPOSE = yaml.safe_load((DOCKER / "compose.yaml").read_text())
+
+
+class _ComposeLoader(yaml.SafeLoader):
+    """YAML with compose's merge tags: ``!reset`` (drop what the files before set) and ``!override``."""
+
+
+_ComposeLoader.add_constructor("!reset", lambda loader, node: None)
+_ComposeLoader.add_constructor(
+    "!override",
+    lambda loader, node: loader.construct_sequence(node, deep=True) if isinstance(node, yaml.SequenceNode)
+    else loader.construct_mapping(node, deep=True),
+)
+
+
+def _load(name: str) -> dict:
+    return yaml.load((DOCKER / name).read_text(), Loader=_ComposeLoader)
+
+
+COMPOSE = _load("compose.yaml")
 SERVICES = COMPOSE["services"]
 OURS = {name: s for name, s in SERVICES.items() if str(s.get("image", "")).startswith("shapefleet")}
 ROBOTS = {name: s for name, s in OURS.items() if s["command"][0] == "robot"}
@@ -56,20 +76,44 @@ def _volume(service: dict, target: str) -> dict:
 
 
 def _router_port() -> int:
-    import zenoh
-
-    conf = zenoh.Config.from_file(str(DOCKER / "zenoh-router.json5"))
-    (endpoint,) = json.loads(conf.get_json("listen/endpoints"))
-    return parse_endpoint(endpoint)[2]
+    """The port of the compose router (shapefleet's own: `router --port N`)."""
+    args = build_parser().parse_args(SERVICES["router"]["command"])
+    return args.port
 
 
 def _binding_version() -> str:
     return importlib.metadata.version("eclipse-zenoh")
 
 
+def _merged(*overrides: str) -> dict:
+    """compose.yaml with override files over it: commands replaced, volumes merged by target (as compose)."""
+    services = {name: dict(svc) for name, svc in SERVICES.items()}
+    for name in overrides:
+        for svc_name, svc in _load(name)["services"].items():
+            merged = services[svc_name]
+            for key, value in svc.items():
+                if key == "volumes":
+                    by_target = {m["target"]: m for m in _mounts(merged)}
+                    by_target.update({m["target"]: m for m in _mounts(svc)})
+                    merged["volumes"] = list(by_target.values())
+                else:
+                    merged[key] = value
+    return services
+
+
 # -- the router ------------------------------------------------------------------------------------------
-def test_router_image_is_the_bindings_version():
-    image = SERVICES["router"]["image"]
+def test_the_router_is_shapefleets_own_with_scouting_off():
+    router = SERVICES["router"]
+    assert router["image"] == OURS["prepare"]["image"]  # the project's image, not a pulled one
+    args = build_parser().parse_args(router["command"])
+    assert args.command == "router" and args.host == "0.0.0.0" and args.allow_remote and args.tls_cert is None
+    conf = router_config_dict(args.port, args.host, loopback_only=False)  # what `shapefleet router` opens
+    assert conf["scouting"]["multicast"]["enabled"] is False and conf["scouting"]["gossip"]["enabled"] is False
+
+
+def test_official_router_alternative_is_the_bindings_version():
+    alt = _load("compose.zenoh-router.yaml")["services"]["router"]
+    image = alt["image"]
     assert image.startswith("eclipse/zenoh:")
     tag = image.split(":", 1)[1]
     assert tag == _binding_version(), f"router {tag}, eclipse-zenoh binding {_binding_version()}"
@@ -78,12 +122,13 @@ def test_router_image_is_the_bindings_version():
     deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     (spec,) = [d for d in deps if d.startswith("eclipse-zenoh")]
     assert tag in SpecifierSet(spec.removeprefix("eclipse-zenoh").split("#")[0].strip()), spec
+    assert "build" in alt and alt["build"] is None  # `!reset`: compose must not build our image under its name
 
 
-def test_router_config_is_ours_with_scouting_off():
+def test_official_router_config_is_ours_with_scouting_off():
     import zenoh
 
-    router = SERVICES["router"]
+    router = _load("compose.zenoh-router.yaml")["services"]["router"]
     path = router["command"][router["command"].index("-c") + 1]
     mount = _volume(router, path)
     source = (DOCKER / mount["source"]).resolve()
@@ -91,16 +136,17 @@ def test_router_config_is_ours_with_scouting_off():
     conf = zenoh.Config.from_file(str(source))
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     assert json.loads(conf.get_json("scouting/gossip/enabled")) is False
-    # exactly what protocol/zenoh_config builds for a router on every interface of its container
-    for key, value in flatten(router_config_dict(7447, "0.0.0.0", loopback_only=False)):
+    # exactly what protocol/zenoh_config builds for shapefleet's router in its container
+    for key, value in flatten(router_config_dict(_router_port(), "0.0.0.0", loopback_only=False)):
         assert json.loads(conf.get_json(key)) == value, key
 
 
-def test_nothing_is_exposed_on_the_host_and_nobody_uses_the_host_network():
-    for name, service in SERVICES.items():
-        assert "ports" not in service, name
-        assert service.get("network_mode") != "host", name
-        assert "privileged" not in service, name
+@pytest.mark.parametrize("name", ["compose.yaml", "compose.tls.yaml", "compose.zenoh-router.yaml"])
+def test_nothing_is_exposed_on_the_host_and_nobody_uses_the_host_network(name):
+    for service_name, service in _load(name)["services"].items():
+        assert "ports" not in service, service_name
+        assert service.get("network_mode") != "host", service_name
+        assert "privileged" not in service, service_name
 
 
 # -- every command through the CLI's own parser ------------------------------------------------------------
@@ -117,6 +163,8 @@ def test_every_command_is_accepted_by_the_cli(name, monkeypatch):
         assert args.allow_remote
         robot_config_dict(args.connect, loopback_only=False)  # a valid client config
         assert "{id}" in args.result  # one file per robot in the shared results volume
+    if args.command == "router":
+        router_config_dict(args.port, args.host, loopback_only=not args.allow_remote)
 
 
 def test_robots_each_mount_their_own_slice_and_say_who_they_are():
@@ -221,10 +269,22 @@ def test_dockerfile_is_multi_stage_slim_and_non_root():
         build_parser().parse_args(json.loads(cmd[4:]))
     assert exc.value.code == 0
     body = " ".join(final)
-    for tool in ("gcc", "build-essential", "g++", "make ", "apt-get install"):
-        assert tool not in body, tool
-    installs = [line for line in final if "pip install" in line]
-    assert installs and all("--no-index" in line for line in installs)  # only the wheels built before
+    for tool in ("gcc", "build-essential", "g++", "make ", "apt-get install", "pip install"):
+        assert tool not in body, tool  # nothing is built or fetched in the final stage
+    # the final stage takes only the environment the build stage installed, nothing of the source tree
+    copies = [line for line in final if line.upper().startswith("COPY ")]
+    assert copies == ["COPY --from=build /opt/shapefleet /opt/shapefleet"]
+    assert re.search(r"PATH=/opt/shapefleet/bin:", body)
+    build = " ".join(stages[0])
+    assert "python -m venv /opt/shapefleet" in build and "/opt/shapefleet/bin/python -m pip install ." in build
+
+
+def test_dockerfile_builds_without_buildkit():
+    """The classic builder (no BuildKit: e.g. Debian's docker.io without buildx) must build it."""
+    text = "\n".join(line for line in (DOCKER / "Dockerfile").read_text().splitlines() if not line.startswith("#"))
+    assert "--mount" not in text and "# syntax=" not in text and "<<" not in text  # no BuildKit-only syntax
+    args = re.findall(r"^ARG (\w+)", text, re.M)
+    assert "PYTHON_IMAGE" in args and "PIP_INDEX_URL" in args  # the base and the index can be given
 
 
 def test_build_context_is_limited():
@@ -233,3 +293,110 @@ def test_build_context_is_limited():
     assert ignore[0] == "*"  # nothing but what is named after it
     for needed in ("!pyproject.toml", "!agents/", "!protocol/", "!launcher/"):
         assert needed in ignore
+
+
+# -- mutual TLS (compose.tls.yaml over compose.yaml, certificates by docker/certs.sh) -----------------------
+TLS = _merged("compose.tls.yaml")
+
+
+def test_tls_commands_are_accepted_and_mutual(monkeypatch):
+    router = build_parser().parse_args(TLS["router"]["command"])
+    assert router.command == "router" and router.port == _router_port()
+    assert (router.tls_cert, router.tls_key, router.tls_ca) == (
+        Path("/certs/router.pem"), Path("/certs/router.key"), Path("/certs/ca.pem"))  # --tls-ca: mutual TLS
+    robots = [name for name, svc in TLS.items() if svc["command"][0] == "robot"]
+    assert sorted(robots) == sorted(ROBOTS)  # every robot of compose.yaml is switched to TLS
+    for name in robots:
+        monkeypatch.setenv("SHAPEFLEET_ROBOT_ID", TLS[name]["environment"]["SHAPEFLEET_ROBOT_ID"])
+        args = build_parser().parse_args(TLS[name]["command"])
+        assert args.connect == [f"tls/router:{_router_port()}"]
+        assert (args.tls_ca, args.tls_cert, args.tls_key) == (
+            Path("/certs/ca.pem"), Path("/certs/robot.pem"), Path("/certs/robot.key"))
+        # everything else as in the plain file: only the endpoint and the --tls-* flags differ
+        plain = [a for a in SERVICES[name]["command"] if a != "tcp/router:7447"]
+        tls = [a for a in TLS[name]["command"] if a != "tls/router:7447"]
+        i = tls.index("--tls-ca")
+        assert tls[:i] + tls[i + 6:] == plain
+
+
+def test_tls_each_container_mounts_only_its_own_certificates():
+    sources = {}
+    for name in ["router", *ROBOTS]:
+        mount = _volume(TLS[name], "/certs")
+        assert mount["type"] == "bind" and mount["read_only"], name
+        folder = mount["source"].replace("${SHAPEFLEET_CERTS:-./certs}", "")
+        assert folder == f"/{name}", name
+        sources[name] = folder
+    assert len(set(sources.values())) == len(sources)  # nobody shares a folder; the CA's is mounted nowhere
+
+
+def test_certs_script_writes_what_the_tls_commands_name(tmp_path):
+    import shutil
+    import subprocess
+
+    from protocol.zenoh_config import TLSFiles, robot_common_name
+
+    if shutil.which("openssl") is None:
+        skip_evidence("openssl makes the certificates (docker/certs.sh)")
+    out = tmp_path / "certs"
+    proc = subprocess.run(["sh", str(DOCKER / "certs.sh"), str(out), "DNS:router", str(len(ROBOTS))],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(["ca", "router", *ROBOTS])
+    assert not any((out / name / "ca.key").exists() for name in ["router", *ROBOTS])
+
+    def in_folder(name: str, path: Path) -> str:
+        assert path.parent == Path("/certs")
+        assert (out / name / path.name).is_file(), (name, path)
+        return str(out / name / path.name)
+
+    router = build_parser().parse_args(TLS["router"]["command"])
+    files = TLSFiles(ca=in_folder("router", router.tls_ca), cert=in_folder("router", router.tls_cert),
+                     key=in_folder("router", router.tls_key))
+    router_config_dict(router.port, router.host, loopback_only=False, tls=files)
+    san = subprocess.run(["openssl", "x509", "-in", files.cert, "-noout", "-ext", "subjectAltName"],
+                         capture_output=True, text=True, timeout=30).stdout
+    assert "DNS:router" in san  # the name robots connect to (tls/router:7447)
+    for name in ROBOTS:
+        rid = int(TLS[name]["environment"]["SHAPEFLEET_ROBOT_ID"])
+        args = build_parser().parse_args(TLS[name]["command"])
+        cert = in_folder(name, args.tls_cert)
+        in_folder(name, args.tls_key)
+        verify = subprocess.run(["openssl", "verify", "-CAfile", in_folder(name, args.tls_ca), cert],
+                                capture_output=True, text=True, timeout=30)
+        assert verify.returncode == 0, verify.stdout + verify.stderr
+        subject = subprocess.run(["openssl", "x509", "-in", cert, "-noout", "-subject", "-nameopt", "multiline"],
+                                 capture_output=True, text=True, timeout=30).stdout
+        # the common name the router's access control knows robot rid by (protocol/zenoh_config.py)
+        assert f"commonName                = {robot_common_name(rid)}" in subject
+
+
+# -- docker/e2e.py's override: only the network and the volumes change -----------------------------------
+def test_e2e_override_keeps_the_fleet_and_moves_it_to_loopback(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("docker_e2e", DOCKER / "e2e.py")
+    e2e = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(e2e)
+    folders = {v: tmp_path / v for v in ("fleet", "results", "run")}
+    merged = {"services": {n: {**s, "volumes": [m for m in _mounts(s)]} for n, s in TLS.items()}}
+    for svc in merged["services"].values():  # compose config's form: every mount has a type
+        for m in svc["volumes"]:
+            m.setdefault("type", "bind" if m["source"].startswith((".", "/", "$")) else "volume")
+    over = e2e.override(merged, folders, 17447)["services"]
+    assert set(over) == set(SERVICES)
+    for name, svc in over.items():
+        text = json.dumps(svc)
+        assert "0.0.0.0" not in text and "router:7447" not in text, name
+        assert svc["network_mode"] == ("host" if name == "router" or name in ROBOTS else "none"), name
+        args = build_parser().parse_args(svc["command"])
+        if name == "router":
+            assert (args.host, args.port) == ("127.0.0.1", 17447)
+        if name in ROBOTS:
+            assert args.connect == ["tls/127.0.0.1:17447"]
+            rid = TLS[name]["environment"]["SHAPEFLEET_ROBOT_ID"]
+            fleet = _volume(svc, "/fleet")
+            assert fleet["type"] == "bind" and fleet["read_only"] and fleet["source"] == str(folders["fleet"] / f"robot-{rid}")
+        assert [m["target"] for m in svc["volumes"]] == [m["target"] for m in merged["services"][name]["volumes"]]
+    yaml_text = e2e.to_yaml({"services": over})
+    assert yaml.load(yaml_text, Loader=_ComposeLoader)["services"]["router"]["networks"] is None
