@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.frames import StateUpdate
+from agents.messages import StateUpdate
 
 _TINY = 1e-12
 
