@@ -454,13 +454,14 @@ class RobotSession:
         """
         return {
             "restarts": self.restarts,
-            "counters": {**self._counters(transport), "rejected": dict(self.rejected)},
+            "counters": {**self.counters(transport), "rejected": dict(self.rejected)},
             "dropped": list(self.neighbours_dropped),
             "dropped_at": dict(self.dropped_at),
             "core": self.core.checkpoint(),
         }
 
-    def _counters(self, transport: Mapping[str, int]) -> dict[str, int]:
+    def counters(self, transport: Mapping[str, int]) -> dict[str, int]:
+        """sent, received, lost, duplicated, accepted, deduplicated (restored ones included)."""
         return {
             "sent": self.sent,
             **{k: v + int(transport.get(k, 0)) for k, v in self.prior_transport.items()},
@@ -475,7 +476,7 @@ class RobotSession:
         isolated = self._had_neighbours and not self.core.neighbours
         if stopped != "finished" or isolated:
             res["converged"] = False  # alone: its answer is its own data's, not the fleet's
-        c = self._counters(transport)
+        c = self.counters(transport)
         rt = sorted(self.round_intervals)
         trace = getattr(self.core, "trace", None) or {}
         res.update(
