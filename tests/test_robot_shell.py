@@ -554,6 +554,14 @@ async def test_same_results_as_the_in_process_simulator(router, faults):
         out = await asyncio.gather(*(run_robot(spec, i, connect=[router], status_stream=None)
                                      for i in spec.robot_ids))
         _assert_same_as_reference(dict(zip(spec.robot_ids, out)), sim)
+        # one result row for both shells: same keys, same types (the file read back as a row)
+        from protocol.session import ROW_KEYS, row_from_file
+
+        for i, res in zip(spec.robot_ids, out):
+            row = row_from_file(res)
+            assert set(ROW_KEYS) <= row.keys() and row.keys() == sim[i].keys()
+            assert {k: type(v) for k, v in row.items()} == {k: type(v) for k, v in sim[i].items()}
+            assert row["trace"] == sim[i]["trace"]
 
 
 def _robot_cmd(spec_args: list[str], endpoint: str, i: int, tmp: Path) -> list[str]:
