@@ -178,6 +178,7 @@ class RobotSession:
         self._deadline: float | None = None
         self._last_advance = now
         self.round_intervals: list[float] = []  # shell-clock seconds of each advance-to-advance
+        self._intervals_for: tuple[int, tuple[float, float]] = (-1, (0.0, 0.0))  # resend cache
         self.round_times: dict[int, float] = {int(core.round): 0.0}  # round -> when it was reached
         self._publish(core.outgoing(), now)
         self._enter_linger_if_finished(now)
@@ -419,10 +420,18 @@ class RobotSession:
         quartile of recent rounds, which loss does not inflate -- and never less than
         ``retransmit_s``.
         """
-        recent = self.round_intervals[-ADAPT_WINDOW:]
-        typical = float(np.percentile(recent, 25)) if len(recent) >= ADAPT_MIN_ROUNDS else 0.0
+        n = len(self.round_intervals)
+        if self._intervals_for[0] == n:  # unchanged since the last round: no new percentile
+            return self._intervals_for[1]
+        typical = 0.0
+        if n >= ADAPT_MIN_ROUNDS:  # np.percentile(recent, 25), linear, without numpy's overhead
+            xs = sorted(self.round_intervals[-ADAPT_WINDOW:])
+            pos = 0.25 * (len(xs) - 1)
+            lo = int(pos)
+            typical = xs[lo] + (xs[min(lo + 1, len(xs) - 1)] - xs[lo]) * (pos - lo)
         periodic = max(self.timing.retransmit_s, ADAPT_FACTOR * typical)
         fast = min(periodic, max(FAST_RESEND_MIN_S, periodic / 4))
+        self._intervals_for = (n, (periodic, fast))
         return periodic, fast
 
     def _resend(self, now: float) -> float:
