@@ -319,7 +319,7 @@ class RobotShell:
         ids = self._routers()
         up = ids is None or bool(ids)
         reconnected = bool(ids) and ids != self._router_ids
-        was = self.session._connected
+        was = self.session.link_up
         if up and (not was or reconnected):
             log.info("robot %d: connected to a router again", self.me)
         elif not up and was:

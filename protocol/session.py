@@ -261,6 +261,11 @@ class RobotSession:
             self._connected_since = now
         self._connected = up
 
+    @property
+    def link_up(self) -> bool:
+        """The last connectivity the shell reported (True until it reports otherwise)."""
+        return self._connected
+
     def connected(self, now: float) -> None:
         """We (re)connected to a router."""
         self.link_status(True, now, reconnected=True)
