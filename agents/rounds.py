@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.frames import StateUpdate
+from agents.messages import StateUpdate
 
 _TINY = 1e-12
 # An iterate this large is taken as divergence: the function values are O(1)-O(100) in any sane

@@ -55,6 +55,7 @@ from typing import IO, Any
 from agents.spec import FleetSpec
 from launcher.simulate import FleetOutcome
 from protocol.zenoh_config import free_loopback_port, parse_endpoint, router_endpoint, validate_endpoint
+from protocol.session import row_from_file
 
 __all__ = [
     "CrashPlan",
@@ -537,21 +538,9 @@ class _Fleet:
 
 
 def _normalise(res: dict[str, Any]) -> dict[str, Any]:
-    """A robot's result file -> the FleetOutcome row (same shape as simulate_fleet's rows)."""
-    out = dict(res)
-    rej = out.get("frames_rejected", 0)
-    if isinstance(rej, dict):
-        out["frames_rejected"] = int(rej.get("total", 0))
-        out["frames_rejected_by_reason"] = {str(k): int(v) for k, v in rej.get("by_reason", {}).items()}
-    else:
-        out["frames_rejected"] = int(rej or 0)
-        out.setdefault("frames_rejected_by_reason", {})
-    if "trace" in out:
-        out["trace"] = {int(k): v for k, v in out["trace"].items()}
-    out["id"] = int(out["id"])
-    for k in ("frames_sent", "frames_received", "frames_lost", "restarts"):
-        out[k] = int(out.get(k, 0) or 0)
-    return out
+    """A robot's result file -> the FleetOutcome row: the very row simulate_fleet gives
+    (``protocol.session.row_from_file``, the inverse of what the robot wrote)."""
+    return row_from_file(res)
 
 
 def _collect(fleet: _Fleet) -> list[dict[str, Any]]:

@@ -1,14 +1,20 @@
-"""The in-process fleet: every robot's core in one process, frames moved in memory.
+"""The in-process fleet: every robot's session in one process, frames moved in memory.
 
-It drives exactly what a robot process drives -- the same state machine, the same frame codec,
-the same fault-injecting links -- on a virtual clock, so it is deterministic and fast. With no
-faults every frame arrives at once and the fleet advances in lock-step; with faults, delayed
-and lost frames are recovered the way the Zenoh shell recovers them (piggybacked previous
-round plus retransmission after `retransmit_s` of virtual time).
+It drives exactly what a robot process drives -- the same :class:`protocol.session.RobotSession`
+(framing, authentication, dedup, piggyback recovery, adaptive resend, linger, neighbour death),
+the same cores, the same fault-injecting links -- on a virtual clock, so it is deterministic and
+fast. With no faults every frame arrives at once and the fleet advances in lock-step; with faults,
+delayed and lost frames are recovered exactly as in the Zenoh shell.
+
+Liveliness on the virtual clock: every robot's "token" is there from the start and vanishes when
+its session closes (``peer_gone`` to its neighbours), so ``dead_after_s`` / ``give_up_s`` mean what
+they mean in a Zenoh fleet: a neighbour that stopped for good is dropped after ``dead_after_s`` of
+silence (crash injection is not modelled here; see docs/robot.md).
 """
 
 from __future__ import annotations
 
+import collections
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,26 +22,16 @@ from typing import Any
 
 from agents.problem import InfeasibleError, SolverError
 from agents.spec import FleetSpec, build_core
-from protocol.frames import Decoded, FrameDecoder, encode_state
 from protocol.links import LinkLayer
+from protocol.session import BROADCAST, RobotSession
 
 ProgressFn = Callable[[int, float], None]
-
-
-@dataclass
-class _Robot:
-    core: Any
-    decoder: FrameDecoder
-    seq: int = 0
-    last_publish: float = 0.0
-    frames_sent: int = 0
-    frames_received: int = 0
-    round_times: dict[int, float] = field(default_factory=lambda: {0: 0.0})
+FAILED = ("solver_error", "diverged")
 
 
 @dataclass
 class FleetOutcome:
-    """What the fleet produced: one result per robot plus run-level figures."""
+    """What the fleet produced: one result row per robot plus run-level figures."""
 
     robots: list[dict[str, Any]]
     wall_s: float
@@ -54,98 +50,76 @@ class FleetFailure(RuntimeError):
     """
 
 
+def _sessions(spec: FleetSpec, cap: float | None) -> dict[int, RobotSession]:
+    sessions = {}
+    for rid in spec.robot_ids:
+        try:
+            core = build_core(spec, rid)
+        except (SolverError, InfeasibleError) as exc:
+            raise FleetFailure(f"robot {rid} round 0: local solver failed: {exc}") from None
+        sessions[rid] = RobotSession.for_spec(spec, core, now=0.0, max_wall_s=cap)
+    for s in sessions.values():
+        for j in s.peers:
+            s.peer_up(j, 0.0)  # every robot is there from the start
+    return sessions
+
+
 def simulate_fleet(
     spec: FleetSpec,
     *,
     progress: ProgressFn | None = None,
     max_virtual_s: float | None = None,
 ) -> FleetOutcome:
-    """Run every robot of `spec` to completion in this process and return their results."""
+    """Run every robot of `spec` to completion in this process and return their result rows.
+
+    ``max_virtual_s`` replaces ``spec.timing.max_wall_s`` as the cap on the virtual clock.
+    """
     started = time.perf_counter()
-    cap = spec.timing.max_wall_s if max_virtual_s is None else max_virtual_s
-    auths = {rid: spec.frame_auth(rid) for rid in spec.robot_ids}
-    robots = {}
-    for rid in spec.robot_ids:
-        try:
-            core = build_core(spec, rid)
-        except (SolverError, InfeasibleError) as exc:
-            raise FleetFailure(f"robot {rid} round 0: local solver failed: {exc}") from None
-        decoder = FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=auths[rid])
-        robots[rid] = _Robot(core, decoder)
+    sessions = _sessions(spec, max_virtual_s)
     links = LinkLayer(spec.faults, spec.seed)
+    received: collections.Counter[int] = collections.Counter()  # frames put on links into a robot
+    running = dict(sessions)
     now = 0.0
-
-    def publish(rid: int) -> None:
-        r = robots[rid]
-        payload = encode_state(
-            r.core.outgoing(), fleet=spec.fleet, seq=r.seq, config_tag=spec.config_tag, auth=auths[rid]
-        )
-        r.seq += 1
-        r.frames_sent += 1
-        r.last_publish = now
-        for j in r.core.neighbours:
-            links.send(rid, j, payload, now)
-
-    def still_needed(rid: int) -> bool:
-        """Waiting robots retransmit; finished ones too while a neighbour may still need them."""
-        core = robots[rid].core
-        return not core.finished or any(not robots[j].core.finished for j in core.neighbours)
-
-    for rid in robots:
-        publish(rid)
     slowest = -1
-    while not all(r.core.finished for r in robots.values()):
+    while running:
         for src, dst, payload in links.deliver(now):
-            r = robots[dst]
-            event = r.decoder.decode(payload, expected_sender=src)
-            if isinstance(event, Decoded):
-                r.frames_received += 1
-                r.core.receive(event.update)
+            sessions[dst].receive(src, payload, now)
         advanced = False
-        for rid, r in robots.items():
-            if r.core.ready():
-                try:
-                    update = r.core.advance()
-                except (SolverError, InfeasibleError, FloatingPointError) as exc:
-                    raise FleetFailure(f"robot {rid} round {r.core.round}: local solver failed: {exc}") from None
-                why = r.core.divergence()
-                if why is not None:
-                    raise FleetFailure(f"robot {rid} round {update.round}: diverged: {why}")
-                r.round_times[r.core.round] = now
-                publish(rid)
+        for s in running.values():
+            while s.advance(now):
                 advanced = True
-        current = min(r.core.round for r in robots.values())
+            if s.stopped in FAILED:
+                raise FleetFailure(s.error)
+        for rid, s in running.items():
+            for dest, payload in s.to_send(now):
+                for j in s.peers if dest is BROADCAST else (dest,):
+                    links.send(rid, j, payload, now)
+                    received[j] += 1
+        for rid in [rid for rid, s in running.items() if s.done]:
+            del running[rid]
+            for s in running.values():
+                s.peer_gone(rid, now)  # its session closed: its token is gone
+        current = min(s.core.round for s in sessions.values())
         if progress is not None and current != slowest:
             slowest = current
-            progress(current, max(r.core.residual for r in robots.values()))
+            progress(current, max(s.core.residual for s in sessions.values()))
         if advanced:
             continue
-        timers = [r.last_publish + spec.timing.retransmit_s for rid, r in robots.items() if still_needed(rid)]
-        due = links.next_due()
-        candidates = timers + ([due] if due is not None else [])
-        if not candidates:
+        due = [d for d in (s.next_deadline() for s in running.values()) if d is not None]
+        if links.next_due() is not None:
+            due.append(links.next_due())
+        if running and not due:
             raise DeadlockError("no robot can advance and no frame is in flight")
-        now = max(now, min(candidates))
-        if now > cap:
-            break
-        for rid, r in robots.items():
-            if still_needed(rid) and r.last_publish + spec.timing.retransmit_s <= now:
-                publish(rid)
+        if due:
+            now = max(now, min(due))
+    return FleetOutcome(_rows(sessions, links, received, now), time.perf_counter() - started, now, links.stats())
 
-    lost_into = {rid: 0 for rid in robots}
+
+def _rows(sessions: dict[int, RobotSession], links: LinkLayer, received: collections.Counter[int],
+          now: float) -> list[dict[str, Any]]:
+    """One row per robot (RobotSession.row), with what its incoming links did."""
+    transport = {rid: {"received": received[rid], "lost": 0, "duplicated": 0} for rid in sessions}
     for (_, dst), stats in links.link_stats().items():
-        lost_into[dst] += stats["dropped"]
-    results = []
-    for rid, r in robots.items():
-        res = r.core.result()
-        res.update(
-            frames_sent=r.frames_sent,
-            frames_received=r.frames_received,
-            frames_lost=lost_into[rid],
-            frames_rejected=sum(r.decoder.counts.values()),
-            restarts=0,
-            trace={k: v.tolist() for k, v in r.core.trace.items()},
-            round_times=r.round_times,
-        )
-        results.append(res)
-    return FleetOutcome(results, time.perf_counter() - started, now, links.stats())
+        transport[dst]["lost"] += stats["dropped"]
+        transport[dst]["duplicated"] += stats["duplicated"]
+    return [s.row(now, transport[rid]) for rid, s in sessions.items()]

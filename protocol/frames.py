@@ -20,6 +20,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from agents.messages import MAX_FLAGS, MAX_ROUND, StateUpdate, check_int
 from protocol.auth import TAG_BYTES, FrameAuth
 from protocol.keys import validate_fleet_id, validate_robot_id
 
@@ -27,9 +28,7 @@ FRAME_VERSION = 1
 KIND_STATE = "state"
 CONFIG_TAG_SIZE = 8
 MAX_FRAME_BYTES = 1 << 20
-MAX_ROUND = 2**31 - 1
 MAX_SEQ = 2**63 - 1
-MAX_FLAGS = 2**63 - 1
 # Everything of a frame but its two vectors takes < 200 bytes (fleet ids are <= 64 chars).
 _FRAME_OVERHEAD_BOUND = 256
 MAX_DIM = (MAX_FRAME_BYTES - _FRAME_OVERHEAD_BOUND) // 16
@@ -79,77 +78,9 @@ _FIELD_TYPES: dict[str, tuple[type, ...]] = {
 }
 
 
-def _check_int(name: str, value: Any, hi: int) -> int:
-    if type(value) is not int:
-        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
-    if not 0 <= value <= hi:
-        raise ValueError(f"{name} {value} is outside [0, {hi}]")
-    return value
-
-
-def _as_vector(name: str, value: Any) -> np.ndarray:
-    arr = np.asarray(value)
-    if arr.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be real numbers, got dtype {arr.dtype}")
-    if arr.ndim != 1 or arr.size == 0:
-        raise ValueError(f"{name} must be a non-empty 1-D vector, got shape {arr.shape}")
-    return arr.astype(np.float64, copy=False)
-
-
-@dataclass(frozen=True, eq=False)
-class StateUpdate:
-    """One robot's consensus vector for one round, as the algorithm core sees it.
-
-    ``prev_values`` are the sender's values of ``round - 1``: a receiver that lost that frame
-    recovers the exact value from the next one instead of reusing a stale one (which would bias
-    ADMM). Consequently it must be None at round 0, and ``prev_flags`` must be 0 without it.
-    Equality compares the arrays element-wise (``np.array_equal``); instances are unhashable.
-    """
-
-    sender: int
-    round: int
-    values: np.ndarray
-    flags: int
-    prev_values: np.ndarray | None
-    prev_flags: int = 0
-
-    def __post_init__(self) -> None:
-        validate_robot_id(self.sender)
-        _check_int("round", self.round, MAX_ROUND)
-        _check_int("flags", self.flags, MAX_FLAGS)
-        _check_int("prev_flags", self.prev_flags, MAX_FLAGS)
-        values = _as_vector("values", self.values)
-        object.__setattr__(self, "values", values)
-        if self.prev_values is None:
-            if self.prev_flags:
-                raise ValueError("prev_flags must be 0 when prev_values is None")
-            return
-        if self.round == 0:
-            raise ValueError("prev_values must be None at round 0 (there is no round -1)")
-        prev = _as_vector("prev_values", self.prev_values)
-        if prev.shape != values.shape:
-            raise ValueError(
-                f"prev_values has {prev.size} entries but values has {values.size}"
-            )
-        object.__setattr__(self, "prev_values", prev)
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, StateUpdate):
-            return NotImplemented
-        if (self.sender, self.round, self.flags, self.prev_flags) != (
-            other.sender,
-            other.round,
-            other.flags,
-            other.prev_flags,
-        ):
-            return False
-        if not np.array_equal(self.values, other.values):
-            return False
-        if self.prev_values is None or other.prev_values is None:
-            return self.prev_values is None and other.prev_values is None
-        return np.array_equal(self.prev_values, other.prev_values)
-
-    __hash__ = None  # type: ignore[assignment]  # holds mutable arrays
+# The message type lives with the algorithms (agents/messages.py): re-exported here so that
+# ``from protocol.frames import StateUpdate`` keeps working.
+_check_int = check_int
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from agents.robot import alive_key, run_robot  # noqa: E402
+from agents.rounds import check_iterate  # noqa: E402
 from protocol.frames import StateUpdate, config_tag, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
@@ -94,6 +95,10 @@ class AveragingCore:
     def outgoing(self) -> StateUpdate:
         return StateUpdate(self.robot_id, self.round, self._x.copy(), 0,
                            None if self._prev is None else self._prev.copy())
+
+    def divergence(self) -> str | None:
+        """The core interface: why its iterate cannot be a result (the shared rule of RoundCore)."""
+        return check_iterate(self._x)
 
     def receive(self, u: StateUpdate) -> None:
         if u.sender not in self.neighbours:
@@ -554,6 +559,14 @@ async def test_same_results_as_the_in_process_simulator(router, faults):
         out = await asyncio.gather(*(run_robot(spec, i, connect=[router], status_stream=None)
                                      for i in spec.robot_ids))
         _assert_same_as_reference(dict(zip(spec.robot_ids, out)), sim)
+        # one result row for both shells: same keys, same types (the file read back as a row)
+        from protocol.session import ROW_KEYS, row_from_file
+
+        for i, res in zip(spec.robot_ids, out):
+            row = row_from_file(res)
+            assert set(ROW_KEYS) <= row.keys() and row.keys() == sim[i].keys()
+            assert {k: type(v) for k, v in row.items()} == {k: type(v) for k, v in sim[i].items()}
+            assert row["trace"] == sim[i]["trace"]
 
 
 def _robot_cmd(spec_args: list[str], endpoint: str, i: int, tmp: Path) -> list[str]:

@@ -1,0 +1,322 @@
+"""The sans-IO session alone, on a fake clock: resend timing, dedup, piggyback recovery, death by
+silence and on evidence, linger, stop reasons, counters; and one result row for both shells."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agents.problem import SolverError
+from agents.rounds import RoundCore
+from protocol.frames import Decoded, FrameDecoder
+from protocol.session import (
+    BROADCAST,
+    ROW_KEYS,
+    RobotSession,
+    SessionTiming,
+    row_from_file,
+    row_to_file,
+)
+
+TAG = b"sessiont"
+SENDERS = (0, 1, 2)
+TIMING = SessionTiming(retransmit_s=0.1, dead_after_s=1.0, max_wall_s=100.0, linger_s=0.5, give_up_s=10.0)
+
+
+class Mean(RoundCore):
+    """x <- mean of its own and its neighbours' x, for a fixed number of rounds (never converges)."""
+
+    algorithm = "mean"
+
+    def __init__(self, i: int, neighbours: tuple[int, ...], rounds: int = 6, fail_at: int | None = None) -> None:
+        super().__init__(i, neighbours, 3, diameter=2, round_cap=rounds, keep_trace=True)
+        self._values = np.array([1.0 + i, -2.0 * i, 0.5 * i])
+        self.fail_at = fail_at
+        self._record()
+
+    def _step(self, mine, theirs):
+        if self.round == self.fail_at:
+            raise SolverError("piqp returned PIQP_MAX_ITER_REACHED")
+        return np.mean([mine, *(theirs[j] for j in sorted(theirs))], axis=0), False
+
+    def _forget_edge(self, j):
+        pass
+
+    def _save_state(self):
+        return {}
+
+    def _load_state(self, state):
+        pass
+
+
+def session(i: int, neighbours: tuple[int, ...], *, now: float = 0.0, timing: SessionTiming = TIMING,
+            **kw) -> RobotSession:
+    core_kw = {k: kw.pop(k) for k in ("rounds", "fail_at") if k in kw}
+    return RobotSession(Mean(i, neighbours, **core_kw), fleet="sess", senders=SENDERS, dim=3,
+                        config_tag=TAG, timing=timing, now=now, **kw)
+
+
+def frames(s: RobotSession, now: float) -> list[bytes]:
+    out = s.to_send(now)
+    assert all(dest is BROADCAST for dest, _ in out)
+    return [f for _, f in out]
+
+
+def run_pair(a: RobotSession, b: RobotSession, now: float, lose=lambda src, frame: False) -> float:
+    """Exchange and advance on the fake clock until both are done; the final time."""
+    for _ in range(10_000):
+        if a.done and b.done:
+            return now
+        for s, other in ((a, b), (b, a)):
+            for f in frames(s, now):
+                if not lose(s.me, f):
+                    other.receive(s.me, f, now)
+        for s in (a, b):
+            while s.advance(now):
+                pass
+        due = [d for d in (a.next_deadline(), b.next_deadline()) if d is not None]
+        now = max(now, min(due)) if due else now
+    raise AssertionError("no progress")
+
+
+def seq_of(frame: bytes, sender: int) -> int:
+    out = FrameDecoder("sess", SENDERS, 3, TAG).decode(frame, expected_sender=sender)
+    assert isinstance(out, Decoded)
+    return out.seq
+
+
+# ----------------------------------------------------------------------------- resend
+
+
+def test_first_frame_then_resend_every_retransmit_s():
+    s = session(0, (1,))
+    first = frames(s, 0.0)
+    assert len(first) == 1 and s.sent == 1
+    assert s.next_deadline() == pytest.approx(0.1)
+    assert frames(s, 0.099) == [] and s.next_deadline() == pytest.approx(0.1)
+    again = frames(s, 0.1)
+    assert len(again) == 1 and seq_of(again[0], 0) == seq_of(first[0], 0) + 1
+    assert s.next_deadline() == pytest.approx(0.2) and s.sent == 2
+
+
+def test_neighbour_one_round_behind_triggers_a_fast_resend():
+    a, b = session(0, (1,)), session(1, (0,))
+    fa, fb = frames(a, 0.0), frames(b, 0.0)
+    a.receive(1, fb[0], 0.0)
+    assert a.advance(0.0) and a.core.round == 1
+    assert len(frames(a, 0.0)) == 1  # the round-1 frame, at once
+    a.receive(1, frames(b, 0.1)[0], 0.1)  # b resends round 0: it has not got our round-0 value
+    fast = a.next_deadline()
+    assert fast < 0.1 + 0.1 - 1e-9  # sooner than a periodic resend
+    out = frames(a, fast)
+    assert len(out) == 1
+    b.receive(0, out[0], fast)  # round 1 carries round 0 piggybacked: b can advance
+    assert b.advance(fast) and b.core.round == 1
+    del fa
+
+
+# ----------------------------------------------------------------------------- receive
+
+
+def test_duplicate_frame_is_counted_and_ignored():
+    a, b = session(0, (1,)), session(1, (0,))
+    f = frames(b, 0.0)[0]
+    assert isinstance(a.receive(1, f, 0.0), Decoded)
+    assert a.receive(1, f, 0.0) is None
+    row = a.row(0.0, {})
+    assert row["frames_deduplicated"] == 1 and row["frames_accepted"] == 2 and row["frames_rejected"] == 0
+
+
+def test_garbage_is_rejected_by_reason_and_never_reaches_the_core():
+    a = session(0, (1,))
+    a.receive(1, b"\xc1 not msgpack", 0.0)
+    a.receive(1, frames(session(2, (1,)), 0.0)[0], 0.0)  # robot 2's frame on robot 1's key
+    row = a.row(0.0, {})
+    assert row["frames_rejected"] == 2
+    assert row["frames_rejected_by_reason"] == {"not-msgpack": 1, "sender": 1}
+    assert a.core.missing() == (1,)
+
+
+def test_lost_frames_are_recovered_exactly_from_the_piggyback():
+    clean = run_pair(session(0, (1,)), session(1, (0,)), 0.0)
+    a, b = session(0, (1,)), session(1, (0,))
+    seen = {0: 0, 1: 0}
+
+    def lose(src, frame):  # every other frame of robot 0 is lost
+        seen[src] += 1
+        return src == 0 and seen[src] % 2 == 0
+
+    t = run_pair(a, b, 0.0, lose)
+    ref_a, ref_b = session(0, (1,)), session(1, (0,))
+    run_pair(ref_a, ref_b, 0.0)
+    for got, want in ((a, ref_a), (b, ref_b)):
+        assert got.core.round == want.core.round == 6
+        assert np.array_equal(got.core.values, want.core.values)
+        assert got.stopped == "finished"
+    assert t > clean  # recovery cost time, not accuracy
+
+
+# ----------------------------------------------------------------------------- neighbour death
+
+
+def test_token_gone_plus_dead_after_s_of_silence_drops_and_isolates():
+    s = session(0, (1,))
+    frames(s, 0.0)
+    s.peer_up(1, 0.0)
+    s.peer_gone(1, 2.0)
+    frames(s, 2.5)
+    assert s.core.neighbours == (1,)  # evidence, but not silent long enough after it
+    assert s.next_deadline() <= 3.0
+    frames(s, 3.0)
+    assert s.neighbours_dropped == [1] and s.dropped_at == {1: 0}
+    assert s.stopped == "isolated" and s.done and "isolated" in s.error
+    row = s.row(3.0, {})
+    assert row["isolated"] is True and row["converged"] is False and row["stopped"] == "isolated"
+
+
+def test_a_token_still_there_is_waited_for_until_give_up_s():
+    s = session(0, (1, 2))
+    frames(s, 0.0)
+    s.peer_up(1, 0.0)
+    s.peer_up(2, 0.0)
+    s.receive(2, frames(session(2, (0,)), 0.0)[0], 0.0)
+    for t in np.arange(0.1, 9.95, 0.1):  # robot 1 silent but present (paused): waited for
+        frames(s, float(t))
+    assert s.neighbours_dropped == []
+    frames(s, 10.0)
+    assert s.neighbours_dropped == [1] and s.stopped is None
+    assert s.ready()  # robot 2's value is here: the round goes on without robot 1
+
+
+def test_no_drop_while_disconnected_and_the_clock_restarts_on_reconnection():
+    s = session(0, (1,), link_checks=True)
+    frames(s, 0.0)
+    s.peer_up(1, 0.0)
+    s.peer_gone(1, 0.5)
+    s.disconnected(0.5)  # the router went: every token goes with it
+    frames(s, 5.0)
+    assert s.link_check_due  # a drop needs a fresh look at our connection
+    s.link_status(False, 5.0)
+    frames(s, 5.0)
+    assert s.neighbours_dropped == []
+    s.connected(6.0)  # back: evidence counts from now
+    frames(s, 6.9)
+    assert s.neighbours_dropped == []
+    frames(s, 7.0)
+    assert s.link_check_due
+    s.link_status(True, 7.0)
+    frames(s, 7.0)
+    assert s.neighbours_dropped == [1]
+
+
+def test_a_neighbour_two_rounds_ahead_has_dropped_us():
+    s = session(0, (1,))
+    ahead = session(1, ())  # alone it runs ahead
+    while ahead.advance(0.0):
+        if ahead.core.round == 2:
+            break
+    s.receive(1, frames(ahead, 0.0)[-1], 1.0)  # its round-2 frame
+    frames(s, 1.0)
+    assert s.neighbours_dropped == [1] and s.stopped == "isolated"
+
+
+# ----------------------------------------------------------------------------- stops and linger
+
+
+def test_linger_republishes_until_the_neighbour_has_our_final_round():
+    a, b = session(0, (1,), rounds=1), session(1, (0,), rounds=1)
+    a.peer_up(1, 0.0)  # b is there (a neighbour whose token is gone needs nothing from us)
+    frames(a, 0.0)
+    a.receive(1, frames(b, 0.0)[0], 0.0)
+    assert a.advance(0.0) and a.core.finished and a.lingering and not a.done
+    frames(a, 0.0)
+    assert len(frames(a, 0.1)) == 1  # still republished while b has not shown round 1
+    b.receive(0, frames(a, 0.2)[0], 0.2)
+    assert b.advance(0.2)
+    a.receive(1, frames(b, 0.2)[0], 0.2)
+    frames(a, 0.2)
+    assert a.done and a.stopped == "finished"
+
+
+def test_linger_is_bounded_by_linger_s():
+    a = session(0, (1,), rounds=1)
+    a.peer_up(1, 0.0)
+    a.receive(1, frames(session(1, (0,)), 0.0)[0], 0.0)
+    a.advance(0.0)
+    frames(a, 0.49)
+    assert not a.done
+    frames(a, 0.5)
+    assert a.done and a.row(0.5, {})["stopped"] == "finished"
+
+
+def test_solver_failure_and_divergence_are_stop_reasons():
+    s = session(0, (), fail_at=2)
+    while s.advance(0.0):
+        pass
+    assert s.stopped == "solver_error" and s.done
+    assert s.error == "robot 0 round 2: local solver failed: piqp returned PIQP_MAX_ITER_REACHED"
+    s = session(1, ())
+    s.core._values = s.core._values * 1e80
+    assert not s.advance(0.0)
+    assert s.stopped == "diverged" and s.error.startswith("robot 1 round 1: diverged: exploding iterate")
+    assert s.row(0.0, {})["converged"] is False
+
+
+def test_max_wall_s():
+    s = session(0, (1,), timing=SessionTiming(0.1, 60.0, 0.5, 0.5, 600.0))
+    frames(s, 0.0)
+    assert s.next_deadline() == pytest.approx(0.1)
+    frames(s, 0.5)
+    assert s.done and s.stopped == "max_wall" and s.next_deadline() is None
+
+
+# ----------------------------------------------------------------------------- counters and rows
+
+
+def test_counters_survive_a_restart():
+    a, b = session(0, (1,)), session(1, (0,))
+    a.receive(1, b"junk", 0.0)
+    a.receive(1, frames(b, 0.0)[0], 0.0)
+    a.advance(0.0)
+    frames(a, 0.0)
+    env = a.checkpoint({"received": 5, "lost": 2, "duplicated": 1})
+    core = Mean(0, (1,))
+    core.restore(env["core"])
+    again = RobotSession(core, fleet="sess", senders=SENDERS, dim=3, config_tag=TAG, timing=TIMING,
+                         now=10.0, resume=env)
+    row = again.row(10.0, {"received": 1, "lost": 0, "duplicated": 0})
+    assert row["restarts"] == 1 and row["frames_sent"] == 3  # 2 before + the restart's first frame
+    assert (row["frames_received"], row["frames_lost"], row["frames_duplicated"]) == (6, 2, 1)
+    assert row["frames_rejected_by_reason"] == {"not-msgpack": 1} and row["frames_accepted"] == 1
+    # a restarted sender's seqs are all newer than any of its former life
+    assert seq_of(frames(again, 10.0)[0], 0) > seq_of(frames(session(0, (1,)), 0.0)[0], 0) + 1000
+
+
+def test_row_has_every_key_and_survives_the_result_file():
+    a, b = session(0, (1,)), session(1, (0,))
+    run_pair(a, b, 0.0)
+    row = a.row(1.0, {"received": 9, "lost": 1, "duplicated": 0})
+    assert set(ROW_KEYS) <= row.keys()
+    assert isinstance(row["frames_rejected"], int) and isinstance(row["frames_rejected_by_reason"], dict)
+    assert all(isinstance(k, int) for key in ("trace", "round_times") for k in row[key])
+    assert sorted(row["round_times"]) == list(range(7)) and row["round_ms"]["rounds"] == 6
+    back = row_from_file(row_to_file(row))
+    assert back.keys() == row.keys()
+    assert {k: v for k, v in back.items() if k != "residual"} == {k: v for k, v in row.items() if k != "residual"}
+
+
+def test_simulate_rows_have_the_session_schema():
+    """simulate_fleet's rows are RobotSession.row()s, and a result file read back gives the same
+    keys and types (the Zenoh side of this check runs in tests/test_robot_shell.py)."""
+    from launcher.simulate import simulate_fleet
+
+    from .conftest import make_run
+
+    _world, spec, _central = make_run(robots=3, max_rounds=15)
+    rows = simulate_fleet(spec).robots
+    for r in rows:
+        assert set(ROW_KEYS) <= r.keys()
+        back = row_from_file(row_to_file(r))
+        assert back.keys() == r.keys()
+        assert {k: type(v) for k, v in back.items()} == {k: type(v) for k, v in r.items()}
+        assert r["frames_received"] >= r["frames_accepted"] > 0 and r["stopped"] == "finished"
