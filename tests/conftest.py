@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -47,6 +49,46 @@ def max_function_error(spec, central, robots) -> float:
 
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def processes_with(marker: str) -> list[int]:
+    """PIDs (other than ours) whose command line contains ``marker`` (e.g. a test's tmp_path)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit() or int(entry) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{entry}/cmdline", "rb") as fh:
+                cmdline = fh.read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # gone meanwhile
+            continue
+        if marker in cmdline:
+            found.append(int(entry))
+    return found
+
+
+@contextlib.contextmanager
+def bounded_and_clean(marker: str, seconds: float, what: str):
+    """A hard wall-clock bound (SIGALRM raises TimeoutError naming `what`) and, afterwards, no
+    process whose command line names `marker`: leftovers are killed by PID, then the test fails."""
+
+    def on_alarm(signum, frame):
+        raise TimeoutError(f"{what} exceeded its {seconds:g}s bound")
+
+    previous = signal.signal(signal.SIGALRM, on_alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+        left = processes_with(marker)
+        for pid in left:  # never leave them running, even when failing
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        assert not left, f"processes left behind: {left}"
 
 
 def start_router(folder: Path, port: int, *, max_wall_s: float) -> subprocess.Popen:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import os
 import queue
-import signal
 import subprocess
 import sys
 import threading
@@ -36,8 +35,8 @@ from launcher.fleet import launch_fleet, stop_process  # noqa: E402
 from launcher.simulate import simulate_fleet  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
 from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint, to_zenoh_config  # noqa: E402
-from tests.conftest import make_run, max_function_error, start_router  # noqa: E402
-from tests.test_launch import _assert_gone, _processes_with  # noqa: E402
+from tests.conftest import bounded_and_clean, make_run, max_function_error, start_router  # noqa: E402
+from tests.test_launch import _assert_gone  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
@@ -47,24 +46,9 @@ IMPOSTOR_S = 40.0  # ... and in time
 
 
 @pytest.fixture(autouse=True)
-def bounded_and_clean(tmp_path):
-    def on_alarm(signum, frame):
-        raise TimeoutError("impostor test exceeded its 90 s bound")
-
-    previous = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, 90)
-    try:
+def bounded(tmp_path):
+    with bounded_and_clean(str(tmp_path), 90, "impostor test"):
         yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-        left = _processes_with(str(tmp_path))
-        for pid in left:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        assert not left, f"processes left behind: {left}"
 
 
 def forge(payload: bytes, scale: float) -> list[bytes]:

@@ -39,7 +39,7 @@ from protocol.frames import StateUpdate, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
 from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint  # noqa: E402
-from tests.conftest import make_run, max_function_error, start_router  # noqa: E402
+from tests.conftest import bounded_and_clean, make_run, max_function_error, start_router  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
@@ -62,22 +62,6 @@ def bound(seconds: float):
     return mark
 
 
-def _processes_with(marker: str) -> list[int]:
-    """PIDs (other than ours) whose command line contains ``marker``."""
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit() or int(entry) == os.getpid():
-            continue
-        try:
-            with open(f"/proc/{entry}/cmdline", "rb") as fh:
-                cmdline = fh.read().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:  # gone meanwhile
-            continue
-        if marker in cmdline:
-            found.append(int(entry))
-    return found
-
-
 def _assert_gone(pids: list[int]) -> None:
     """Every PID was reaped: no such process any more (or, after PID reuse, not one of ours)."""
     for pid in pids:
@@ -90,26 +74,10 @@ def _assert_gone(pids: list[int]) -> None:
 
 
 @pytest.fixture(autouse=True)
-def bounded_and_clean(request, tmp_path):
+def bounded(request, tmp_path):
     limit = getattr(request.function, "_bound_s", DEFAULT_BOUND_S)
-
-    def on_alarm(signum, frame):
-        raise TimeoutError(f"{request.node.name} exceeded its {limit:g}s bound")
-
-    previous = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, limit)
-    try:
+    with bounded_and_clean(str(tmp_path), limit, request.node.name):
         yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-        left = _processes_with(str(tmp_path))
-        for pid in left:  # never leave them running, even when failing
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        assert not left, f"processes left behind: {left}"
 
 
 @pytest.fixture(scope="module")
@@ -474,15 +442,16 @@ def test_time_bound_stops_robots_and_keeps_their_results(tmp_path, monkeypatch):
     import launcher.fleet as fleet_mod
 
     monkeypatch.setattr(fleet_mod, "time_bound_s", lambda *a: 4.0)
-    _world, spec, _central = _run(tol=1e-9, max_rounds=100000, faults=LinkFaults(delay=0.01),
-                                  fleet_id="launch-bound")
+    # a ring of 4 (plain edge form) at 10 ms a round is still far from tol 1e-9 after 4 s
+    _world, spec, _central = _run(robots=4, topology="ring", tol=1e-9, max_rounds=100000,
+                                  faults=LinkFaults(delay=0.01), fleet_id="launch-bound")
     t = time.monotonic()
     out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
                        zenoh_port=None, progress=False)
     assert 4.0 <= time.monotonic() - t < 4.0 + 10
     _assert_gone(out.pids)
     assert out.timed_out and set(out.states.values()) == {"stopped"}
-    assert [r["id"] for r in out.robots] == [0, 1, 2]
+    assert [r["id"] for r in out.robots] == list(spec.robot_ids)
     for r in out.robots:
         assert r["stopped"] == "signal" and r["converged"] is False and r["rounds"] > 0
 

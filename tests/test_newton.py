@@ -279,18 +279,11 @@ def test_launch_equals_simulate_bit_for_bit(tmp_path):
     """One Zenoh fleet (router + 4 robot processes on loopback, 20 % loss, robot 1 killed at round
     10 and restarted from its checkpoint) equals the clean in-process run bit for bit. Bounded in
     time; every process it started is gone afterwards (leftovers are killed by PID, then we fail)."""
-    import os
-    import signal
-
     from launcher.fleet import CrashPlan
-    from tests.test_launch import TIMING, _assert_same_iterates, _launch, _processes_with
+    from tests.conftest import bounded_and_clean
+    from tests.test_launch import TIMING, _assert_same_iterates, _launch
 
-    def on_alarm(signum, frame):
-        raise TimeoutError("newton launch exceeded its 60 s bound")
-
-    previous = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, 60.0)
-    try:
+    with bounded_and_clean(str(tmp_path), 60.0, "newton launch"):
         world, spec, central = make_run(
             **PAPER_NEWTON, robots=4, topology="ring", timing=TIMING, fleet_id="launch-newton"
         )
@@ -305,16 +298,6 @@ def test_launch_equals_simulate_bit_for_bit(tmp_path):
         best = certified_optimum(world, spec, np.append(central.x, central.gamma))
         assert error_to(spec, out.robots, best) < 1e-6
         assert all(r["algorithm"] == "newton" for r in out.robots)
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-        left = _processes_with(str(tmp_path))
-        for pid in left:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        assert not left, f"processes left behind: {left}"
 
 
 # ----------------------------------------------------------------------------- command line

@@ -25,6 +25,8 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from tests.conftest import bounded_and_clean, processes_with  # noqa: E402
+
 pytestmark = pytest.mark.integration
 
 DEFAULT_BOUND_S = 60.0
@@ -39,42 +41,11 @@ def bound(seconds: float):
     return mark
 
 
-def _processes_with(marker: str) -> list[int]:
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit() or int(entry) == os.getpid():
-            continue
-        try:
-            with open(f"/proc/{entry}/cmdline", "rb") as fh:
-                cmdline = fh.read().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            continue
-        if marker in cmdline:
-            found.append(int(entry))
-    return found
-
-
 @pytest.fixture(autouse=True)
-def bounded_and_clean(request, tmp_path):
+def bounded(request, tmp_path):
     limit = getattr(request.function, "_bound_s", DEFAULT_BOUND_S)
-
-    def on_alarm(signum, frame):
-        raise TimeoutError(f"{request.node.name} exceeded its {limit:g}s bound")
-
-    previous = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, limit)
-    try:
+    with bounded_and_clean(str(tmp_path), limit, request.node.name):
         yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-        left = _processes_with(str(tmp_path))
-        for pid in left:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        assert not left, f"processes left behind: {left}"
 
 
 def _cli() -> list[str]:
@@ -113,7 +84,7 @@ def _wait_for(predicate, timeout: float, what: str):
 
 
 def _pid(out: Path, needle: str) -> int | None:
-    pids = [p for p in _processes_with(str(out)) if needle in Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")]
+    pids = [p for p in processes_with(str(out)) if needle in Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")]
     return pids[0] if pids else None
 
 
@@ -215,7 +186,9 @@ def test_router_killed_mid_run_is_restarted_and_the_fleet_heals(tmp_path):
     """Row 2: SIGKILL the router mid-run: the launcher restarts it on the same endpoint, the
     robots reconnect and the fleet ends on the exact answer of all its robots."""
     out = tmp_path / "run"
-    proc = _start("launch", *PAPER, "--robots", "4", "--dead-after", "1.5s", "--out", str(out))
+    # 20 ms links: the run lasts seconds, so the router dies mid-run (the accelerated ADMM needs
+    # only ~120 rounds, well under a second on clean loopback)
+    proc = _start("launch", *PAPER, "--robots", "4", "--dead-after", "1.5s", "--delay", "20ms", "--out", str(out))
     try:
         router = _wait_for(lambda: _round_of(out, 0) >= 5 and _pid(out, "launcher.router"), 30, "round 5")
         os.kill(router, signal.SIGKILL)
@@ -238,10 +211,10 @@ def test_sigterm_and_sighup_stop_every_child_and_write_a_partial_result(tmp_path
     """Row 5: SIGTERM (timeout, systemd, docker stop) and SIGHUP clean up like Ctrl-C (SIGINT):
     every child stopped by PID, a partial result, and where the per-robot results are."""
     out = tmp_path / "run"
-    proc = _start("launch", *PAPER, "--out", str(out))
+    proc = _start("launch", *PAPER, "--delay", "20ms", "--out", str(out))  # still running when signalled
     try:
         _wait_for(lambda: _round_of(out, 0) >= 5, 30, "round 5")
-        children = [p for p in _processes_with(str(out)) if p != proc.pid]
+        children = [p for p in processes_with(str(out)) if p != proc.pid]
         assert len(children) >= 4  # router + 3 robots
         os.kill(proc.pid, getattr(signal, sig))
         err = _finish(proc, 20)
@@ -250,7 +223,7 @@ def test_sigterm_and_sighup_stop_every_child_and_write_a_partial_result(tmp_path
             os.kill(proc.pid, signal.SIGKILL)
             proc.communicate()
     assert proc.returncode == 128 + getattr(signal, sig), err
-    assert [p for p in _processes_with(str(out))] == []  # no orphan
+    assert [p for p in processes_with(str(out))] == []  # no orphan
     result = json.loads((out / "result.json").read_text())
     assert result["interrupted"] == sig and result["converged"] is False
     assert f"stopped by {sig}" in err and "robot-<id>.json" in err and "Traceback" not in err
