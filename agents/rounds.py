@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from agents.messages import StateUpdate
+from agents.problem import InfeasibleError, SolverError
 
 _TINY = 1e-12
 # An iterate this large is taken as divergence: the function values are O(1)-O(100) in any sane
@@ -85,6 +86,11 @@ class RoundCore:
     """Frames in (`receive`), frames out (`outgoing`, `advance`); the maths is in `_step`."""
 
     algorithm = ""
+    #: what a round may raise when its local solve fails: the session stops the robot with the
+    #: reason instead of crashing (the session knows the core's interface, not its solver)
+    solve_errors: tuple[type[BaseException], ...] = (
+        SolverError, InfeasibleError, FloatingPointError, np.linalg.LinAlgError,
+    )
 
     def __init__(
         self,

@@ -37,7 +37,6 @@ from typing import Any
 import numpy as np
 
 from agents.messages import StateUpdate
-from agents.problem import InfeasibleError, SolverError
 from protocol.auth import FrameAuth
 from protocol.frames import Decoded, FrameDecoder, Rejected, encode_state
 
@@ -68,7 +67,6 @@ ADAPT_MIN_ROUNDS = 8
 GIVE_UP_FACTOR = 10.0
 DEDUP_WINDOW = 256  # frames per sender remembered for dedup
 CONNECTED_POLL_S = 0.2  # how stale a link report may be before a drop needs a fresh one
-SOLVER_ERRORS = (SolverError, InfeasibleError, FloatingPointError, np.linalg.LinAlgError)
 
 #: the keys every result row has, in both shells (plus whatever the core's ``result()`` gives)
 ROW_KEYS = (
@@ -277,7 +275,7 @@ class RobotSession:
         core = self.core
         try:
             update = core.advance()
-        except SOLVER_ERRORS as exc:
+        except core.solve_errors as exc:  # the core names its own local-solve failures
             return self._stop("solver_error", now, f"robot {self.me} round {core.round}: local solver failed: {exc}")
         # the core judges its own iterate (only it knows which part of a frame is a function:
         # Newton's frames carry reduction terms, autogrid's sweep carries flags as floats); a

@@ -31,7 +31,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from agents.robot import alive_key, run_robot  # noqa: E402
-from agents.rounds import check_iterate  # noqa: E402
+from agents.rounds import RoundCore, check_iterate  # noqa: E402
 from protocol.frames import StateUpdate, config_tag, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
@@ -78,6 +78,8 @@ class FakeSpec:
 
 class AveragingCore:
     """x_i <- mean of x_k over k in {i} + neighbours (sorted), K times. Sans-IO."""
+
+    solve_errors = RoundCore.solve_errors  # the core interface: local-solve failures it may raise
 
     def __init__(self, spec: FakeSpec, robot_id: int) -> None:
         self.spec = spec
