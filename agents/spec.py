@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.admm import ADMMParams, ConsensusADMM
+from agents.admm import ADMMParams, ConsensusADMM, hub_form
 from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.kernel import GridBasis
@@ -142,6 +142,11 @@ class FleetSpec:
             return self.autogrid_params.dim
         if self.algorithm == "newton":
             return frame_size(len(self.grid) + 1, self.graph, NewtonParams.from_params(self.params))
+        if self.algorithm == "admm" and self.robots:  # the hub form sends [v; w] (agents/admm.py)
+            r = self.robots[self.robot_ids[0]]
+            degrees = {j: len(self.robots[j].neighbours) for j in r.neighbours if j in self.robots}
+            if hub_form(ADMMParams(**self.params), self.n_robots, r.neighbours, degrees):
+                return 2 * (len(self.grid) + 1)
         return len(self.grid) + 1
 
     @cached_property
