@@ -15,8 +15,12 @@ import numpy as np
 import pytest
 
 from agents.admm import ADMMParams, ConsensusADMM
+from agents.autogrid import AdaptiveGridCore, AutoGridParams, holdout_units
+from agents.kernel import GridBasis
 from agents.problem import solve_central
 from agents.spec import build_core, restore_core
+
+from launcher.world import Options, build_world
 
 from .conftest import make_run, max_function_error
 
@@ -157,3 +161,57 @@ def test_checkpoint_in_the_desynchronised_window_resumes_bit_for_bit():
             break
         lockstep_round(cores, k, 3, drop_at, twin=twin)
     assert twin.finished and twin.converged and twin.values.tobytes() == cores[0].values.tobytes()
+
+
+def _autogrid_crash_in_sweep(hub_frames: bool, divisors=(8.0, 12.0), folds: int = 1):
+    """A 4-robot complete autogrid fleet; robot 3 dies 10 rounds into the sigma sweep and the
+    survivors drop it in rounds r, r + 1, r + 2. Runs until robot 0 leaves the sweep; returns
+    (world, params, its sweep tasks)."""
+    world, spec = build_world(Options(fleet_id="t", shape="star", points=15, robots=4))
+    params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0,
+                            validate_divisors=divisors, validate_folds=folds, hub_frames=hub_frames)
+    cores = {
+        i: AdaptiveGridCore(i, r.neighbours, r.points, r.labels, n_robots=4, params=params,
+                            neighbour_degrees={j: len(spec.robots[j].neighbours) for j in r.neighbours})
+        for i, r in spec.robots.items()
+    }
+    never = {i: 10**9 for i in (0, 1, 2)}
+    k = 0
+    while not (cores[0].phase == "validate" and k >= cores[0]._phase_start + 10):
+        lockstep_round(cores, k, 3, never)
+        k += 1
+    drop_at = {0: k, 1: k + 1, 2: k + 2}
+    for k in range(k, k + params.validate_rounds + 10):
+        lockstep_round(cores, k, 3, drop_at)
+        if cores[0].phase != "validate":
+            assert all(3 in cores[i].dropped for i in drop_at)
+            return world, params, list(cores[0]._sweep.tasks)
+    raise AssertionError("the sweep did not end")
+
+
+def sweep_errors(world, params, tasks) -> list[tuple[bool, float]]:
+    """(stopped by its rule, function error vs the exact solve of the survivors' training data)
+    per sweep task. After a drop the members keep x_weight 1 / N (N = 4 at the start), so the
+    soft-margin problem they solve has C x N / (N - 1): the reference uses that C."""
+    from agents.autogrid_sweep import held_mask
+
+    data = [r for r in world.robots if r.id != 3]
+    out = []
+    for t in tasks:
+        held = [held_mask(holdout_units(r.points, r.labels), t.fold, params) for r in data]
+        pts = np.vstack([r.points[~h] for r, h in zip(data, held)])
+        lab = np.concatenate([r.labels[~h] for r, h in zip(data, held)])
+        ref = solve_central(t.basis, pts, lab, C=params.soft_C * 4 / 3)
+        assert ref.solved
+        v = t.sub.values
+        out.append((t.sub.converged, t.basis.function_error(t.basis.c_from_x(v[:-1]), v[-1], ref.c, ref.gamma)))
+    return out
+
+
+def test_autogrid_crash_during_the_sigma_sweep_ends_on_the_survivors_answer():
+    """Every sweep task (a hub sub-machine) that stopped by its rule ends within validate_tol of
+    the exact soft-margin solve of the survivors' training data."""
+    world, params, tasks = _autogrid_crash_in_sweep(True)
+    errors = sweep_errors(world, params, tasks)
+    assert sum(stopped for stopped, _ in errors) >= 2
+    assert all(e < params.validate_tol for stopped, e in errors if stopped), errors
