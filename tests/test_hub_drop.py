@@ -114,7 +114,7 @@ def test_without_shared_w_the_same_crash_agrees_on_a_wrong_answer():
 def test_shared_map_is_the_old_map_bit_for_bit_while_copies_agree():
     """No drop: the frames' w change nothing -- every round's values are the same bits as the
     map computed on each copy (so rounds and results of existing runs are unchanged)."""
-    _, spec, _ = make_run(robots=4, topology="complete")
+    _, spec, _ = make_run(robots=3, topology="complete")
     params = ADMMParams(**spec.params)
 
     def fleet(hub_frames: bool) -> list[ConsensusADMM]:
