@@ -25,7 +25,10 @@ robot's v_l each round, so each runs the fleet's global-consensus (hub) ADMM -- 
 scaled dual u_l per robot -- as an identical copy, and extrapolates its fixed-point map with
 type-II Anderson acceleration (memory `anderson`, safeguarded). The arithmetic that mixes robots is
 exactly rounded, so the copies stay bit-for-bit equal on any machine; sum_l u_l = 0 is kept, so
-the fixed point is still the centralized solution. `anderson = 0` keeps the edge form everywhere.
+the fixed point is still the centralized solution. The map is built from shared data -- each robot
+sends w_l = h_l + u_l from its own copy beside v_l -- so copies that came to differ (survivors
+dropping a dead robot in different rounds) still share one map and its exact fixed point; they
+take plain steps until they agree again. `anderson = 0` keeps the edge form everywhere.
 
 No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 """
