@@ -16,10 +16,8 @@ import pytest
 
 from agents.admm import ADMMParams, ConsensusADMM
 from agents.autogrid import AdaptiveGridCore, AutoGridParams, holdout_units
-from agents.kernel import GridBasis
 from agents.problem import solve_central
 from agents.spec import build_core, restore_core
-
 from launcher.world import Options, build_world
 
 from .conftest import make_run, max_function_error
