@@ -213,3 +213,34 @@ def test_autogrid_crash_during_the_sigma_sweep_ends_on_the_survivors_answer():
     errors = sweep_errors(world, params, tasks)
     assert sum(stopped for stopped, _ in errors) >= 2
     assert all(e < params.validate_tol for stopped, e in errors if stopped), errors
+
+
+def test_autogrid_crash_during_its_admm_phase_ends_on_the_survivors_answer():
+    """The ADMM phase's hub sub-machine (w at [max_points:] of the frame): survivors dropping in
+    r, r + 1, r + 2 agree on the exact hard-margin answer of their data on the agreed grid."""
+    from agents.kernel import GridBasis
+
+    world, spec = build_world(Options(fleet_id="t", shape="star", points=15, robots=4))
+    params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0,
+                            sigma=0.8, hub_frames=True)
+    cores = {
+        i: AdaptiveGridCore(i, r.neighbours, r.points, r.labels, n_robots=4, params=params,
+                            neighbour_degrees={j: len(spec.robots[j].neighbours) for j in r.neighbours})
+        for i, r in spec.robots.items()
+    }
+    never = {i: 10**9 for i in (0, 1, 2)}
+    k = 0
+    while not (cores[0].phase == "admm" and k >= cores[0]._phase_start + 10):
+        lockstep_round(cores, k, 3, never)
+        k += 1
+    assert cores[0]._sub._hub is not None and cores[0]._sub.frame_dim == 2 * cores[0]._sub.dim
+    survivors = staggered_crash(cores, 3, {0: k, 1: k + 1, 2: k + 2})
+    first = survivors[0]
+    assert all(c.converged and c.margin == "hard" for c in survivors)
+    grid, c, gamma = first.function()
+    assert all(np.array_equal(s.function()[1], c) for s in survivors)
+    basis = GridBasis(grid, first.sigma)
+    data = [r for r in world.robots if r.id != 3]
+    ref = solve_central(basis, np.vstack([r.points for r in data]), np.concatenate([r.labels for r in data]))
+    assert ref.certified
+    assert basis.function_error(c, gamma, ref.c, ref.gamma) < params.tol
