@@ -25,7 +25,10 @@ robot's v_l each round, so each runs the fleet's global-consensus (hub) ADMM -- 
 scaled dual u_l per robot -- as an identical copy, and extrapolates its fixed-point map with
 type-II Anderson acceleration (memory `anderson`, safeguarded). The arithmetic that mixes robots is
 exactly rounded, so the copies stay bit-for-bit equal on any machine; sum_l u_l = 0 is kept, so
-the fixed point is still the centralized solution. `anderson = 0` keeps the edge form everywhere.
+the fixed point is still the centralized solution. The map is built from shared data -- each robot
+sends w_l = h_l + u_l from its own copy beside v_l -- so copies that came to differ (survivors
+dropping a dead robot in different rounds) still share one map and its exact fixed point; they
+take plain steps until they agree again. `anderson = 0` keeps the edge form everywhere.
 
 No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 """
@@ -33,11 +36,12 @@ No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from agents.messages import StateUpdate
 from agents.problem import MarginQP
 from agents.rounds import RoundCore, from_bytes, relative_gap, to_bytes
 
@@ -156,6 +160,7 @@ class _Hub:
         self._gram = np.zeros((0, 0))  # dg_i . dg_j, exactly rounded
         self.best = math.inf  # smallest fixed-point residual since the last restart
         self.stalled = 0  # rounds since `best` last improved
+        self.desynced = False  # the last step found the copies differing
 
     def center(self, me: int) -> np.ndarray:
         """Robot `me`'s proximal centre z - u_me."""
@@ -169,26 +174,45 @@ class _Hub:
             acc = acc + r
         return acc / len(rows)
 
-    def start(self, values: list[np.ndarray]) -> None:
-        """After round 0 (each robot's own solution): z = their mean, u_l = v_l - z."""
-        z = self._mean(values)
-        self.s = np.concatenate([z] + [v - z for v in values])
+    def start(self, ws: list[np.ndarray]) -> None:
+        """After round 0 (each robot's own solution, w_l = v_l): z = their mean, u_l = v_l - z."""
+        self.s = self._map(ws)
 
-    def _map(self, s: np.ndarray, values: list[np.ndarray]) -> np.ndarray:
-        """T(s): the over-relaxed z and u updates from the local solutions at s."""
-        d = self.dim
-        z = s[:d]
-        us = [s[(k + 1) * d : (k + 2) * d] for k in range(len(self.ids))]
-        hs = [self.relax * v + (1.0 - self.relax) * z for v in values]
-        z_new = self._mean([h + u for h, u in zip(hs, us)])
-        return np.concatenate([z_new] + [u + h - z_new for h, u in zip(hs, us)])
-
-    def step(self, values: list[np.ndarray]) -> float:
-        """Fold in the local solutions at s, move s to the next point; returns |T(s) - s|."""
+    def message(self, me: int, v: np.ndarray) -> np.ndarray:
+        """w_me = h_me + u_me from this copy (h = relax v + (1 - relax) z): robot `me`'s share of
+        the plain map, sent beside v so that every copy builds the map from the same numbers."""
         assert self.s is not None
-        f = self._map(self.s, values)
+        d, k = self.dim, self.ids.index(me)
+        h = self.relax * v + (1.0 - self.relax) * self.s[:d]
+        return h + self.s[(k + 1) * d : (k + 2) * d]
+
+    def _map(self, ws: list[np.ndarray]) -> np.ndarray:
+        """T: z' = mean_l w_l, u'_l = w_l - z', from the robots' own w_l only (shared data).
+
+        Each w_l is computed from robot l's copy, so the image is the same on every copy even
+        after copies differed (survivors that dropped a dead robot in different rounds), and
+        sum_l u'_l = 0 always: a fixed point is the members' exact optimum. When the copies agree
+        it is the usual over-relaxed update bit for bit (h + u == u + h)."""
+        z_new = self._mean(ws)
+        return np.concatenate([z_new] + [w - z_new for w in ws])
+
+    def synced(self, values: list[np.ndarray], ws: list[np.ndarray]) -> bool:
+        """True when every robot's w is what this copy computes for it: all copies agree (bits)."""
+        return all(np.array_equal(w, self.message(i, v)) for i, v, w in zip(self.ids, values, ws))
+
+    def step(self, ws: list[np.ndarray], synced: bool = True) -> float:
+        """Fold in the robots' w at s, move s to the next point; returns |T - s|.
+
+        While the copies differ (`synced` False: after a drop seen in different rounds) every
+        copy takes the plain step s = T, the same on all of them, and once more in the first
+        round they agree, so that all restart the acceleration from one common history."""
+        assert self.s is not None
+        f = self._map(ws)
         g = f - self.s
         res = math.sqrt(_dot(g, g))
+        if not synced or self.desynced:
+            self._forget()
+        self.desynced = not synced
         if res > self.safeguard * self.best or self.stalled > STALL * self.memory:
             self._forget()  # the extrapolation went astray or stopped helping: restart from the plain step
         self.stalled = 0 if res < self.best else self.stalled + 1
@@ -257,6 +281,7 @@ class _Hub:
             "hist_f": [to_bytes(a) for a in self.hist_f],
             "best": self.best,
             "stalled": self.stalled,
+            "desynced": self.desynced,
         }
 
     def load(self, state: dict[str, Any]) -> None:
@@ -266,6 +291,7 @@ class _Hub:
         self.hist_f = [from_bytes(a) for a in state["hist_f"]]
         self.best = float(state["best"])
         self.stalled = int(state["stalled"])
+        self.desynced = bool(state["desynced"])
         self._rebuild()
 
 
@@ -334,6 +360,12 @@ def complete_graph(n_robots: int, neighbours: tuple[int, ...], degrees: dict[int
     return n_robots > 1 and len(neighbours) == n_robots - 1 and all(degrees.get(j, 0) == n_robots - 1 for j in neighbours)
 
 
+def hub_form(params: ADMMParams, n_robots: int, neighbours: tuple[int, ...], degrees: dict[int, int]) -> bool:
+    """True when a robot runs the accelerated hub form (a complete graph, Anderson on); its
+    frames then carry [v; w], 2 (M + 1) floats (the fleet file's frame length follows)."""
+    return params.anderson > 0 and complete_graph(n_robots, neighbours, degrees)
+
+
 class ConsensusADMM(RoundCore):
     """One robot's decentralized ADMM; drive it with receive / ready / advance."""
 
@@ -351,6 +383,7 @@ class ConsensusADMM(RoundCore):
         C: float | None = None,
         neighbour_degrees: dict[int, int] | None = None,
         keep_trace: bool = True,
+        hub_frames: bool = True,
     ) -> None:
         super().__init__(
             robot_id,
@@ -368,7 +401,7 @@ class ConsensusADMM(RoundCore):
         degrees = neighbour_degrees or {}
         self._hub: _Hub | None = None
         self._edges: dict[int, _Edge] = {}
-        if params.anderson > 0 and complete_graph(n_robots, self.neighbours, degrees):
+        if hub_form(params, n_robots, self.neighbours, degrees):
             self._hub = _Hub(tuple(sorted(self.neighbours + (robot_id,))), self.dim, hub_penalty(params, self.dim), params)
         else:
             self._edges = {
@@ -379,10 +412,25 @@ class ConsensusADMM(RoundCore):
         self._qp = self._build_qp()
         self._residuals: list[float] = []  # the last 2 * RATE_WINDOW, for the error estimate
         self._values = self._local_step()
+        # hub form: frames carry [v; w] (see _Hub._map); without `hub_frames` (a frame layout with
+        # no room for w) each copy computes every w itself -- exact only while the copies agree
+        self._hub_frames = self._hub is not None and hub_frames
+        if self._hub_frames:
+            self.frame_dim = 2 * self.dim
+        self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
+        self._prev_w: np.ndarray | None = None
         self._record()
         if not self.neighbours:  # alone: round 0 already solved the whole problem
             self.finished = True
             self.residual = 0.0
+
+    def outgoing(self) -> StateUpdate:
+        """v, and in the hub form w beside it: [v; w] (the function and result stay v)."""
+        up = super().outgoing()
+        if not self._hub_frames:
+            return up
+        prev = None if up.prev_values is None or self._prev_w is None else np.concatenate([up.prev_values, self._prev_w])
+        return replace(up, values=np.concatenate([up.values, self._w]), prev_values=prev)
 
     def status(self) -> dict[str, Any]:
         return {**super().status(), "error_estimate": error_estimate(self._residuals, typical_older=self._hub is not None)}
@@ -417,11 +465,16 @@ class ConsensusADMM(RoundCore):
         """A complete graph: everyone's values are here, so run the fleet's accelerated hub ADMM."""
         hub = self._hub
         assert hub is not None
-        values = [mine if i == self.robot_id else theirs[i] for i in hub.ids]
-        if hub.s is None:
-            hub.start(values)
+        d, me = self.dim, self.robot_id
+        values = [mine if i == me else theirs[i][:d] for i in hub.ids]
+        if self._hub_frames:
+            ws = [self._w if i == me else theirs[i][d:] for i in hub.ids]
         else:
-            hub.step(values)
+            ws = values if hub.s is None else [hub.message(i, v) for i, v in zip(hub.ids, values)]
+        if hub.s is None:
+            hub.start(ws)
+        else:
+            hub.step(ws, not self._hub_frames or hub.synced(values, ws))
         mean = hub._mean(values)
         primal = relative_gap(mean, np.array(values))
         dual = 0.0 if self._prev_mean is None else relative_gap(mean, self._prev_mean)
@@ -429,7 +482,9 @@ class ConsensusADMM(RoundCore):
         self.residual = max(primal, dual)
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW :]
         below = error_estimate(self._residuals, typical_older=True) < self.params.tol
-        return self._primal_step(), below
+        new = self._primal_step()
+        self._prev_w, self._w = self._w, hub.message(me, new)
+        return new, below
 
     def _save_state(self) -> dict[str, Any]:
         return {
@@ -437,6 +492,8 @@ class ConsensusADMM(RoundCore):
             "hub": None if self._hub is None else self._hub.state(),
             "prev_mean": to_bytes(self._prev_mean),
             "residuals": list(self._residuals),
+            "w": to_bytes(self._w),
+            "prev_w": to_bytes(self._prev_w),
         }
 
     def _load_state(self, state: dict[str, Any]) -> None:
@@ -446,6 +503,7 @@ class ConsensusADMM(RoundCore):
             self._hub.load(state["hub"])
         self._prev_mean = from_bytes(state["prev_mean"])
         self._residuals = [float(r) for r in state["residuals"]]
+        self._w, self._prev_w = from_bytes(state["w"]), from_bytes(state["prev_w"])
 
     # -- internals ----------------------------------------------------------------------------
     def _build_qp(self) -> MarginQP:

@@ -245,12 +245,28 @@ class AdaptiveGridCore(RoundCore):
             self.robot_id, self.neighbours, self._features, self._labels, n_robots=self._n_robots,
             params=sub_params, C=None if mode == "hard" else (p.C if p.C is not None else p.soft_C),
             neighbour_degrees={j: self._degrees.get(j, 1) for j in self.neighbours}, keep_trace=False,
-            start=self._warm, edges=self._carry if p.warm_duals else None,
+            start=self._warm, edges=self._carry if p.warm_duals else None, hub_frames=p.hub_frames,
         )
         self._carry = {}
         self._mark(ADMM)
-        v = self._sub.values
-        self._values, self._flags = self._pad(v[:-1], v[-1]), 0
+        self._values, self._flags = self._sub_frame(), 0
+
+    def _sub_frame(self) -> np.ndarray:
+        """The ADMM sub-machine's message as a frame: v padded, and in the hub form its w at
+        [max_points : max_points + M] and [2 max_points] (room: params.hub_frames)."""
+        msg, d = self._sub.outgoing().values, self._sub.dim
+        out = self._pad(msg[: d - 1], msg[d - 1])
+        if msg.size > d:
+            mp = self.params.max_points
+            out[mp : mp + d - 1], out[2 * mp] = msg[d:-1], msg[-1]
+        return out
+
+    def _sub_message(self, v: np.ndarray) -> np.ndarray:
+        """A neighbour's frame as the sub-machine's message (`_sub_frame` inverted)."""
+        if self._sub.frame_dim == self._sub.dim:
+            return self._unpad(v)
+        mp, m = self.params.max_points, len(self.grid)
+        return np.concatenate([self._unpad(v), v[mp : mp + m], v[2 * mp : 2 * mp + 1]])
 
     def _enter_flood(self) -> None:
         v = self._own
@@ -459,11 +475,10 @@ class AdaptiveGridCore(RoundCore):
         else:  # ADMM: hand the neighbours' exact round values to the sub-machine
             sub = self._sub
             for j, v in theirs.items():
-                sub.receive(StateUpdate(j, sub.round, self._unpad(v), int(their_flags.get(j, 0)), None))
+                sub.receive(StateUpdate(j, sub.round, self._sub_message(v), int(their_flags.get(j, 0)), None))
             sub.advance()
             self.residual = sub.residual
-            out = sub.values
-            new, flags = self._pad(out[:-1], out[-1]), sub.outgoing().flags
+            new, flags = self._sub_frame(), sub.outgoing().flags
         self._prev_values, self._prev_flags = mine, self._flags
         self._values, self._flags = new, flags
         self.round += 1

@@ -67,6 +67,9 @@ class AutoGridParams:
     solid_raster: int = 64  # the solid-region check rasterizes the lattice box at this resolution
     validate_tol: float = 1e-2
     validate_rounds: int = 300  # a capped candidate is judged on its iterate (rounds = the slowest task)
+    # a complete graph (set by the fleet file): the ADMM sub-machines run the hub form, whose
+    # frames carry w beside v (agents/admm.py), so every ADMM slot has room for both
+    hub_frames: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
@@ -97,18 +100,22 @@ class AutoGridParams:
     @property
     def dim(self) -> int:
         """Length of every frame vector of this fleet: a grid's (x, gamma) with 3 slots, or the
-        sweep's stacked blocks, whichever is longer (at most 16 x (max_points + 1))."""
-        return max(self.max_points + 3, sum(self.sweep_blocks()))
+        sweep's stacked blocks, whichever is longer (at most 16 x (max_points + 1); twice that
+        with `hub_frames`: w at [max_points : 2 max_points + 1])."""
+        solve = 2 * self.max_points + 4 if self.hub_frames else self.max_points + 3
+        return max(solve, sum(self.sweep_blocks()))
 
     def sweep_slot(self, divisor: float) -> int:
         """Grid points of candidate diag/divisor's coarse lattice, at most (any box shape)."""
         return min(self.max_points, max_lattice_nodes(divisor, self.spacing_ratio))
 
     def sweep_blocks(self) -> list[int]:
-        """Frame length of each sweep task (candidate-major, then fold): x, gamma, flags."""
+        """Frame length of each sweep task (candidate-major, then fold): x, gamma, flags (and
+        with `hub_frames` the hub's w: its x and gamma)."""
         if not self.validates:
             return []
-        return [self.sweep_slot(d) + 2 for d in self.validate_divisors for _ in range(self.validate_folds)]
+        extra = 1 if self.hub_frames else 0
+        return [(1 + extra) * (self.sweep_slot(d) + 1) + 1 for d in self.validate_divisors for _ in range(self.validate_folds)]
 
     @property
     def planned_rounds(self) -> int:

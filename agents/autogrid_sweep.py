@@ -3,7 +3,9 @@ sub-machine on its own coarse lattice, all advanced in the same rounds from one 
 
 Frame layout (params.sweep_blocks(), candidate-major then fold): for each task a block of
 slot + 2 floats -- x on its lattice (zero-padded to the slot), gamma, and the sub-machine's stop
-flags as an exact integer -- so a frame carries function-space vectors only. Every robot's
+flags as an exact integer -- so a frame carries function-space vectors only. With
+params.hub_frames (a complete graph) the block is followed by the hub's w (slot + 1 floats:
+x zero-padded, gamma), which the sub-machine sends beside v (agents/admm.py). Every robot's
 sub-machine of a task stops in the same round (its own flags protocol); a stopped sub-machine
 keeps sending its last value, so the sweep costs the slowest task, not the sum of all.
 
@@ -84,9 +86,10 @@ class SigmaSweep:
                 sub = WarmADMM(
                     robot_id, neighbours, feats, labels[~held], n_robots=n_robots, params=sub_params,
                     C=params.soft_C, neighbour_degrees={j: degrees.get(j, 1) for j in neighbours}, keep_trace=False,
+                    hub_frames=params.hub_frames,
                 )
                 self.tasks.append(SweepTask(cand, fold, float(d), sigma, box, basis, held, sub, offset, slot))
-                offset += slot + 2
+                offset += (2 if params.hub_frames else 1) * (slot + 1) + 1
 
     @property
     def finished(self) -> bool:
@@ -103,7 +106,11 @@ class SigmaSweep:
             vals = t.sub.values
             v[t.offset : t.offset + t.basis.size] = vals[:-1]
             v[t.offset + t.slot] = vals[-1]
-            v[t.offset + t.slot + 1] = float(t.sub.outgoing().flags)
+            out = t.sub.outgoing()
+            v[t.offset + t.slot + 1] = float(out.flags)
+            if out.values.size > t.sub.dim:  # the hub's w, after the block
+                w, o = out.values[t.sub.dim :], t.offset + t.slot + 2
+                v[o : o + t.basis.size], v[o + t.slot] = w[:-1], w[-1]
         return v
 
     def advance(self, theirs: dict[int, np.ndarray]) -> None:
@@ -114,6 +121,9 @@ class SigmaSweep:
             m, o = t.basis.size, t.offset
             for j, v in theirs.items():
                 vec = np.append(v[o : o + m], v[o + t.slot])
+                if t.sub.frame_dim > t.sub.dim:
+                    w = o + t.slot + 2
+                    vec = np.concatenate([vec, v[w : w + m], v[w + t.slot : w + t.slot + 1]])
                 t.sub.receive(StateUpdate(j, t.sub.round, vec, int(v[o + t.slot + 1]), None))
             t.sub.advance()
 

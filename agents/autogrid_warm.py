@@ -38,6 +38,9 @@ class WarmADMM(ConsensusADMM):
     ) -> None:
         self._start = None if start is None else np.asarray(start, dtype=float).copy()
         self._carry = edges or {}
+        # without room for the hub's w in autogrid's frames (AutoGridParams.hub_frames False)
+        # each copy computes every w itself: exact only while the copies agree
+        kwargs.setdefault("hub_frames", False)
         super().__init__(*args, **kwargs)
 
     def _local_step(self) -> np.ndarray:

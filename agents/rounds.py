@@ -109,6 +109,7 @@ class RoundCore:
         self.robot_id = robot_id
         self.neighbours = tuple(sorted(neighbours))
         self.dim = dim
+        self.frame_dim = dim  # length of a frame's vectors (a subclass may send more than v)
         self.round = 0
         self.finished = False
         self.residual = math.inf
@@ -140,8 +141,8 @@ class RoundCore:
         j = update.sender
         if j not in self.neighbours:
             return
-        if update.values.shape != (self.dim,):
-            raise ValueError(f"robot {j} sent {update.values.shape[0]} values, expected {self.dim}")
+        if update.values.shape != (self.frame_dim,):
+            raise ValueError(f"robot {j} sent {update.values.shape[0]} values, expected {self.frame_dim}")
         if update.round in (self.round, self.round + 1):
             self._inbox.put(update.round, j, update.values, update.flags)
         if update.prev_values is not None and update.round - 1 in (self.round, self.round + 1):

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.admm import ADMMParams, ConsensusADMM
+from agents.admm import ADMMParams, ConsensusADMM, hub_form
 from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.kernel import GridBasis
@@ -131,8 +131,16 @@ class FleetSpec:
         if "max_rounds" in given and "max_total_rounds" not in given:
             given["max_total_rounds"] = given["max_rounds"]
         kw = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if k in names}
-        kw.update(sigma=self.sigma, C=self.C)
+        kw.update(sigma=self.sigma, C=self.C, hub_frames=self._hub_form(ADMMParams()))
         return AutoGridParams(**kw)
+
+    def _hub_form(self, params: ADMMParams) -> bool:
+        """True when the fleet's ADMM runs the hub form, whose frames carry [v; w]."""
+        if not self.robots:
+            return False
+        r = self.robots[self.robot_ids[0]]
+        degrees = {j: len(self.robots[j].neighbours) for j in r.neighbours if j in self.robots}
+        return hub_form(params, self.n_robots, r.neighbours, degrees)
 
     @property
     def dim(self) -> int:
@@ -142,6 +150,8 @@ class FleetSpec:
             return self.autogrid_params.dim
         if self.algorithm == "newton":
             return frame_size(len(self.grid) + 1, self.graph, NewtonParams.from_params(self.params))
+        if self.algorithm == "admm" and self._hub_form(ADMMParams(**self.params)):
+            return 2 * (len(self.grid) + 1)  # the hub form sends [v; w] (agents/admm.py)
         return len(self.grid) + 1
 
     @cached_property

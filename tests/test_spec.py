@@ -24,7 +24,9 @@ def test_autogrid_fleet_file_has_no_grid_and_no_sigma(auto):
     world, spec, central = auto
     assert "autogrid" in ALGORITHMS and spec.algorithm == "autogrid" and central is None
     assert spec.sigma is None and spec.grid.shape == (0, 2) and world.grid.shape == (0, 2)
-    assert spec.dim == AutoGridParams(max_points=60).dim >= 60 + 2  # every vector fits, plus gamma and a meta slot
+    # a complete graph: the ADMM sub-machines' frames carry the hub's w beside v (agents/admm.py)
+    assert spec.autogrid_params.hub_frames
+    assert spec.dim == AutoGridParams(max_points=60, hub_frames=True).dim >= 2 * (60 + 1) + 2  # every vector fits
     assert spec.params["max_points"] == 60 and "max_rounds" not in spec.params
     with pytest.raises(ValueError, match="chooses its own grid"):
         spec.basis  # noqa: B018 -- there is no fixed basis to measure against
@@ -76,4 +78,7 @@ def test_fixed_grid_algorithms_need_grid_and_sigma(auto):
     with pytest.raises(ValueError, match="admm needs a grid and a sigma"):
         dataclasses.replace(spec, algorithm="admm")
     _, paper, _ = make_run()
-    assert paper.algorithm == "admm" and paper.sigma == 1.0 and paper.dim == 16
+    # the paper's fleet is complete: the hub form's frames carry [v; w], 2 x (15 + 1) floats
+    assert paper.algorithm == "admm" and paper.sigma == 1.0 and paper.dim == 32
+    _, ring, _ = make_run(robots=4, topology="ring")
+    assert ring.dim == 16  # the edge form sends v alone
