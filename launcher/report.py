@@ -150,6 +150,15 @@ def _num(value: float) -> float | None:
     return None if value is None or not np.isfinite(value) else float(value)
 
 
+def bytes_metrics(robots: list[dict[str, Any]]) -> dict[str, float | int | None]:
+    """Encoded frame bytes each robot sent in the run (resends included): mean and max over robots,
+    null when the rows carry no counter (old result files)."""
+    sent = [int(r["bytes_sent"]) for r in robots if r.get("bytes_sent") is not None]
+    if not sent or len(sent) != len(robots):
+        return {"bytes_sent_per_robot": None, "bytes_sent_max": None}
+    return {"bytes_sent_per_robot": sum(sent) / len(sent), "bytes_sent_max": max(sent)}
+
+
 def build_result(
     world: World,
     basis: GridBasis,
@@ -214,6 +223,7 @@ def build_result(
             "consensus_error": _num(consensus),
             "train_accuracy": accuracy,
             "iou": iou,
+            **bytes_metrics(robots),
         },
         "history": history(basis, robots, central),
     }
@@ -377,6 +387,7 @@ def build_autogrid_result(
             "consensus_error": _num(consensus),
             "train_accuracy": min(accuracies, default=None),
             "iou": min(ious, default=None),
+            **bytes_metrics(robots),
         },
         "history": [],
     }
