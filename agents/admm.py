@@ -107,18 +107,20 @@ def _dots(rows: np.ndarray, v: np.ndarray) -> np.ndarray:
     elementwise additions over the columns (zero-padded to a power of two). BLAS would be faster
     per call but sums in an order that depends on the CPU's kernel; math.fsum (exact) cost 60 %
     of a hub round. IEEE elementwise + and * are correctly rounded everywhere, so a fixed order
-    is all that bit-identical copies need, and the tree keeps the rounding error O(log n)."""
-    p = np.atleast_2d(rows) * v
-    n = p.shape[1]
+    is all that bit-identical copies need, and the tree keeps the rounding error O(log n).
+    `v` may hold several vectors (rows): the result then has one row of dots per vector."""
+    rows = np.atleast_2d(rows)
+    p = rows * v if np.ndim(v) == 1 else rows[None, :, :] * np.asarray(v)[:, None, :]
+    n = p.shape[-1]
     if n == 0:
-        return np.zeros(p.shape[0])
+        return np.zeros(p.shape[:-1])
     width = 1 << (n - 1).bit_length()
     if width != n:
-        p = np.concatenate([p, np.zeros((p.shape[0], width - n))], axis=1)
+        p = np.concatenate([p, np.zeros(p.shape[:-1] + (width - n,))], axis=-1)
     while width > 1:
         width //= 2
-        p = p[:, :width] + p[:, width:]
-    return p[:, 0]
+        p = p[..., :width] + p[..., width:]
+    return p[..., 0]
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -216,11 +218,12 @@ class _Hub:
         self.best = min(self.best, res)
         self.hist_s.append(self.s)
         self.hist_f.append(f)
+        rhs = np.zeros(0)
         if len(self.hist_s) > 1:
             dg = g - (self.hist_f[-2] - self.hist_s[-2])
             self._dg.append(dg)
             self._df.append(f - self.hist_f[-2])
-            row = _dots(np.array(self._dg), dg)
+            row, rhs = _dots(np.array(self._dg), np.array([dg, g]))  # one pass: Gram row, dg_i . g
             m = len(row)
             gram = np.empty((m, m))
             gram[: m - 1, : m - 1] = self._gram
@@ -230,7 +233,8 @@ class _Hub:
             self.hist_s, self.hist_f = self.hist_s[1:], self.hist_f[1:]
             self._dg, self._df = self._dg[1:], self._df[1:]
             self._gram = self._gram[1:, 1:].copy()
-        self.s = self._extrapolate(g) if self._dg else f
+            rhs = rhs[1:]
+        self.s = self._extrapolate(rhs) if self._dg else f
         return res
 
     def _forget(self) -> None:
@@ -247,14 +251,15 @@ class _Hub:
         dg = np.array(self._dg)
         self._gram = np.array([_dots(dg, d) for d in dg]).reshape(m, m) if m else np.zeros((0, 0))
 
-    def _extrapolate(self, g: np.ndarray) -> np.ndarray:
-        """Type-II Anderson: T(s) minus the combination of past steps that best cancels g."""
+    def _extrapolate(self, rhs: np.ndarray) -> np.ndarray:
+        """Type-II Anderson: T(s) minus the combination of past steps that best cancels g
+        (`rhs`: dg_i . g for the differences kept)."""
         m = len(self._dg)
         H = self._gram.copy()
         scale = math.fsum(np.diag(H).tolist()) / m
         H[np.diag_indices(m)] += ANDERSON_REG * max(scale, 1e-300)
         try:
-            coef = _solve_spd(H, _dots(np.array(self._dg), g))
+            coef = _solve_spd(H, rhs)
         except np.linalg.LinAlgError:
             return self.hist_f[-1]
         out = self.hist_f[-1].copy()
