@@ -532,7 +532,7 @@ def summary_table(result: dict[str, Any]) -> Any:
         f"{result['rounds']} rounds, {result['wall_s']:.2f} s"
     )
     table = Table(title=title)
-    for col in ("robot", "rounds", "gamma", "f-error", "sent", "received", "lost", "rejected"):
+    for col in ("robot", "rounds", "gamma", "f-error", "sent", "bytes sent", "received", "lost", "rejected"):
         table.add_column(col, justify="right")
     for r in result["robots"]:
         fe = r.get("function_error")
@@ -542,6 +542,7 @@ def summary_table(result: dict[str, Any]) -> Any:
             "-" if r.get("gamma") is None else f"{r['gamma']:.4g}",
             "-" if fe is None else f"{fe:.2e}",
             str(r.get("frames_sent", "-")),
+            str(r.get("bytes_sent", "-")),
             str(r.get("frames_received", "-")),
             str(r.get("frames_lost", "-")),
             str(r.get("frames_rejected", "-")),
