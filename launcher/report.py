@@ -532,7 +532,7 @@ def summary_table(result: dict[str, Any]) -> Any:
         f"{result['rounds']} rounds, {result['wall_s']:.2f} s"
     )
     table = Table(title=title)
-    for col in ("robot", "rounds", "gamma", "f-error", "sent", "bytes sent", "received", "lost", "rejected"):
+    for col in ("robot", "rounds", "gamma", "f-error", "sent", "bytes", "received", "lost", "rejected"):
         table.add_column(col, justify="right")
     for r in result["robots"]:
         fe = r.get("function_error")
