@@ -23,9 +23,9 @@ are the shared round protocol of `agents/rounds.py`.
 Complete graphs (the paper's setting) run a faster form instead: every robot hears every
 robot's v_l each round, so each runs the fleet's global-consensus (hub) ADMM -- z the mean, one
 scaled dual u_l per robot -- as an identical copy, and extrapolates its fixed-point map with
-type-II Anderson acceleration (memory `anderson`, safeguarded). The arithmetic that mixes robots
-runs in a fixed order (no BLAS), so the copies stay bit-for-bit equal on any machine; sum_l u_l = 0
-is kept, so the fixed point is still the centralized solution. `anderson = 0` keeps the edge form everywhere.
+type-II Anderson acceleration (memory `anderson`, safeguarded). The arithmetic that mixes robots is
+exactly rounded, so the copies stay bit-for-bit equal on any machine; sum_l u_l = 0 is kept, so
+the fixed point is still the centralized solution. `anderson = 0` keeps the edge form everywhere.
 
 No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 """
@@ -102,54 +102,44 @@ class _Edge:
         self.z, self.lam = from_bytes(state[0]), from_bytes(state[1])
 
 
-def _dots(rows: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """rows @ v with the same bits on every machine: elementwise products, then a pairwise tree of
-    elementwise additions over the columns (zero-padded to a power of two). BLAS would be faster
-    per call but sums in an order that depends on the CPU's kernel; math.fsum (exact) cost 60 %
-    of a hub round. IEEE elementwise + and * are correctly rounded everywhere, so a fixed order
-    is all that bit-identical copies need, and the tree keeps the rounding error O(log n).
-    `v` may hold several vectors (rows): the result then has one row of dots per vector."""
-    rows = np.atleast_2d(rows)
-    p = rows * v if np.ndim(v) == 1 else rows[None, :, :] * np.asarray(v)[:, None, :]
-    n = p.shape[-1]
-    if n == 0:
-        return np.zeros(p.shape[:-1])
-    width = 1 << (n - 1).bit_length()
-    if width != n:
-        p = np.concatenate([p, np.zeros(p.shape[:-1] + (width - n,))], axis=-1)
-    while width > 1:
-        width //= 2
-        p = p[..., :width] + p[..., width:]
-    return p[..., 0]
-
-
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """One inner product, the same bits on every machine (see `_dots`)."""
-    return float(_dots(a, b)[0])
+    """An exactly rounded inner product: the same bits on every machine (BLAS sums in any order)."""
+    return math.fsum((a * b).tolist())
+
+
+def _dots(rows: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """`_dot` of every row with v, bit for bit: one elementwise product and one conversion for all
+    rows (the per-call numpy overhead was most of a hub round), then math.fsum per row."""
+    if len(rows) == 0:
+        return np.zeros(0)
+    return np.array([math.fsum(r) for r in (np.asarray(rows) * v).tolist()])
 
 
 def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """Cholesky solve of a small symmetric positive definite system, deterministic on any machine.
-
-    Elimination on [H | g] (the forward solve rides along as an extra column), then back
-    substitution column by column: elementwise numpy in a fixed order, no BLAS call whose
-    summation order varies with the CPU."""
-    n = len(H)
-    A = np.empty((n, n + 1))
-    A[:, :n] = H
-    A[:, n] = g
-    R = np.zeros((n, n + 1))  # rows: L' and, in the last column, y with L y = g
+    """Cholesky solve of a small symmetric positive definite system, deterministic on any machine:
+    right-looking updates are elementwise numpy (each entry updated in the same order), the
+    triangular solves exactly rounded sums -- no BLAS call whose summation order varies. The
+    solves multiply Python floats (IEEE products, the same bits as numpy's) to spare per-row
+    numpy calls."""
+    A = np.array(H, dtype=float)
+    n = len(A)
+    L = np.zeros((n, n))
     for k in range(n):
         if not A[k, k] > 0:
             raise np.linalg.LinAlgError("not positive definite")
-        row = A[k, k:] / math.sqrt(A[k, k])
-        R[k, k:] = row
-        A[k + 1 :, k + 1 :] -= np.multiply.outer(row[1 : n - k], row[1:])
-    x = R[:, n].copy()
-    for k in reversed(range(n)):  # L' x = y
-        x[k] /= R[k, k]
-        x[:k] -= R[:k, k] * x[k]
-    return x
+        L[k, k] = math.sqrt(A[k, k])
+        L[k + 1 :, k] = A[k + 1 :, k] / L[k, k]
+        A[k + 1 :, k + 1 :] -= np.multiply.outer(L[k + 1 :, k], L[k + 1 :, k])
+    rows, cols, gs = L.tolist(), L.T.tolist(), [float(x) for x in g]
+    y = [0.0] * n
+    for i in range(n):
+        row = rows[i]
+        y[i] = (gs[i] - math.fsum([row[k] * y[k] for k in range(i)])) / row[i]
+    x = [0.0] * n
+    for i in reversed(range(n)):
+        col = cols[i]
+        x[i] = (y[i] - math.fsum([col[k] * x[k] for k in range(i + 1, n)])) / col[i]
+    return np.array(x)
 
 
 class _Hub:
@@ -158,9 +148,9 @@ class _Hub:
     On a complete graph every robot receives every robot's local solution v_l each round, so each
     can run the hub form of consensus ADMM (z = mean, one scaled dual u_l per robot) for the whole
     fleet, and accelerate its fixed-point map s = (z, u_1..u_N) -> T(s) with type-II Anderson
-    acceleration (Zhang, O'Donoghue & Boyd 2018). All arithmetic that mixes robots runs in a
-    fixed order (`_dots`, `_solve_spd`: elementwise numpy, in robot-id order), so the copies stay
-    bit-for-bit equal; every extrapolation is an affine combination of states with sum_l u_l = 0, and the
+    acceleration (Zhang, O'Donoghue & Boyd 2018). All arithmetic that mixes robots is exactly
+    rounded (`_dot`, `_solve_spd`) or elementwise, in robot-id order, so the copies stay bit-for-bit
+    equal; every extrapolation is an affine combination of states with sum_l u_l = 0, and the
     plain map restores that invariant anyway, so the fixed point is the centralized solution.
     """
 
@@ -176,7 +166,7 @@ class _Hub:
         self.hist_f: list[np.ndarray] = []
         self._dg: list[np.ndarray] = []  # successive differences of residuals and of images
         self._df: list[np.ndarray] = []
-        self._gram = np.zeros((0, 0))  # dg_i . dg_j, in a fixed order (`_dots`)
+        self._gram = np.zeros((0, 0))  # dg_i . dg_j, exactly rounded
         self.best = math.inf  # smallest fixed-point residual since the last restart
         self.stalled = 0  # rounds since `best` last improved
 
@@ -218,12 +208,11 @@ class _Hub:
         self.best = min(self.best, res)
         self.hist_s.append(self.s)
         self.hist_f.append(f)
-        rhs = np.zeros(0)
         if len(self.hist_s) > 1:
             dg = g - (self.hist_f[-2] - self.hist_s[-2])
             self._dg.append(dg)
             self._df.append(f - self.hist_f[-2])
-            row, rhs = _dots(np.array(self._dg), np.array([dg, g]))  # one pass: Gram row, dg_i . g
+            row = _dots(np.array(self._dg), dg)
             m = len(row)
             gram = np.empty((m, m))
             gram[: m - 1, : m - 1] = self._gram
@@ -233,8 +222,7 @@ class _Hub:
             self.hist_s, self.hist_f = self.hist_s[1:], self.hist_f[1:]
             self._dg, self._df = self._dg[1:], self._df[1:]
             self._gram = self._gram[1:, 1:].copy()
-            rhs = rhs[1:]
-        self.s = self._extrapolate(rhs) if self._dg else f
+        self.s = self._extrapolate(g) if self._dg else f
         return res
 
     def _forget(self) -> None:
@@ -243,7 +231,7 @@ class _Hub:
         self.stalled = 0
 
     def _rebuild(self) -> None:
-        """The differences and their Gram matrix from the history (the same bits as built round by round)."""
+        """The differences and their Gram matrix from the history (exactly rounded: same bits)."""
         gs = [f - s for s, f in zip(self.hist_s, self.hist_f)]
         self._dg = [b - a for a, b in zip(gs[:-1], gs[1:])]
         self._df = [b - a for a, b in zip(self.hist_f[:-1], self.hist_f[1:])]
@@ -251,19 +239,18 @@ class _Hub:
         dg = np.array(self._dg)
         self._gram = np.array([_dots(dg, d) for d in dg]).reshape(m, m) if m else np.zeros((0, 0))
 
-    def _extrapolate(self, rhs: np.ndarray) -> np.ndarray:
-        """Type-II Anderson: T(s) minus the combination of past steps that best cancels g
-        (`rhs`: dg_i . g for the differences kept)."""
+    def _extrapolate(self, g: np.ndarray) -> np.ndarray:
+        """Type-II Anderson: T(s) minus the combination of past steps that best cancels g."""
         m = len(self._dg)
         H = self._gram.copy()
         scale = math.fsum(np.diag(H).tolist()) / m
         H[np.diag_indices(m)] += ANDERSON_REG * max(scale, 1e-300)
         try:
-            coef = _solve_spd(H, rhs)
+            coef = _solve_spd(H, _dots(np.array(self._dg), g))
         except np.linalg.LinAlgError:
             return self.hist_f[-1]
         out = self.hist_f[-1].copy()
-        for c, d in zip(coef, self._df):  # in order, elementwise: the same bits everywhere
+        for c, d in zip(coef, self._df):
             out = out - c * d
         return out
 

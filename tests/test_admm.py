@@ -308,23 +308,19 @@ def test_sessions_count_the_bytes_they_send_and_keep_them_over_a_restart():
     assert again.row(now, {})["bytes_sent"] == published[0] + first
 
 
-def test_fixed_order_arithmetic_is_accurate_and_independent_of_batching():
-    """The hub's inner products and least squares: accurate, and each dot's bits depend only on
-    its two vectors (a Gram row built round by round equals the one rebuilt from a checkpoint)."""
+def test_batched_exact_arithmetic_is_the_same_bits_and_accurate():
+    """The hub's batched inner products are `_dot` (math.fsum) row by row, bit for bit -- so a
+    fleet's rounds and results do not change -- and the least squares solve is accurate."""
     import math
 
-    from agents.admm import _dots, _solve_spd
+    from agents.admm import _dot, _dots, _solve_spd
 
     rng = np.random.default_rng(5)
-    rows, v, w = rng.normal(size=(7, 45)), rng.normal(size=45), rng.normal(size=45)
-    both = _dots(rows, np.array([v, w]))
-    assert both.shape == (2, 7)
+    rows, v = rng.normal(size=(7, 45)), rng.normal(size=45)
+    got = _dots(rows, v)
+    assert got.shape == (7,) and _dots(np.zeros((0, 45)), v).shape == (0,)
     for i in range(7):
-        alone = _dots(rows[i], v)[0]
-        assert alone == both[0, i] and _dots(rows[i : i + 1], w)[0] == both[1, i]
-        exact = math.fsum((rows[i] * v).tolist())
-        assert abs(alone - exact) <= 1e-14 * float(np.abs(rows[i] * v).sum())
-    assert _dots(np.zeros((3, 0)), np.zeros(0)).tolist() == [0.0, 0.0, 0.0]
+        assert got[i] == _dot(v, rows[i]) == math.fsum((rows[i] * v).tolist())
     B = rng.normal(size=(12, 15))
     H, g = B @ B.T + 1e-3 * np.eye(12), rng.normal(size=12)
     x = _solve_spd(H, g)
