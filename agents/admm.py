@@ -107,20 +107,10 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return math.fsum((a * b).tolist())
 
 
-def _dots(rows: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """`_dot` of every row with v, bit for bit: one elementwise product and one conversion for all
-    rows (the per-call numpy overhead was most of a hub round), then math.fsum per row."""
-    if len(rows) == 0:
-        return np.zeros(0)
-    return np.array([math.fsum(r) for r in (np.asarray(rows) * v).tolist()])
-
-
 def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     """Cholesky solve of a small symmetric positive definite system, deterministic on any machine:
     right-looking updates are elementwise numpy (each entry updated in the same order), the
-    triangular solves exactly rounded sums -- no BLAS call whose summation order varies. The
-    solves multiply Python floats (IEEE products, the same bits as numpy's) to spare per-row
-    numpy calls."""
+    triangular solves exactly rounded sums -- no BLAS call whose summation order varies."""
     A = np.array(H, dtype=float)
     n = len(A)
     L = np.zeros((n, n))
@@ -130,16 +120,13 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
         L[k, k] = math.sqrt(A[k, k])
         L[k + 1 :, k] = A[k + 1 :, k] / L[k, k]
         A[k + 1 :, k + 1 :] -= np.multiply.outer(L[k + 1 :, k], L[k + 1 :, k])
-    rows, cols, gs = L.tolist(), L.T.tolist(), [float(x) for x in g]
-    y = [0.0] * n
+    y = np.zeros(n)
     for i in range(n):
-        row = rows[i]
-        y[i] = (gs[i] - math.fsum([row[k] * y[k] for k in range(i)])) / row[i]
-    x = [0.0] * n
+        y[i] = (g[i] - _dot(L[i, :i], y[:i])) / L[i, i]
+    x = np.zeros(n)
     for i in reversed(range(n)):
-        col = cols[i]
-        x[i] = (y[i] - math.fsum([col[k] * x[k] for k in range(i + 1, n)])) / col[i]
-    return np.array(x)
+        x[i] = (y[i] - _dot(L[i + 1 :, i], x[i + 1 :])) / L[i, i]
+    return x
 
 
 class _Hub:
@@ -212,7 +199,7 @@ class _Hub:
             dg = g - (self.hist_f[-2] - self.hist_s[-2])
             self._dg.append(dg)
             self._df.append(f - self.hist_f[-2])
-            row = _dots(np.array(self._dg), dg)
+            row = np.array([_dot(dg, d) for d in self._dg])
             m = len(row)
             gram = np.empty((m, m))
             gram[: m - 1, : m - 1] = self._gram
@@ -236,8 +223,7 @@ class _Hub:
         self._dg = [b - a for a, b in zip(gs[:-1], gs[1:])]
         self._df = [b - a for a, b in zip(self.hist_f[:-1], self.hist_f[1:])]
         m = len(self._dg)
-        dg = np.array(self._dg)
-        self._gram = np.array([_dots(dg, d) for d in dg]).reshape(m, m) if m else np.zeros((0, 0))
+        self._gram = np.array([[_dot(self._dg[i], self._dg[j]) for j in range(m)] for i in range(m)]).reshape(m, m)
 
     def _extrapolate(self, g: np.ndarray) -> np.ndarray:
         """Type-II Anderson: T(s) minus the combination of past steps that best cancels g."""
@@ -246,7 +232,7 @@ class _Hub:
         scale = math.fsum(np.diag(H).tolist()) / m
         H[np.diag_indices(m)] += ANDERSON_REG * max(scale, 1e-300)
         try:
-            coef = _solve_spd(H, _dots(np.array(self._dg), g))
+            coef = _solve_spd(H, np.array([_dot(d, g) for d in self._dg]))
         except np.linalg.LinAlgError:
             return self.hist_f[-1]
         out = self.hist_f[-1].copy()

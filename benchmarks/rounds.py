@@ -4,9 +4,7 @@ For each scenario: the first round at which every robot is within 1e-3 function 
 centralized solution, the round at which the fleet's own stopping rule ends the run, the error
 there, the mean compute time per robot-round and the bytes each robot publishes (its encoded
 frames, once per round). Writes benchmarks/results/rounds.md, with the figures of main at commit
-347b007 beside them; then the hub form's compute per robot-round with main's implementation of
-its exactly rounded arithmetic and with the batched one (the same bits), timed alternately under
-the same load; then the bytes every algorithm's robots send in a whole `simulate` run (the
+347b007 beside them; then the bytes every algorithm's robots send in a whole `simulate` run (the
 session's counter).
 The reference is solve_central on the 5x3 grid at sigma 1, whose kernel matrix keeps all its
 eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing truncated.
@@ -18,16 +16,12 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import agents.admm as admm  # noqa: E402
 from agents.admm import ADMMParams  # noqa: E402
 from protocol.frames import encode_state  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
@@ -112,52 +106,6 @@ def measure(kwargs: dict, max_rounds: int) -> dict:
     }
 
 
-# -- the hub form's compute, main's arithmetic against the fixed-order one ---------------------
-def _exact_dots(rows: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """main's inner products (347b007): one numpy product, conversion and math.fsum per row."""
-    rows = np.atleast_2d(rows)
-    vs = np.atleast_2d(v)
-    out = np.array([[math.fsum((r * w).tolist()) for r in rows] for w in vs])
-    return out[0] if np.ndim(v) == 1 else out
-
-
-def _exact_solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """main's Cholesky solve (347b007): elementwise factorisation, fsum triangular solves."""
-    A = np.array(H, dtype=float)
-    n = len(A)
-    L = np.zeros((n, n))
-    for k in range(n):
-        if not A[k, k] > 0:
-            raise np.linalg.LinAlgError("not positive definite")
-        L[k, k] = math.sqrt(A[k, k])
-        L[k + 1 :, k] = A[k + 1 :, k] / L[k, k]
-        A[k + 1 :, k + 1 :] -= np.multiply.outer(L[k + 1 :, k], L[k + 1 :, k])
-    y = np.zeros(n)
-    for i in range(n):
-        y[i] = (g[i] - math.fsum((L[i, :i] * y[:i]).tolist())) / L[i, i]
-    x = np.zeros(n)
-    for i in reversed(range(n)):
-        x[i] = (y[i] - math.fsum((L[i + 1 :, i] * x[i + 1 :]).tolist())) / L[i, i]
-    return x
-
-
-def hub_cost(robots: int, reps: int = 3) -> dict:
-    """ms per robot-round of a complete fleet's run with main's implementation ("main") and the
-    batched one ("now") timed alternately (the best of `reps` each, so both see the same load),
-    and their rounds (the same: both are exactly rounded)."""
-    fixed = (admm._dots, admm._solve_spd)
-    out: dict = {"main": [], "now": []}
-    try:
-        for _ in range(reps):
-            for name, (dots, solve) in (("main", (_exact_dots, _exact_solve_spd)), ("now", fixed)):
-                admm._dots, admm._solve_spd = dots, solve
-                r = measure({"robots": robots}, 5000)
-                out[name].append((r["ms"], r["stop"]))
-    finally:
-        admm._dots, admm._solve_spd = fixed
-    return {k: (min(m for m, _ in v), v[0][1]) for k, v in out.items()}
-
-
 # -- bytes per robot per run, every algorithm ----------------------------------------------------
 ALGORITHMS = [
     ("admm", "paper preset", {"preset": "paper", "algorithm": "admm"}),
@@ -197,10 +145,10 @@ def main() -> None:
         f"sigma {d.sigma}, {d.points} points per robot, LiDAR offset {REFERENCE_LENGTHS['offset']:g} x the outline's scale (1 for the built-in shapes; the paper's preset, admm); "
         f"Anderson memory {p.anderson}, safeguard {p.safeguard:g} (complete graphs). Errors are against the exact "
         "central QP (the grid's kernel matrix has full rank: column 'rank' = GridBasis.rank / M).",
-        "Before (in brackets): main at commit 347b007, same scenarios, same data; the iterates are the same bits "
-        "(only the hub's exactly rounded arithmetic is batched). ms per robot-round measured on a shared 2-core "
-        "machine under heavy load (load average 8-12 from five parallel sessions; main's figures under another "
-        "load): compare the alternately timed table below, not these columns across runs. "
+        "Before (in brackets): main at commit 347b007, same scenarios, same data; the ADMM is unchanged, so rounds "
+        "and errors are the same bits. ms per robot-round measured on a shared 2-core machine under heavy load "
+        "(load average 8-12 from five parallel sessions; main's figures under another load): not comparable "
+        "across runs. "
         "Bytes: each robot's encoded frames, published once per round (no loss, so no resends).",
         "Targets (issue 10): paper setting <= 120 rounds at stop (stretch 60); 8-robot ring <= 600; 16 robots, "
         "ring and geometric, <= 1000. Sparse graphs run the plain edge form: those targets are not met.",
@@ -218,26 +166,6 @@ def main() -> None:
             f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e} ({f'{b[2]:.1e}' if b else '-'}) | {r['rank']} | "
             f"{r['ms']:.3f} ({f'{b[3]:.3f}' if b else '-'}) | {r['bytes']:.0f} |"
         )
-        lines.append(line)
-        print(line, flush=True)
-    lines += [
-        "",
-        "## Hub form: compute per robot-round, main's implementation vs batched (timed alternately)",
-        "",
-        "Both exactly rounded, the same bits: main (347b007) ran one numpy product, list conversion and "
-        "math.fsum per inner product and numpy slices per row of the triangular solves; now one product and "
-        "one conversion serve a whole Gram row (`_dots`) and the triangular solves multiply Python floats. "
-        "Best of 2 alternate runs each, same machine and load (heavy: load average ~12 on 2 cores). "
-        "A fixed-order, not exactly rounded arithmetic was 1.3-1.8x faster but changes the path and stopped "
-        "star seed 1 above tol (docs/algorithm.md): not kept.",
-        "",
-        "| fleet | rounds (main / now) | ms per robot-round, main | ms per robot-round, now | ratio |",
-        "|---|---:|---:|---:|---:|",
-    ]
-    for n in (3,) if args.quick else (3, 8):
-        c = hub_cost(n, reps=2)
-        (me, re_), (mf, rf) = c["main"], c["now"]
-        line = f"| {n} robots, complete | {re_} / {rf} | {me:.3f} | {mf:.3f} | {me / mf:.2f} |"
         lines.append(line)
         print(line, flush=True)
     lines += [

@@ -137,7 +137,13 @@ def test_all_robots_stop_in_the_same_round_with_the_central_solution(fleet3):
 def test_plain_and_accelerated_reach_the_same_fixed_point(anderson):
     """Acceleration changes the path, not the answer: both stop within tol of the central QP."""
     _, spec, central = make_run(tol=1e-6)
-    cores = cores_with(spec, anderson=anderson)
+    params = ADMMParams(**{**spec.params, "anderson": anderson})
+    cores = [
+        ConsensusADMM(i, spec.robots[i].neighbours, spec.basis.features(spec.robots[i].points), spec.robots[i].labels,
+                      n_robots=spec.n_robots, params=params,
+                      neighbour_degrees={j: len(spec.robots[j].neighbours) for j in spec.robots[i].neighbours})
+        for i in spec.robot_ids
+    ]
     assert all((c._hub is not None) == (anderson > 0) for c in cores)
     run_to_end(cores)
     assert all(c.converged for c in cores)
@@ -152,27 +158,11 @@ def test_round_cap_stops_everyone_unconverged():
     assert not any(c.converged for c in cores)
 
 
-def cores_with(spec, **params):
-    """The fleet's cores with some ADMM parameters changed."""
-    p = ADMMParams(**{**spec.params, **params})
-    return [
-        ConsensusADMM(i, spec.robots[i].neighbours, spec.basis.features(spec.robots[i].points), spec.robots[i].labels,
-                      n_robots=spec.n_robots, params=p,
-                      neighbour_degrees={j: len(spec.robots[j].neighbours) for j in spec.robots[i].neighbours})
-        for i in spec.robot_ids
-    ]
-
-
-@pytest.mark.parametrize("anderson", [0, 30])
-def test_a_stale_substitute_biases_the_answer(anderson):
+def test_a_stale_substitute_biases_the_answer(fleet3):
     """The trap in the architecture guide, shown: reuse an old neighbour value once and the
-    fleet converges -- to the wrong point (edge form). In the hub form the one robot's copy of the
-    fleet's state parts from the others' for good: the run ends at a wrong point or blows up (a
-    shell stops it as diverged). Exact recovery is what keeps the answer right."""
-    _, spec, central = make_run(tol=1e-6)
-    cores = cores_with(spec, anderson=anderson)
+    fleet converges -- to the wrong point. Exact recovery is what keeps the answer right."""
+    spec, central, cores = fleet3
     a, b, _ = cores
-    assert (a._hub is not None) == (anderson > 0)
     for _ in range(5):
         step_all(cores)
     stale = b.outgoing()
@@ -191,23 +181,8 @@ def test_a_stale_substitute_biases_the_answer(anderson):
     a.receive(forged)
     for c in cores:
         c.advance()
-    broke = None
-    for _ in range(5000):
-        if all(c.finished for c in cores):
-            break
-        try:
-            step_all(cores)
-        except a.solve_errors as exc:
-            broke = str(exc)
-            break
-        broke = next((why for c in cores if (why := c.divergence()) is not None), None)
-        if broke:
-            break
-    if anderson == 0:
-        assert broke is None and all(c.converged for c in cores)
-    if broke is None:
-        assert all(c.finished for c in cores)
-        assert max_function_error(spec, central, [c.result() for c in cores]) > 1e-2
+    run_to_end(cores)
+    assert max_function_error(spec, central, [c.result() for c in cores]) > 1e-2
 
 
 def test_checkpoint_restore_resumes_bit_for_bit(fleet3):
@@ -307,23 +282,3 @@ def test_sessions_count_the_bytes_they_send_and_keep_them_over_a_restart():
     first = sum(len(f) for _d, f in again.to_send(now))
     assert again.row(now, {})["bytes_sent"] == published[0] + first
 
-
-def test_batched_exact_arithmetic_is_the_same_bits_and_accurate():
-    """The hub's batched inner products are `_dot` (math.fsum) row by row, bit for bit -- so a
-    fleet's rounds and results do not change -- and the least squares solve is accurate."""
-    import math
-
-    from agents.admm import _dot, _dots, _solve_spd
-
-    rng = np.random.default_rng(5)
-    rows, v = rng.normal(size=(7, 45)), rng.normal(size=45)
-    got = _dots(rows, v)
-    assert got.shape == (7,) and _dots(np.zeros((0, 45)), v).shape == (0,)
-    for i in range(7):
-        assert got[i] == _dot(v, rows[i]) == math.fsum((rows[i] * v).tolist())
-    B = rng.normal(size=(12, 15))
-    H, g = B @ B.T + 1e-3 * np.eye(12), rng.normal(size=12)
-    x = _solve_spd(H, g)
-    assert np.linalg.norm(H @ x - g) <= 1e-10 * np.linalg.norm(g)
-    with pytest.raises(np.linalg.LinAlgError):
-        _solve_spd(-np.eye(2), np.ones(2))
