@@ -1,9 +1,11 @@
-"""Rounds to tolerance and compute cost of the decentralized ADMM, in process (no network).
+"""Rounds to tolerance, compute cost and bytes of the decentralized ADMM, in process (no network).
 
 For each scenario: the first round at which every robot is within 1e-3 function error of the
 centralized solution, the round at which the fleet's own stopping rule ends the run, the error
-there, and the mean compute time per robot-round. Writes benchmarks/results/rounds.md, with the
-figures of the plain edge ADMM before the Anderson-accelerated rule (commit 7bf3740) beside them.
+there, the mean compute time per robot-round and the bytes each robot publishes (its encoded
+frames, once per round). Writes benchmarks/results/rounds.md, with the figures of main at commit
+347b007 beside them; then the bytes every algorithm's robots send in a whole `simulate` run (the
+session's counter).
 The reference is solve_central on the 5x3 grid at sigma 1, whose kernel matrix keeps all its
 eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing truncated.
 
@@ -21,23 +23,26 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.admm import ADMMParams  # noqa: E402
+from protocol.frames import encode_state  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
 from agents.spec import build_core  # noqa: E402
 from launcher.world import Options, build_world, resolve_options  # noqa: E402
 from launcher.scenario import REFERENCE_LENGTHS  # noqa: E402
 
-#: (rounds to 1e-3, rounds at stop, error at stop) of the plain edge ADMM, commit 7bf3740
+#: (rounds to 1e-3, rounds at stop, error at stop, ms per robot-round under load) on main, commit
+#: 347b007 (hub + Anderson with math.fsum arithmetic on complete graphs, plain edge form elsewhere)
 BEFORE = {
-    "paper setting: 3 robots, blob, complete": (225, 349, 1.0e-04),
-    "3 robots, bean": (289, 423, 3.4e-05),
-    "3 robots, star": (228, 390, 9.9e-05),
-    "3 robots, crescent": (296, 413, 8.2e-05),
-    "4 robots, ring": (579, 671, 1.1e-04),
-    "5 robots, line": (342, 585, 2.4e-05),
-    "8 robots, ring": (850, 1176, 1.1e-04),
-    "8 robots, complete": (783, 1079, 6.8e-05),
-    "16 robots, geometric 3.0": (1345, 1934, 4.8e-05),
-    "16 robots, ring": (1362, 2025, 6.4e-05),
+    "paper setting: 3 robots, blob, complete": (97, 120, 8.3e-06, 1.354),
+    "3 robots, bean": (157, 182, 6.8e-09, 1.292),
+    "3 robots, star": (108, 131, 1.2e-07, 1.820),
+    "3 robots, crescent": (82, 105, 5.5e-09, 2.054),
+    "4 robots, ring": (579, 671, 1.1e-04, 0.731),
+    "5 robots, line": (342, 585, 2.4e-05, 0.504),
+    "8 robots, ring": (850, 1176, 1.1e-04, 0.795),
+    "8 robots, complete": (429, 454, 2.2e-07, 4.732),
+    "16 robots, geometric 3.0": (1345, 1934, 4.8e-05, 0.628),
+    "16 robots, ring": (1362, 2025, 6.4e-05, 0.444),
+    "16 robots, complete": (385, 408, 2.5e-06, 2.745),
 }
 
 SCENARIOS = [
@@ -67,6 +72,14 @@ def measure(kwargs: dict, max_rounds: int) -> dict:
 
     first = None
     compute = 0.0
+    auth = {c.robot_id: spec.frame_auth(c.robot_id) for c in cores}
+    sent = dict.fromkeys(auth, 0)
+
+    def publish(c, update, seq: int) -> None:  # what the session encodes once per round
+        sent[c.robot_id] += len(encode_state(update, fleet=spec.fleet, seq=seq, config_tag=spec.config_tag, auth=auth[c.robot_id]))
+
+    for c in cores:
+        publish(c, c.outgoing(), 0)
     while not all(c.finished for c in cores):
         updates = [c.outgoing() for c in cores]
         for c in cores:
@@ -76,6 +89,8 @@ def measure(kwargs: dict, max_rounds: int) -> dict:
         for c in cores:
             c.advance()
         compute += time.perf_counter() - t
+        for c in cores:
+            publish(c, c.outgoing(), c.round)
         if first is None and error() < 1e-3:
             first = cores[0].round
     rounds = cores[0].round
@@ -87,6 +102,33 @@ def measure(kwargs: dict, max_rounds: int) -> dict:
         "ms": 1e3 * compute / max(rounds * len(cores), 1),
         "form": "hub + Anderson" if cores[0]._hub is not None else "edge",
         "rank": f"{b.rank}/{b.size}",
+        "bytes": sum(sent.values()) / len(sent),
+    }
+
+
+# -- bytes per robot per run, every algorithm ----------------------------------------------------
+ALGORITHMS = [
+    ("admm", "paper preset", {"preset": "paper", "algorithm": "admm"}),
+    ("newton", "paper preset", {"preset": "paper", "algorithm": "newton"}),
+    ("ct-admm", "paper preset", {"preset": "paper", "algorithm": "ct-admm"}),
+    ("autogrid", "default run (3 robots)", {"algorithm": "autogrid"}),
+    ("admm", "8 robots, ring", {"preset": "paper", "algorithm": "admm", "robots": 8, "topology": "ring"}),
+    ("newton", "8 robots, ring", {"preset": "paper", "algorithm": "newton", "robots": 8, "topology": "ring"}),
+]
+
+
+def algorithm_bytes(kwargs: dict) -> dict:
+    """A whole in-process run (`simulate`, lossless): rounds, frames and bytes_sent per robot."""
+    from launcher.simulate import simulate_fleet
+
+    _world, spec = build_world(Options(fleet_id="bench", **kwargs))
+    rows = simulate_fleet(spec).robots
+    n = len(rows)
+    return {
+        "rounds": max(int(r["rounds"]) for r in rows),
+        "converged": all(r["converged"] for r in rows),
+        "frames": sum(r["frames_sent"] for r in rows) / n,
+        "bytes": sum(r["bytes_sent"] for r in rows) / n,
     }
 
 
@@ -103,15 +145,17 @@ def main() -> None:
         f"sigma {d.sigma}, {d.points} points per robot, LiDAR offset {REFERENCE_LENGTHS['offset']:g} x the outline's scale (1 for the built-in shapes; the paper's preset, admm); "
         f"Anderson memory {p.anderson}, safeguard {p.safeguard:g} (complete graphs). Errors are against the exact "
         "central QP (the grid's kernel matrix has full rank: column 'rank' = GridBasis.rank / M).",
-        "Before: the plain edge ADMM of commit 7bf3740 (same scenarios, same data). "
-        "ms per robot-round measured on a shared 2-core machine under load; the hub form's extra cost is "
-        "Anderson's least squares in exactly rounded arithmetic (the same bits on every robot).",
+        "Before (in brackets): main at commit 347b007, same scenarios, same data; the ADMM is unchanged, so rounds "
+        "and errors are the same bits. ms per robot-round measured on a shared 2-core machine under heavy load "
+        "(load average 8-12 from five parallel sessions; main's figures under another load): not comparable "
+        "across runs. "
+        "Bytes: each robot's encoded frames, published once per round (no loss, so no resends).",
         "Targets (issue 10): paper setting <= 120 rounds at stop (stretch 60); 8-robot ring <= 600; 16 robots, "
-        "ring and geometric, <= 1000. Sparse graphs still run the plain edge form: those targets are not met.",
+        "ring and geometric, <= 1000. Sparse graphs run the plain edge form: those targets are not met.",
         "",
         "| scenario | form | rounds to 1e-3 (before) | rounds at stop (before) | converged | error at stop (before) "
-        "| rank | ms per robot-round |",
-        "|---|---|---:|---:|:---:|---:|:---:|---:|",
+        "| rank | ms per robot-round (before) | bytes per robot |",
+        "|---|---|---:|---:|:---:|---:|:---:|---:|---:|",
     ]
     for name, kwargs in rows:
         r = measure(kwargs, args.max_rounds)
@@ -120,8 +164,25 @@ def main() -> None:
         line = (
             f"| {name} | {r['form']} | {first} ({b[0] if b else '-'}) | {r['stop']} ({b[1] if b else '-'}) | "
             f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e} ({f'{b[2]:.1e}' if b else '-'}) | {r['rank']} | "
-            f"{r['ms']:.3f} |"
+            f"{r['ms']:.3f} ({f'{b[3]:.3f}' if b else '-'}) | {r['bytes']:.0f} |"
         )
+        lines.append(line)
+        print(line, flush=True)
+    lines += [
+        "",
+        "## Bytes sent per robot per run, every algorithm (`simulate`, no faults)",
+        "",
+        "`bytes_sent` of each robot's result row (`protocol/session.py`: every encoded frame, resends "
+        "included; none here, the links are lossless), mean over robots; also in result.json "
+        "(`robots[i].bytes_sent`, `metrics.bytes_sent_per_robot`).",
+        "",
+        "| algorithm | scenario | rounds | converged | frames per robot | bytes per robot | bytes per frame |",
+        "|---|---|---:|:---:|---:|---:|---:|",
+    ]
+    for algo, label, kwargs in ALGORITHMS[:1] if args.quick else ALGORITHMS:
+        r = algorithm_bytes(kwargs)
+        line = (f"| {algo} | {label} | {r['rounds']} | {'yes' if r['converged'] else 'no'} | {r['frames']:.0f} | "
+                f"{r['bytes']:.0f} | {r['bytes'] / r['frames']:.0f} |")
         lines.append(line)
         print(line, flush=True)
     out = Path(__file__).parent / "results" / ("rounds-quick.md" if args.quick else "rounds.md")

@@ -184,6 +184,15 @@ def _num(value: float) -> float | None:
     return None if value is None or not np.isfinite(value) else float(value)
 
 
+def bytes_metrics(robots: list[dict[str, Any]]) -> dict[str, float | int | None]:
+    """Encoded frame bytes each robot sent in the run (resends included): mean and max over robots,
+    null when the rows carry no counter (old result files)."""
+    sent = [int(r["bytes_sent"]) for r in robots if r.get("bytes_sent") is not None]
+    if not sent or len(sent) != len(robots):
+        return {"bytes_sent_per_robot": None, "bytes_sent_max": None}
+    return {"bytes_sent_per_robot": sum(sent) / len(sent), "bytes_sent_max": max(sent)}
+
+
 def build_result(
     world: World,
     basis: GridBasis,
@@ -254,6 +263,7 @@ def build_result(
             "consensus_error": _num(consensus),
             "train_accuracy": accuracy,
             "iou": iou,
+            **bytes_metrics(robots),
         },
         "history": history(basis, robots, central),
     }
@@ -428,6 +438,7 @@ def build_autogrid_result(
             "consensus_error": _num(consensus),
             "train_accuracy": min(accuracies, default=None),
             "iou": min(ious, default=None),
+            **bytes_metrics(robots),
         },
         "history": [],
     }
@@ -572,7 +583,7 @@ def summary_table(result: dict[str, Any]) -> Any:
         f"{result['rounds']} rounds, {result['wall_s']:.2f} s"
     )
     table = Table(title=title)
-    for col in ("robot", "rounds", "gamma", "f-error", "sent", "received", "lost", "rejected"):
+    for col in ("robot", "rounds", "gamma", "f-error", "sent", "bytes", "received", "lost", "rejected"):
         table.add_column(col, justify="right")
     for r in result["robots"]:
         fe = r.get("function_error")
@@ -582,6 +593,7 @@ def summary_table(result: dict[str, Any]) -> Any:
             "-" if r.get("gamma") is None else f"{r['gamma']:.4g}",
             "-" if fe is None else f"{fe:.2e}",
             str(r.get("frames_sent", "-")),
+            str(r.get("bytes_sent", "-")),
             str(r.get("frames_received", "-")),
             str(r.get("frames_lost", "-")),
             str(r.get("frames_rejected", "-")),

@@ -71,7 +71,7 @@ CONNECTED_POLL_S = 0.2  # how stale a link report may be before a drop needs a f
 #: the keys every result row has, in both shells (plus whatever the core's ``result()`` gives)
 ROW_KEYS = (
     "robot", "fleet", "stopped", "error", "isolated", "converged", "rounds",
-    "frames_sent", "frames_received", "frames_lost", "frames_duplicated", "frames_accepted",
+    "frames_sent", "bytes_sent", "frames_received", "frames_lost", "frames_duplicated", "frames_accepted",
     "frames_deduplicated", "frames_rejected", "frames_rejected_by_reason", "restarts",
     "neighbours_dropped", "dropped_at", "wall_s", "round_ms", "round_times", "trace",
 )
@@ -179,6 +179,7 @@ class RobotSession:
         c = env.get("counters", {})
         self.restarts = int(env["restarts"]) + 1 if "restarts" in env else 0
         self.sent = int(c.get("sent", 0))
+        self.bytes_sent = int(c.get("bytes_sent", 0))  # encoded frame bytes, resends included
         self.prior_transport = {k: int(c.get(k, 0)) for k in ("received", "lost", "duplicated")}
         self._prior_accepted = int(c.get("accepted", 0))
         self.deduplicated = int(c.get("deduplicated", 0))
@@ -440,6 +441,7 @@ class RobotSession:
         self._seq += 1
         self._out.append((BROADCAST, frame))
         self.sent += 1
+        self.bytes_sent += len(frame)
         self._last_put = now
 
     # ---------------------------------------------------------------- persistence and result
@@ -458,9 +460,10 @@ class RobotSession:
         }
 
     def counters(self, transport: Mapping[str, int]) -> dict[str, int]:
-        """sent, received, lost, duplicated, accepted, deduplicated (restored ones included)."""
+        """sent, bytes_sent, received, lost, duplicated, accepted, deduplicated (restored ones included)."""
         return {
             "sent": self.sent,
+            "bytes_sent": self.bytes_sent,
             **{k: v + int(transport.get(k, 0)) for k, v in self.prior_transport.items()},
             "accepted": self._prior_accepted + self.decoder.accepted,
             "deduplicated": self.deduplicated,
@@ -478,7 +481,7 @@ class RobotSession:
         trace = getattr(self.core, "trace", None) or {}
         res.update(
             robot=self.me, fleet=self.fleet, stopped=stopped, error=self.error, isolated=isolated,
-            frames_sent=c["sent"], frames_received=c["received"], frames_lost=c["lost"],
+            frames_sent=c["sent"], bytes_sent=c["bytes_sent"], frames_received=c["received"], frames_lost=c["lost"],
             frames_duplicated=c["duplicated"], frames_accepted=c["accepted"],
             frames_deduplicated=c["deduplicated"], frames_rejected=sum(self.rejected.values()),
             frames_rejected_by_reason=dict(self.rejected), restarts=self.restarts,
@@ -533,6 +536,6 @@ def row_from_file(res: Mapping[str, Any]) -> dict[str, Any]:
         if key in out:
             out[key] = {int(k): v for k, v in (out[key] or {}).items()}
     out["id"] = int(out["id"])
-    for k in ("frames_sent", "frames_received", "frames_lost", "restarts"):
+    for k in ("frames_sent", "bytes_sent", "frames_received", "frames_lost", "restarts"):
         out[k] = int(out.get(k, 0) or 0)
     return out

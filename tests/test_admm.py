@@ -268,3 +268,36 @@ def test_hub_form_only_when_every_robot_sees_the_whole_fleet():
     assert not complete_graph(4, (0,), {0: 3})  # a leaf of that star
     assert not complete_graph(4, (1, 2, 3), {})
     assert not complete_graph(1, (), {})
+
+
+def test_sessions_count_the_bytes_they_send_and_keep_them_over_a_restart():
+    """bytes_sent (result rows, result.json) is the sum of the encoded frames a robot published,
+    resends included, and a restarted robot continues its count from the checkpoint."""
+    from protocol.session import RobotSession
+
+    _world, spec, _central = make_run(robots=2, max_rounds=12)
+    sessions = {i: RobotSession.for_spec(spec, build_core(spec, i), now=0.0) for i in spec.robot_ids}
+    published = {i: 0 for i in sessions}
+    now = 0.0
+    for _ in range(200):  # bounded: 12 rounds need far fewer exchanges
+        for i, s in sessions.items():
+            for _dest, frame in s.to_send(now):
+                published[i] += len(frame)
+                for j, other in sessions.items():
+                    if j != i:
+                        other.receive(i, frame, now)
+        for s in sessions.values():
+            while s.ready():
+                s.advance(now)
+        now += 0.3  # past the resend interval: resends are counted too
+        if all(s.done for s in sessions.values()):
+            break
+    rows = {i: s.row(now, {}) for i, s in sessions.items()}
+    for i, r in rows.items():
+        assert r["bytes_sent"] == published[i] and r["frames_sent"] > r["rounds"] > 0
+        assert r["bytes_sent"] > 8 * spec.dim * r["frames_sent"]  # each frame carries its vector
+    env = sessions[0].checkpoint({})
+    again = RobotSession.for_spec(spec, restore_core(spec, 0, env["core"]), now=now, resume=env)
+    first = sum(len(f) for _d, f in again.to_send(now))
+    assert again.row(now, {})["bytes_sent"] == published[0] + first
+
