@@ -29,6 +29,10 @@ from protocol.links import LinkFaults
 ALGORITHMS = ("admm", "ct-admm", "autogrid", "newton")
 #: algorithms whose grid and sigma are fixed by the launcher (autogrid's fleet chooses its own)
 FIXED_GRID_ALGORITHMS = ("admm", "ct-admm", "newton")
+#: each algorithm's typed parameters: the fleet file's ``params`` are the fields of its class
+PARAMS_CLASSES: dict[str, type] = {
+    "admm": ADMMParams, "ct-admm": CTADMMParams, "autogrid": AutoGridParams, "newton": NewtonParams,
+}
 
 
 @dataclass(frozen=True)
@@ -133,6 +137,18 @@ class FleetSpec:
         kw = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if k in names}
         kw.update(sigma=self.sigma, C=self.C)
         return AutoGridParams(**kw)
+
+    @property
+    def algorithm_params(self) -> Any:
+        """The typed parameters of this fleet's algorithm (ADMMParams, CTADMMParams,
+        AutoGridParams or NewtonParams), read from ``params``; ValueError names a bad key or value."""
+        if self.algorithm == "autogrid":
+            return self.autogrid_params
+        if self.algorithm == "newton":
+            return NewtonParams.from_params(self.params)
+        if self.algorithm == "ct-admm":
+            return CTADMMParams.from_params(self.params)
+        return ADMMParams(**self.params)
 
     @property
     def dim(self) -> int:

@@ -53,8 +53,9 @@ def test_build_core_gives_each_robot_its_raw_points_and_the_shared_params(auto):
 
 def test_params_are_filtered_and_max_rounds_is_the_total_cap(auto):
     _, spec, _ = auto
+    given = {k: v for k, v in spec.params.items() if k != "max_total_rounds"}  # the CLI writes it out
     other = dataclasses.replace(
-        spec, sigma=0.7, C=5.0, params={**spec.params, "max_rounds": 1234, "ct_step": 0.001, "gamma_penalty": 3.0}
+        spec, sigma=0.7, C=5.0, params={**given, "max_rounds": 1234, "ct_step": 0.001, "gamma_penalty": 3.0}
     )
     p = other.autogrid_params
     assert (p.max_total_rounds, p.sigma, p.C) == (1234, 0.7, 5.0)
