@@ -258,8 +258,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     from launcher.simulate import FleetFailure, simulate_fleet
 
+    crashes = _crash_plan(args)
     t0 = time.perf_counter()
-    out, world, spec, central = _prepare(args, "simulate")
+    out, world, spec, central = _prepare(args, "simulate", check=_crash_check(crashes))
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     with Progress(
@@ -278,28 +279,33 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             bar.update(task, completed=rnd, total=max(planned, rnd), residual=f"{residual:.2e}")
 
         try:
-            outcome = simulate_fleet(spec, progress=progress)
+            outcome = simulate_fleet(spec, progress=progress, crashes=crashes, restart=not args.no_restart,
+                                     restart_after=args.restart_after)
         except FleetFailure as exc:  # a local solve failed or an iterate diverged: no answer
             print(f"shapefleet: the run failed: {exc}", file=sys.stderr)
             return EXIT_NOT_CONVERGED
     extra = {"fleet": spec.fleet, "topology": args.topology, "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
+    if crashes:
+        extra["crashes"] = outcome.crash_log
+        for c in outcome.crash_log:
+            if not c["fired"]:
+                print(f"shapefleet: --crash {c['robot']}@{c['planned_round']} never fired: robot {c['robot']} "
+                      f"stopped before round {c['planned_round']}", file=sys.stderr)
+        central = _participants(world, spec, central, outcome.robots, extra)
     result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
     return _exit_code(result)
 
 
-def cmd_launch(args: argparse.Namespace) -> int:
-    """The Zenoh fleet: a router and one process per robot on this machine."""
-    from launcher.fleet import LaunchError, launch_fleet, parse_crash
+def _crash_plan(args: argparse.Namespace) -> list[Any]:
+    """--crash ID@ROUND ... as CrashPlans (each already checked by the options table)."""
+    from launcher.fleet import parse_crash
 
-    try:
-        crashes = [parse_crash(text) for text in args.crash]
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    _robots_bound(args)
-    from launcher.fleet import _port_in_use
+    return [parse_crash(text) for text in args.crash]
 
-    if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
-        raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
+
+def _crash_check(crashes: list[Any]) -> Callable[[Any], None]:
+    """The fleet-dependent checks of a crash plan (simulate and launch): a known robot, a round
+    the run can reach."""
 
     def check(spec: Any) -> None:
         unknown = [c.robot for c in crashes if c.robot not in spec.robots]
@@ -310,6 +316,21 @@ def cmd_launch(args: argparse.Namespace) -> int:
         if late:
             raise UsageError(f"--crash: {late[0].robot}@{late[0].round} is at or past the run's last possible round "
                              f"({budget - 1}: the round cap is {budget}); it could never fire")
+
+    return check
+
+
+def cmd_launch(args: argparse.Namespace) -> int:
+    """The Zenoh fleet: a router and one process per robot on this machine."""
+    from launcher.fleet import LaunchError, launch_fleet
+
+    crashes = _crash_plan(args)
+    _robots_bound(args)
+    from launcher.fleet import _port_in_use
+
+    if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
+        raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
+    check = _crash_check(crashes)
 
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "launch", check=check, fleet_id=args.fleet_id)

@@ -71,6 +71,7 @@ ALGORITHM_CHOICES = ("auto", *ALGORITHMS)
 SCENARIO_COMMANDS = ("simulate", "launch", "central", "prepare", "gridstudy")
 FAULT_COMMANDS = ("simulate", "launch", "prepare")
 FLEET_COMMANDS = ("launch", "prepare")
+CRASH_COMMANDS = ("simulate", "launch")
 
 
 class _FromParams:
@@ -267,7 +268,7 @@ MODEL = "model (default: the fleet chooses grid and sigma itself)"
 ALGORITHM = "fleet and algorithm"
 FAULTS = "network faults (netem vocabulary, injected per directed link)"
 FLEET = "fleet"
-PROCESSES = "processes"
+PROCESSES = "crash injection (simulate: on the virtual clock; launch: SIGKILL)"
 TLS = "TLS (tls/ endpoints, docs/deploy.md)"
 
 _T = Timing()
@@ -358,18 +359,18 @@ OPTIONS: tuple[Option, ...] = (
     Option("fleet-id", STR, None, "fleet id on the network (default: unique per run)", group=FLEET,
            commands=FLEET_COMMANDS, section="fleet", check=_fleet_id),
     Option("dead-after", DURATION, _T.dead_after_s, "a robot gives up a neighbour silent this long, also at start",
-           group=FLEET, commands=FLEET_COMMANDS, section="fleet", metavar="DURATION", check=positive,
+           group=FLEET, commands=("simulate", *FLEET_COMMANDS), section="fleet", metavar="DURATION", check=positive,
            target="timing.dead_after_s"),
     Option("max-wall", DURATION, _T.max_wall_s, "a robot stops after this long whatever happens", group=FLEET,
            commands=FLEET_COMMANDS, section="fleet", metavar="DURATION", check=positive,
            target="timing.max_wall_s"),
-    # -- launch: robot processes -----------------------------------------------------------
+    # -- crash injection (simulate, launch) and robot processes (launch) -----------------------------------------------------------
     Option("crash", LIST, None, "SIGKILL robot ID when it reaches ROUND (repeatable)", group=PROCESSES,
-           commands=("launch",), section="launch", metavar="ID@ROUND", check=_crash, target=None),
+           commands=CRASH_COMMANDS, section="launch", metavar="ID@ROUND", check=_crash, target=None),
     Option("restart-after", FLOAT, 1.0, "seconds before a crashed robot restarts from its checkpoint",
-           group=PROCESSES, commands=("launch",), section="launch", check=_non_negative, target=None),
+           group=PROCESSES, commands=CRASH_COMMANDS, section="launch", check=_non_negative, target=None),
     Option("no-restart", FLAG, False, "leave crashed robots dead: the others finish without them",
-           group=PROCESSES, commands=("launch",), section="launch", target=None, show_default=False),
+           group=PROCESSES, commands=CRASH_COMMANDS, section="launch", target=None, show_default=False),
     Option("zenoh-port", INT, None, "the router's loopback port (default: a free one)", group=PROCESSES,
            commands=("launch",), section="launch", check=_port, target=None),
     Option("max-robots", INT, None, "allow up to N robot processes (default: derived from this machine's "
