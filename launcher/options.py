@@ -53,6 +53,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from agents.spec import ALGORITHMS, PARAMS_CLASSES, Timing
+from launcher.scenario import DEFAULT_SHAPE, parse_bounds, parse_grid, shape_names
+from launcher.topology import TOPOLOGIES
+from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults, parse_duration, parse_probability
 
 # -- kinds: text -> value, and the TOML types a key accepts ---------------------------------------
@@ -157,34 +160,9 @@ def _max_grid_points(value: int) -> None:
         raise ValueError(f"{value} does not fit a frame (at most {MAX_DIM - 2})")
 
 
-def _grid(value: str) -> None:
-    from launcher.scenario import parse_grid
-
-    parse_grid(value)
-
-
-def _grid_bounds(value: str) -> None:
-    from launcher.scenario import parse_bounds
-
-    parse_bounds(value)
-
-
 def _preset(value: str) -> None:
     if value not in PRESETS:
         raise ValueError(f"{value!r} is not a preset (choose from {', '.join(PRESETS)})")
-
-
-def _topology(value: str) -> None:
-    from launcher.topology import TOPOLOGIES
-
-    if value not in TOPOLOGIES:
-        raise ValueError(f"{value!r} is not one of {', '.join(TOPOLOGIES)}")
-
-
-def _fleet_id(value: str) -> None:
-    from protocol.keys import validate_fleet_id
-
-    validate_fleet_id(value)
 
 
 def _crash(value: str) -> None:
@@ -280,7 +258,7 @@ OPTIONS: tuple[Option, ...] = (
     # -- every scenario command ------------------------------------------------------------
     Option("config", PATH, None, "scenario file (docs/scenario-file.md); flags given here override it",
            metavar="TOML", target=None),
-    Option("shape", STR, "blob", "built-in shape: blob, bean, crescent, cross, ellipse, star",
+    Option("shape", STR, DEFAULT_SHAPE, f"built-in shape: {', '.join(shape_names())}",
            group=WORLD, section="world", exclusive="source"),
     Option("shape-file", PATH, None, "object outline from a CSV file with header x,y", group=WORLD,
            section="world", metavar="CSV", exclusive="source"),
@@ -299,9 +277,9 @@ OPTIONS: tuple[Option, ...] = (
            section="world"),
     Option("grid", STR, None, f"fixed grid of NXxNY points (default: automatic; the paper's is {PAPER_GRID}). "
            "With --algorithm autogrid: the start grid the fleet refines", group=MODEL, section="model",
-           metavar="NXxNY", check=_grid),
+           metavar="NXxNY", check=parse_grid),
     Option("grid-bounds", STR, None, "region of the --grid points (default: the data's bounding box, padded)",
-           group=MODEL, section="model", metavar="X0,X1,Y0,Y1", check=_grid_bounds),
+           group=MODEL, section="model", metavar="X0,X1,Y0,Y1", check=parse_bounds),
     Option("sigma", FLOAT, None, f"Gaussian kernel width (default: chosen by the fleet; the paper's is "
            f"{PAPER_SIGMA:g}). With --algorithm autogrid: kept fixed", group=MODEL, section="model",
            check=positive),
@@ -312,8 +290,8 @@ OPTIONS: tuple[Option, ...] = (
            metavar="NAME", check=_preset),
     Option("max-grid-points", INT, FROM_PARAMS, "autogrid: budget of grid points, at least 4; frames grow with it",
            group=MODEL, section="model", metavar="N", check=_max_grid_points, feeds={"autogrid": "max_points"}),
-    Option("topology", STR, "complete", "complete | ring | line | geometric", group=ALGORITHM,
-           section="algorithm", check=_topology),
+    Option("topology", STR, "complete", " | ".join(TOPOLOGIES), group=ALGORITHM, section="algorithm",
+           choices=TOPOLOGIES, metavar="TOPOLOGY"),
     Option("comm-range", FLOAT, None, f"link robots within this distance (geometric topology; default 12 "
            f"{_FOLLOWS})", group=ALGORITHM, section="algorithm"),
     Option("algorithm", STR, "auto", "auto (default): admm when --grid and --sigma are given, else autogrid; "
@@ -357,7 +335,7 @@ OPTIONS: tuple[Option, ...] = (
            group=FAULTS, commands=FAULT_COMMANDS, section="faults", check=positive, target="timing.retransmit_s"),
     # -- the fleet on the network ---------------------------------------------------------
     Option("fleet-id", STR, None, "fleet id on the network (default: unique per run)", group=FLEET,
-           commands=FLEET_COMMANDS, section="fleet", check=_fleet_id),
+           commands=FLEET_COMMANDS, section="fleet", check=validate_fleet_id),
     Option("dead-after", DURATION, _T.dead_after_s, "a robot gives up a neighbour silent this long, also at start",
            group=FLEET, commands=("simulate", *FLEET_COMMANDS), section="fleet", metavar="DURATION", check=positive,
            target="timing.dead_after_s"),
@@ -378,7 +356,7 @@ OPTIONS: tuple[Option, ...] = (
            check=at_least(1), target=None),
     # -- gridstudy ----------------------------------------------------------------------
     Option("bad-grid", STR, None, "the coarse grid, shifted by half a cell (default 4x2)", commands=("gridstudy",),
-           metavar="NXxNY", check=_grid, target=None),
+           metavar="NXxNY", check=parse_grid, target=None),
 )
 
 BY_NAME: dict[str, Option] = {o.name: o for o in OPTIONS}
