@@ -50,6 +50,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from agents.spec import ALGORITHMS, PARAMS_CLASSES, Timing
@@ -59,10 +60,10 @@ from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults, parse_duration, parse_probability
 
 # -- kinds: text -> value, and the TOML types a key accepts ---------------------------------------
-INT, FLOAT, STR, PATH, DURATION, PROBABILITY, FLAG, LIST = (
-    "int", "float", "str", "path", "duration", "probability", "flag", "list",
+INT, FLOAT, STR, PATH, FILE, DURATION, PROBABILITY, FLAG, LIST = (
+    "int", "float", "str", "path", "file", "duration", "probability", "flag", "list",
 )
-KINDS = (INT, FLOAT, STR, PATH, DURATION, PROBABILITY, FLAG, LIST)
+KINDS = (INT, FLOAT, STR, PATH, FILE, DURATION, PROBABILITY, FLAG, LIST)  # PATH: text; FILE: a pathlib.Path
 
 #: the paper's fixed grid and kernel width (``--preset paper``; admm/ct-admm without --grid/--sigma)
 PAPER_GRID = "5x3"
@@ -74,6 +75,9 @@ ALGORITHM_CHOICES = ("auto", *ALGORITHMS)
 SCENARIO_COMMANDS = ("simulate", "launch", "central", "prepare", "gridstudy")
 FAULT_COMMANDS = ("simulate", "launch", "prepare")
 FLEET_COMMANDS = ("launch", "prepare")
+NODE_COMMANDS = ("robot", "router")  # the processes of a fleet on other hosts
+#: the robot id of a `shapefleet robot` process when --id is not given
+ROBOT_ID_ENV = "SHAPEFLEET_ROBOT_ID"
 CRASH_COMMANDS = ("simulate", "launch")
 
 
@@ -125,8 +129,8 @@ def _probability(text: str) -> float:
 
 
 _PARSE: dict[str, Callable[[str], Any]] = {
-    INT: parse_int, FLOAT: parse_float, STR: str, PATH: str, DURATION: _duration, PROBABILITY: _probability,
-    LIST: str,
+    INT: parse_int, FLOAT: parse_float, STR: str, PATH: str, FILE: Path, DURATION: _duration,
+    PROBABILITY: _probability, LIST: str,
 }
 
 
@@ -357,6 +361,35 @@ OPTIONS: tuple[Option, ...] = (
     # -- gridstudy ----------------------------------------------------------------------
     Option("bad-grid", STR, None, "the coarse grid, shifted by half a cell (default 4x2)", commands=("gridstudy",),
            metavar="NXxNY", check=parse_grid, target=None),
+    # -- robot, router, collect: the processes of a fleet on several hosts (docs/deploy.md) -----
+    Option("fleet-file", FILE, None, "the fleet file (robot: written by launch or prepare; collect: the full "
+           "fleet.json written by prepare, world.json beside it)", commands=("robot", "collect"), target=None,
+           required=True),
+    Option("id", INT, None, f"this robot's id (default: ${ROBOT_ID_ENV}, else the robot a per-robot fleet file is "
+           "for)", commands=("robot",), target=None),
+    Option("connect", LIST, None, "router endpoint, e.g. tcp/127.0.0.1:7447 or tls/10.0.0.1:7447",
+           commands=("robot",), metavar="ENDPOINT", target=None, required=True),
+    Option("checkpoint", FILE, None, "checkpoint file: written every round, resumed from on restart",
+           commands=("robot",), target=None),
+    Option("result", STR, None, "write the result JSON here, {id} is replaced by the robot id (default: stdout)",
+           commands=("robot",), target=None, show_default=False),
+    Option("port", INT, 7447, "TCP port", commands=("router",), check=_port, target=None),
+    Option("host", STR, "127.0.0.1", "listen address", commands=("router",), target=None),
+    Option("ready-file", FILE, None, "written once the router listens", commands=("router",), target=None),
+    Option("allow-remote", FLAG, False, "accept non-loopback endpoints / listen on a non-loopback address "
+           "(multi-host deployments)", commands=NODE_COMMANDS, target=None, show_default=False),
+    Option("tls-ca", FILE, None, "the fleet's CA (robot: to verify the router; router: robots must show a "
+           "certificate it signed, mutual TLS)", group=TLS, commands=NODE_COMMANDS, metavar="PEM", target=None),
+    Option("tls-cert", FILE, None, "this node's certificate (router: naming the address robots connect to; "
+           "robot: for a mutual-TLS router)", group=TLS, commands=NODE_COMMANDS, metavar="PEM", target=None),
+    Option("tls-key", FILE, None, "this node's private key", group=TLS, commands=NODE_COMMANDS, metavar="PEM",
+           target=None),
+    Option("results", FILE, None, "folder of the robots' result files robot-<id>.json", commands=("collect",),
+           metavar="DIR", target=None, required=True),
+    Option("world", FILE, None, "world file (default: world.json beside the fleet file, if there)",
+           commands=("collect",), target=None),
+    Option("wait", DURATION, 0.0, "wait up to this long for every robot's result, e.g. 600s (0: do not wait)",
+           commands=("collect",), metavar="DURATION", target=None),
 )
 
 BY_NAME: dict[str, Option] = {o.name: o for o in OPTIONS}
@@ -410,7 +443,8 @@ def add_arguments(parser: argparse.ArgumentParser, command: str) -> None:
         if option.kind == FLAG:
             target.add_argument(option.flag, action="store_true", default=option.default, **kw)
         elif option.kind == LIST:
-            target.add_argument(option.flag, action="append", default=[], type=_argparse_type(option), **kw)
+            default = None if option.required else []  # argparse appends to a default list
+            target.add_argument(option.flag, action="append", default=default, type=_argparse_type(option), **kw)
         else:
             choices = {"choices": option.choices} if option.choices else {}
             target.add_argument(option.flag, type=_argparse_type(option), default=option.default, **choices, **kw)
@@ -466,8 +500,8 @@ def toml_value(option: Option, value: Any) -> Any:
 
 
 # -- (c) Options, and the algorithms' typed parameters ---------------------------------------------
-_PY_TYPES = {INT: int, FLOAT: float, STR: str, PATH: str, DURATION: float, PROBABILITY: float, FLAG: bool,
-             LIST: list}
+_PY_TYPES = {INT: int, FLOAT: float, STR: str, PATH: str, FILE: Path, DURATION: float, PROBABILITY: float,
+             FLAG: bool, LIST: list}
 
 
 def _options_fields() -> list[tuple[str, Any, Any]]:
