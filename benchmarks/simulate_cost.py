@@ -11,9 +11,12 @@ from __future__ import annotations
 import statistics
 import sys
 import time
+from pathlib import Path
 
-from launcher.simulate import simulate_fleet
-from launcher.world import Options, build_world
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from launcher.simulate import simulate_fleet  # noqa: E402
+from launcher.world import Options, build_world  # noqa: E402
 
 CASES = {
     "paper setting, 3 robots, complete": {"preset": "paper"},
