@@ -48,7 +48,8 @@ Append one :class:`Option` to :data:`OPTIONS`, next to its neighbours in the hel
 tests/test_options.py checks that the CLI, the TOML keys, Options and the params agree with the
 table, and that each FROM_PARAMS default equals every *Params default it feeds. It needs a valid,
 non-default sample value of each option: INT, FLOAT, DURATION, PROBABILITY, FLAG and PATH get one
-by their kind; a STR or LIST option with a check or choices needs an entry in its ``_TEXT``.
+by their kind, an option with choices its last; a STR or LIST option with a check needs an entry
+in its ``_TEXT``.
 """
 
 from __future__ import annotations
