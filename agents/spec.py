@@ -7,7 +7,6 @@ processes). It is plain JSON on disk, so a robot on another host needs only this
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
@@ -29,6 +28,10 @@ from protocol.links import LinkFaults
 ALGORITHMS = ("admm", "ct-admm", "autogrid", "newton")
 #: algorithms whose grid and sigma are fixed by the launcher (autogrid's fleet chooses its own)
 FIXED_GRID_ALGORITHMS = ("admm", "ct-admm", "newton")
+#: each algorithm's typed parameters: the fleet file's ``params`` are the fields of its class
+PARAMS_CLASSES: dict[str, type] = {
+    "admm": ADMMParams, "ct-admm": CTADMMParams, "autogrid": AutoGridParams, "newton": NewtonParams,
+}
 
 
 @dataclass(frozen=True)
@@ -119,20 +122,23 @@ class FleetSpec:
 
     @cached_property
     def autogrid_params(self) -> AutoGridParams:
-        """The autogrid robots' parameters: ``params`` filtered by AutoGridParams' fields.
+        """The autogrid robots' parameters: ``params`` (AutoGridParams' fields, strictly) with
+        ``sigma`` and ``C`` from the fleet file's own fields. ValueError names a bad key or value."""
+        if "sigma" in self.params or "C" in self.params:
+            raise ValueError("autogrid parameters sigma and C are the fleet file's own fields, not params")
+        if "hub_frames" in self.params:
+            raise ValueError("autogrid parameter hub_frames follows from the graph, it is not a params key")
+        return AutoGridParams.from_params(
+            {**self.params, "sigma": self.sigma, "C": self.C, "hub_frames": self._hub_form(ADMMParams())}
+        )
 
-        ``sigma`` and ``C`` come from the fleet file's own fields; the ADMM keys rho, relax, tol
-        and diameter are the same names; ``max_rounds`` (the admm round cap) stands for
-        ``max_total_rounds`` (the cap over every phase) unless that is given; other keys (e.g.
-        ct-admm's) are ignored. ValueError names a bad value.
-        """
-        names = {f.name for f in dataclasses.fields(AutoGridParams)}
-        given = dict(self.params)
-        if "max_rounds" in given and "max_total_rounds" not in given:
-            given["max_total_rounds"] = given["max_rounds"]
-        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if k in names}
-        kw.update(sigma=self.sigma, C=self.C, hub_frames=self._hub_form(ADMMParams()))
-        return AutoGridParams(**kw)
+    @property
+    def algorithm_params(self) -> Any:
+        """The typed parameters of this fleet's algorithm (PARAMS_CLASSES: ADMMParams,
+        CTADMMParams, AutoGridParams or NewtonParams), read strictly from ``params``."""
+        if self.algorithm == "autogrid":
+            return self.autogrid_params
+        return PARAMS_CLASSES[self.algorithm].from_params(self.params)
 
     def _hub_form(self, params: ADMMParams) -> bool:
         """True when the fleet's ADMM runs the hub form, whose frames carry [v; w]."""
@@ -149,8 +155,8 @@ class FleetSpec:
         if not self.fixed_grid:
             return self.autogrid_params.dim
         if self.algorithm == "newton":
-            return frame_size(len(self.grid) + 1, self.graph, NewtonParams.from_params(self.params))
-        if self.algorithm == "admm" and self._hub_form(ADMMParams(**self.params)):
+            return frame_size(len(self.grid) + 1, self.graph, self.algorithm_params)
+        if self.algorithm == "admm" and self._hub_form(self.algorithm_params):
             return 2 * (len(self.grid) + 1)  # the hub form sends [v; w] (agents/admm.py)
         return len(self.grid) + 1
 
@@ -308,39 +314,13 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
             keep_trace=False,
         )
     features = spec.basis.features(me.points)
+    common = {"params": spec.algorithm_params, "C": spec.C, "keep_trace": keep_trace}
     if spec.algorithm == "newton":
-        return DistributedNewton(
-            robot_id,
-            me.neighbours,
-            features,
-            me.labels,
-            graph=spec.graph,
-            params=NewtonParams.from_params(spec.params),
-            C=spec.C,
-            keep_trace=keep_trace,
-        )
+        return DistributedNewton(robot_id, me.neighbours, features, me.labels, graph=spec.graph, **common)
     if spec.algorithm == "ct-admm":
-        return ContinuousTimeADMM(
-            robot_id,
-            me.neighbours,
-            features,
-            me.labels,
-            n_robots=spec.n_robots,
-            params=CTADMMParams.from_params(spec.params),
-            C=spec.C,
-            keep_trace=keep_trace,
-        )
-    return ConsensusADMM(
-        robot_id,
-        me.neighbours,
-        features,
-        me.labels,
-        n_robots=spec.n_robots,
-        params=ADMMParams(**spec.params),
-        C=spec.C,
-        neighbour_degrees=degrees,
-        keep_trace=keep_trace,
-    )
+        return ContinuousTimeADMM(robot_id, me.neighbours, features, me.labels, n_robots=spec.n_robots, **common)
+    return ConsensusADMM(robot_id, me.neighbours, features, me.labels, n_robots=spec.n_robots,
+                         neighbour_degrees=degrees, **common)
 
 
 def restore_core(spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]) -> Core:
