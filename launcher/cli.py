@@ -12,6 +12,8 @@ solve failed or diverged, or the machine failed (one line says why; result.json 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import contextvars
 import dataclasses
 import os
 import re
@@ -46,7 +48,13 @@ class UsageError(ValueError):
     """Bad input found after parsing; the message names the flag or file."""
 
 
+#: set by launcher/api.py: bad input raises UsageError instead of printing and exiting 2
+_RAISE_USAGE: contextvars.ContextVar[bool] = contextvars.ContextVar("shapefleet_raise_usage", default=False)
+
+
 def _fail(message: str) -> NoReturn:
+    if _RAISE_USAGE.get():
+        raise UsageError(message)
     print(f"shapefleet: error: {message}", file=sys.stderr)
     raise SystemExit(EXIT_BAD_INPUT)
 
@@ -56,8 +64,7 @@ class _Parser(argparse.ArgumentParser):
     """argparse with the project's rule for bad input: one line (no usage block), exit 2."""
 
     def error(self, message: str) -> NoReturn:
-        print(f"shapefleet: error: {message} (see {self.prog} --help)", file=sys.stderr)
-        raise SystemExit(EXIT_BAD_INPUT)
+        _fail(f"{message} (see {self.prog} --help)")
 
 
 _NEGATIVE_VALUE = re.compile(r"-[0-9.]")
@@ -113,6 +120,17 @@ def _finite_float(text: str) -> float:
     if not np.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
     return value
+
+
+def _algorithm_name(text: str) -> str:
+    """--algorithm: a built-in name, a dotted path pkg.mod:Class or an entry-point name (the
+    class itself is loaded, and its errors named, by launcher/world.py resolve_options)."""
+    from launcher.world import _is_entry_point
+
+    if text in ALGORITHM_CHOICES or ":" in text or _is_entry_point(text):
+        return text
+    raise argparse.ArgumentTypeError(f"{text!r} is not one of {', '.join(ALGORITHM_CHOICES)} "
+                                     "(or a dotted path package.module:ClassName, or an installed entry point)")
 
 
 def _max_grid_points(value: Any) -> int:
@@ -188,8 +206,9 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
         help=f"link robots within this distance (geometric topology; default {ref['comm-range']:g} {follows})",
     )
     algo.add_argument(
-        "--algorithm", default=d.algorithm, choices=ALGORITHM_CHOICES,
-        help="auto (default): admm when --grid and --sigma are given, else autogrid; autogrid: the fleet agrees on "
+        "--algorithm", default=d.algorithm, type=_algorithm_name, metavar="|".join(ALGORITHM_CHOICES) + "|PKG.MOD:CLASS",
+        help="your own fleet algorithm: a dotted path package.module:ClassName or an entry-point name "
+        "(agents/extension.py, docs/testing.md); auto (default): admm when --grid and --sigma are given, else autogrid; autogrid: the fleet agrees on "
         "its data's box, chooses sigma by a held-out vote and refines its grid; admm / ct-admm / newton (a "
         "distributed interior-point method, exact in tens of rounds): fixed grid, "
         f"the paper's ({PAPER_GRID}, sigma {PAPER_SIGMA:g}) unless --grid/--sigma say otherwise",
@@ -317,13 +336,19 @@ def _out_dir(args: argparse.Namespace, mode: str) -> Path:
 
 
 # -- jobs -------------------------------------------------------------------------------------
-def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[str, Any]], *, wall_s: float, extra: dict[str, Any]) -> dict[str, Any]:
+def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[str, Any]], *, wall_s: float,
+            extra: dict[str, Any], quiet: bool = False) -> dict[str, Any]:
     """result.json, the pictures and the summary of a run. `central` is the reference of a
-    fixed-grid run; an autogrid run (central None) is measured per robot on its final grid."""
+    fixed-grid run; an autogrid run (central None) is measured per robot on its final grid; a
+    user algorithm's against its own ``reference`` (launcher/custom.py). ``quiet``: no terminal output."""
     from rich.console import Console
 
     from launcher import report
 
+    if spec.custom:
+        from launcher.custom import finish_custom
+
+        return finish_custom(out, world, spec, robots, wall_s=wall_s, extra=extra, quiet=quiet)
     bases = None
     if spec.fixed_grid:
         tol = float(spec.params.get("tol", report.DEFAULT_AGREEMENT_TOL))
@@ -351,12 +376,12 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
         reference = np.append(central.x, central.gamma) if central.solved else None
         plot_trajectory(out / "trajectory.png", *trajectory_from_trace(first["trace"], period), reference=reference)
         written.append("trajectory.png")
-    console = Console()
+    console = Console(quiet=quiet)
     console.print(report.summary_table(result))
     if not spec.fixed_grid and result.get("sigma_reason"):
         console.print(f"sigma: {result['sigma_reason']}", soft_wrap=True)
     console.print(f"wrote {out}/: {', '.join(written)}")
-    if not result["converged"]:
+    if not result["converged"] and not quiet:
         print(f"shapefleet: NOT converged: {result.get('verdict', 'see result.json')}", file=sys.stderr)
     return result
 
@@ -448,7 +473,38 @@ def cmd_central(args: argparse.Namespace) -> int:
     return _exit_code(result)
 
 
+@dataclasses.dataclass
+class RunReport:
+    """What one `simulate` / `launch` run produced: shared by the CLI and launcher/api.py.
+
+    ``code`` is the CLI's exit code; ``result`` the content of result.json (None when the run
+    produced no answer: ``message`` says why in one line); ``robots`` every robot's raw result
+    row (with its per-round ``trace``); ``notes`` the one-line warnings the CLI prints."""
+
+    code: int
+    out: Path
+    spec: Any
+    world: World
+    result: dict[str, Any] | None = None
+    robots: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    message: str | None = None
+    notes: list[str] = dataclasses.field(default_factory=list)
+    pids: list[int] = dataclasses.field(default_factory=list)
+
+
+def _say(report: RunReport, quiet: bool) -> int:
+    """Print a run's failure line as the CLI always did; its exit code."""
+    if not quiet and report.message is not None:
+        print(f"shapefleet: {report.message}", file=sys.stderr)
+    return report.code
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
+    return _say(run_simulate(args), quiet=False)
+
+
+def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
+    """The in-process fleet on the parsed options (bad input: UsageError / ScenarioError)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from launcher.simulate import FleetFailure, simulate_fleet
@@ -464,6 +520,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         TextColumn("residual {task.fields[residual]}"),
         TimeElapsedColumn(),
         transient=True,
+        disable=quiet,
     ) as bar:
         planned = _round_budget(spec)
         task = bar.add_task(f"{spec.n_robots} robots, {spec.algorithm}", total=planned, residual="-")
@@ -473,18 +530,22 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             bar.update(task, completed=rnd, total=max(planned, rnd), residual=f"{residual:.2e}")
 
         try:
-            outcome = simulate_fleet(spec, progress=progress)
+            outcome = simulate_fleet(spec, progress=None if quiet else progress)
         except FleetFailure as exc:  # a local solve failed or an iterate diverged: no answer
-            print(f"shapefleet: the run failed: {exc}", file=sys.stderr)
-            return EXIT_NOT_CONVERGED
+            return RunReport(EXIT_NOT_CONVERGED, out, spec, world, message=f"the run failed: {exc}")
     extra = {"fleet": spec.fleet, "topology": args.topology, "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
-    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
-    return _exit_code(result)
+    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra, quiet=quiet)
+    return RunReport(_exit_code(result), out, spec, world, result=result, robots=outcome.robots)
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
     """The Zenoh fleet: a router and one process per robot on this machine."""
-    from launcher.fleet import LaunchError, launch_fleet, parse_crash
+    return _say(run_launch(args), quiet=False)
+
+
+def _launch_checks(args: argparse.Namespace) -> list[Any]:
+    """The process flags checked before anything starts; the crash plans."""
+    from launcher.fleet import _port_in_use, parse_crash
 
     try:
         crashes = [parse_crash(text) for text in args.crash]
@@ -497,10 +558,35 @@ def cmd_launch(args: argparse.Namespace) -> int:
     if args.max_robots is not None and args.max_robots < 1:
         raise UsageError(f"--max-robots: {args.max_robots} must be at least 1")
     _robots_bound(args)
-    from launcher.fleet import _port_in_use
-
     if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
         raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
+    return crashes
+
+
+@contextlib.contextmanager
+def _algorithm_importable(spec: Any) -> Any:
+    """A user algorithm's module root on the robot processes' PYTHONPATH for the launch."""
+    from agents.extension import import_root
+
+    root = import_root(spec.algorithm) if spec.custom else None
+    before = os.environ.get("PYTHONPATH")
+    if root is not None and str(root) not in (before or "").split(os.pathsep):
+        os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(root), before or "") if p)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = before
+
+
+def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | None = None) -> RunReport:
+    """The Zenoh fleet on the parsed options; ``router``: a loopback router endpoint that
+    already runs (launcher/pytest_plugin.py's ``zenoh_router``) instead of one of its own."""
+    from launcher.fleet import LaunchError, launch_fleet
+
+    crashes = _launch_checks(args)
 
     def check(spec: Any) -> None:
         unknown = [c.robot for c in crashes if c.robot not in spec.robots]
@@ -516,24 +602,20 @@ def cmd_launch(args: argparse.Namespace) -> int:
     out, world, spec, central = _prepare(args, "launch", check=check, fleet_id=args.fleet_id)
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
+    fleet_dir = out / "fleet"
     try:
-        outcome = launch_fleet(
-            spec,
-            workdir=out / "fleet",
-            crashes=crashes,
-            restart_after=args.restart_after,
-            restart=not args.no_restart,
-            zenoh_port=args.zenoh_port,
-        )
+        with _algorithm_importable(spec):
+            outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
+                                   restart=not args.no_restart, zenoh_port=args.zenoh_port, progress=not quiet,
+                                   router=router)
     except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag
         raise UsageError(str(exc)) from None
     except LaunchError as exc:  # the machine, not the input: say it in one line, exit 1
-        print(f"shapefleet: launch failed: {exc} (logs in {out / 'fleet'})", file=sys.stderr)
-        return 1
-    fleet_dir = out / "fleet"
+        return RunReport(1, out, spec, world, message=f"launch failed: {exc} (logs in {fleet_dir})")
+    report = RunReport(1, out, spec, world, robots=outcome.robots, pids=list(outcome.pids))
     if not outcome.robots and outcome.interrupted is None:
-        print(f"shapefleet: launch failed: no robot produced a result (logs in {fleet_dir})", file=sys.stderr)
-        return 1
+        report.message = f"launch failed: no robot produced a result (logs in {fleet_dir})"
+        return report
     extra: dict[str, Any] = {
         "fleet": spec.fleet,
         "topology": args.topology,
@@ -544,21 +626,22 @@ def cmd_launch(args: argparse.Namespace) -> int:
         "interrupted": outcome.interrupted,
         "timed_out": outcome.timed_out,
     }
-    for c in outcome.crashes_not_fired:
-        print(f"shapefleet: --crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}",
-              file=sys.stderr)
-    for r in outcome.robots:
-        if r.get("error"):
-            print(f"shapefleet: {r['error']}", file=sys.stderr)
+    report.notes += [f"--crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}"
+                     for c in outcome.crashes_not_fired]
+    report.notes += [str(r["error"]) for r in outcome.robots if r.get("error")]
+    for line in [] if quiet else report.notes:  # before the summary, as the CLI always printed them
+        print(f"shapefleet: {line}", file=sys.stderr)
     central = _participants(world, spec, central, outcome.robots, extra)
-    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
+    report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0,
+                            extra=extra, quiet=quiet)
+    report.code = _exit_code(report.result)
     if outcome.interrupted is not None:
         import signal as _signal
 
-        print(f"shapefleet: stopped by {outcome.interrupted}: partial result in {out / 'result.json'}, "
-              f"per-robot results in {fleet_dir}/robot-<id>.json, logs in {fleet_dir}/robot-<id>.log", file=sys.stderr)
-        return 128 + int(getattr(_signal, outcome.interrupted))
-    return _exit_code(result)
+        report.message = (f"stopped by {outcome.interrupted}: partial result in {out / 'result.json'}, "
+                          f"per-robot results in {fleet_dir}/robot-<id>.json, logs in {fleet_dir}/robot-<id>.log")
+        report.code = 128 + int(getattr(_signal, outcome.interrupted))
+    return report
 
 
 def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, Any]], extra: dict[str, Any]) -> Any:
