@@ -490,6 +490,7 @@ class RunReport:
     message: str | None = None
     notes: list[str] = dataclasses.field(default_factory=list)
     pids: list[int] = dataclasses.field(default_factory=list)
+    states: dict[int, str] = dataclasses.field(default_factory=dict)  # launch: each robot's last state
 
 
 def _say(report: RunReport, quiet: bool) -> int:
@@ -612,7 +613,7 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
         raise UsageError(str(exc)) from None
     except LaunchError as exc:  # the machine, not the input: say it in one line, exit 1
         return RunReport(1, out, spec, world, message=f"launch failed: {exc} (logs in {fleet_dir})")
-    report = RunReport(1, out, spec, world, robots=outcome.robots, pids=list(outcome.pids))
+    report = RunReport(1, out, spec, world, robots=outcome.robots, pids=list(outcome.pids), states=dict(outcome.states))
     if not outcome.robots and outcome.interrupted is None:
         report.message = f"launch failed: no robot produced a result (logs in {fleet_dir})"
         return report

@@ -73,7 +73,7 @@ def build_custom_result(world: World, spec: Any, robots: list[dict[str, Any]], *
         "C": None,
         "world": None if world.lengths is None else world.lengths.as_dict(),
         "robots": rows,
-        "reference": {"answer": None if ref is None else ref.tolist(),
+        "exact": {"answer": None if ref is None else ref.tolist(),
                       "of": "the participants' data" if absent else "all data"},
         "metrics": {
             "function_error": max(errors) if len(errors) == len(rows) and rows else None,
@@ -96,7 +96,7 @@ def finish_custom(out: Path, world: World, spec: Any, robots: list[dict[str, Any
     report.write_json(out / "result.json", result)
     console = Console(quiet=quiet)
     console.print(report.summary_table(result))
-    console.print(f"reference ({result['reference']['of']}): {result['reference']['answer']}", soft_wrap=True)
+    console.print(f"exact answer ({result['exact']['of']}): {result['exact']['answer']}", soft_wrap=True)
     console.print(f"wrote {out}/: result.json, data.csv")
     if not result["converged"] and not quiet:
         print(f"shapefleet: NOT converged: {result.get('verdict', 'see result.json')}", file=sys.stderr)
