@@ -11,7 +11,12 @@ A fleet algorithm is a subclass of :class:`FleetAlgorithm` (itself a ``RoundCore
 
 * ``from_spec(spec, robot_id, *, keep_trace)`` (classmethod): build robot ``robot_id``'s core from
   the fleet file: its data ``spec.robots[robot_id]`` (points, labels), its neighbours, the graph
-  ``spec.graph`` and the run's parameters ``spec.params`` (``tol``, ``max_rounds``, ``diameter``);
+  ``spec.graph`` and its typed parameters ``spec.algorithm_params`` (an instance of
+  ``params_class``);
+* ``params_class``: a dataclass of its parameters (default :class:`FleetParams`: ``tol``,
+  ``max_rounds``, ``diameter``). The options table (launcher/options.py) fills each field from
+  the option that feeds the admm parameter of the same name (``--tol``, ``--max-rounds``,
+  ``--rho``, ``--relax``) or, for ``diameter``, from the graph; other fields keep their default;
 * ``frame_dim(spec)`` (classmethod): the length of the vector robots exchange each round;
 * ``reference(spec)`` (classmethod): the exact centralized answer of the data in ``spec`` (the
   launcher measures every robot against it; with robots absent for good, ``spec`` holds the
@@ -36,6 +41,7 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,10 +55,26 @@ ENTRY_POINT_GROUP = "shapefleet.algorithms"
 REQUIRED = ("from_spec", "frame_dim", "reference", "answer")
 
 
+@dataclass(frozen=True)
+class FleetParams:
+    """The parameters every fleet algorithm gets unless it declares its own ``params_class``."""
+
+    tol: float = 1e-3  # stop when the own stopping test is below this (the run's agreement tol too)
+    max_rounds: int = 5000  # round cap
+    diameter: int = 1  # at least the graph's diameter: rounds of stop flags (RoundCore)
+
+    def __post_init__(self) -> None:
+        if not self.tol > 0:
+            raise ValueError(f"tol must be positive, got {self.tol!r}")
+        if self.max_rounds < 1:
+            raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds!r}")
+
+
 class FleetAlgorithm(RoundCore):
     """Base class of a user's per-robot algorithm (module doc): RoundCore plus four hooks."""
 
     algorithm = "custom"
+    params_class: type = FleetParams
 
     @classmethod
     def from_spec(cls, spec: Any, robot_id: int, *, keep_trace: bool = True) -> FleetAlgorithm:
@@ -78,13 +100,6 @@ class FleetAlgorithm(RoundCore):
         res = super().result()
         res["answer"] = [float(a) for a in np.asarray(self.answer(), dtype=float).ravel()]
         return res
-
-
-def is_builtin(name: str) -> bool:
-    """True for the project's own algorithms (agents.spec.ALGORITHMS) and ``auto``."""
-    from agents.spec import ALGORITHMS
-
-    return name in ALGORITHMS or name == "auto"
 
 
 _CACHE: dict[str, type] = {}

@@ -50,8 +50,7 @@ def build_custom_result(world: World, spec: Any, robots: list[dict[str, Any]], *
     rows = []
     for r in robots:
         row = {k: v for k, v in r.items() if k not in ("trace", "round_times", "residuals")}
-        row["error"] = None if ref is None else report._num(relative_error(answers[int(r["id"])], ref))
-        row["function_error"] = row["error"]
+        row["function_error"] = None if ref is None else report._num(relative_error(answers[int(r["id"])], ref))
         row["gamma"] = None  # the base layout's last entry: not a gamma here (see answer)
         rows.append(row)
     tol = float(spec.params.get("tol", report.DEFAULT_AGREEMENT_TOL))
@@ -60,7 +59,7 @@ def build_custom_result(world: World, spec: Any, robots: list[dict[str, Any]], *
         return relative_error(answers[int(a["id"])], answers[int(b["id"])])
 
     verdict = report.agreement_verdict(robots, pair, tol=tol, absent=absent)
-    errors = [e["error"] for e in rows if e["error"] is not None]
+    errors = [e["function_error"] for e in rows if e["function_error"] is not None]
     mean = np.mean(list(answers.values()), axis=0) if answers else None
     consensus = max((relative_error(a, mean) for a in answers.values()), default=None)
     result: dict[str, Any] = {

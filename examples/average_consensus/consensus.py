@@ -55,12 +55,12 @@ class Average(FleetAlgorithm):
     # -- the four hooks of agents/extension.py ----------------------------------------------
     @classmethod
     def from_spec(cls, spec: Any, robot_id: int, *, keep_trace: bool = True) -> Average:
-        """Robot ``robot_id``: its points, its neighbours and the whole graph (for the weights)."""
+        """Robot ``robot_id``: its points, its neighbours, the whole graph (for the weights) and
+        the run's tol, round cap and graph diameter."""
         me = spec.robots[robot_id]
-        p = spec.params
-        return cls(robot_id, me.neighbours, me.points, graph=spec.graph, tol=float(p.get("tol", 1e-3)),
-                   diameter=int(p.get("diameter", 1)), max_rounds=int(p.get("max_rounds", 5000)),
-                   keep_trace=keep_trace)
+        p = spec.algorithm_params  # agents.extension.FleetParams: tol, max_rounds, diameter
+        return cls(robot_id, me.neighbours, me.points, graph=spec.graph, tol=p.tol, diameter=p.diameter,
+                   max_rounds=p.max_rounds, keep_trace=keep_trace)
 
     @classmethod
     def frame_dim(cls, spec: Any) -> int:
