@@ -38,6 +38,7 @@ import numpy as np
 
 from launcher import cli, scenario, topology
 from launcher.cli import UsageError
+from launcher.options import options_of
 from launcher.world import World, build_world
 
 __all__ = ["MODES", "UsageError", "RobotResult", "Result", "Scenario", "option_names", "build", "run",
@@ -109,22 +110,22 @@ def _parser(mode: str) -> argparse.ArgumentParser:
     return cli._subparser(cli.build_parser(), mode)
 
 
+def _keyword(name: str) -> str:
+    return name.replace("-", "_")
+
+
 def _actions(mode: str) -> dict[str, argparse.Action]:
-    """keyword -> the CLI action it sets: the dest and the long flag (``range`` and ``lidar_range``)."""
-    out: dict[str, argparse.Action] = {}
-    for a in _parser(mode)._actions:
-        if a.dest == "help":
-            continue
-        for flag in a.option_strings:
-            if flag.startswith("--"):
-                out[flag[2:].replace("-", "_")] = a
-        out.setdefault(a.dest, a)
-    return out
+    """keyword -> the CLI action of that option (``range`` -> ``--range``, dest lidar_range)."""
+    by_flag = {f: a for a in _parser(mode)._actions for f in a.option_strings}
+    return {_keyword(o.name): by_flag[o.flag] for o in options_of(mode)}
 
 
 def option_names(mode: str = "simulate") -> frozenset[str]:
-    """Every keyword ``run(mode, ...)`` accepts: the CLI flags of ``mode``, ``-`` as ``_``."""
-    return frozenset(_actions(mode))
+    """Every keyword ``run(mode, ...)`` accepts: the options table's options of ``mode``
+    (launcher/options.py), each name with ``-`` written ``_`` -- the CLI's flags and the TOML keys."""
+    if mode not in MODES:
+        raise UsageError(f"mode: {mode!r} is not one of {', '.join(MODES)}")
+    return frozenset(_keyword(o.name) for o in options_of(mode))
 
 
 def argv(mode: str, options: Mapping[str, Any]) -> list[str]:
@@ -163,7 +164,7 @@ def build(mode: str = "simulate", **options: Any) -> Scenario:
     args = _parse(mode, options)
     token = cli._RAISE_USAGE.set(True)
     try:
-        world, spec = build_world(cli._options(args, **({"fleet_id": args.fleet_id} if mode == "launch" else {})))
+        world, spec = build_world(cli._options(args))
     except (scenario.ScenarioError, topology.TopologyError) as exc:
         raise UsageError(str(exc)) from None
     finally:
