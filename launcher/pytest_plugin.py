@@ -4,8 +4,8 @@ Registered through the ``pytest11`` entry point (pyproject.toml): installing sha
 fixtures available in any test suite, nothing to import.
 
 * ``zenoh_router``: a router on 127.0.0.1 on a free port (multicast scouting off, as every
-  shapefleet session), yields its endpoint ``"tcp/127.0.0.1:PORT"``; stopped by its PID after
-  the test, and the test fails if the process is still there.
+  shapefleet session), yields its endpoint ``"tcp/127.0.0.1:PORT"`` (a str with ``.port`` and
+  ``.pid``); stopped by its PID after the test, which fails if the process is still there.
 * ``fleet``: a factory ``fleet(robots=4, loss=0.3, delay="20ms", crash="1@40")`` returning a
   :class:`launcher.api.Result`. Keywords are the CLI's options (launcher/api.py); ``mode`` is
   ``"launch"`` (default: one process per robot over Zenoh) or ``"simulate"`` (in process);
@@ -102,6 +102,18 @@ def _processes_naming(folder: Path) -> list[int]:
     return found
 
 
+class RouterEndpoint(str):
+    """The router's endpoint (a str, ``"tcp/127.0.0.1:PORT"``) with its ``port`` and ``pid``."""
+
+    port: int
+    pid: int
+
+    def __new__(cls, endpoint: str, port: int, pid: int) -> RouterEndpoint:
+        self = super().__new__(cls, endpoint)
+        self.port, self.pid = port, pid
+        return self
+
+
 @pytest.fixture
 def zenoh_router(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """A loopback Zenoh router on a free port; yields its endpoint; stopped by PID afterwards."""
@@ -125,7 +137,7 @@ def zenoh_router(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPa
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"zenoh_router: the router on port {port} did not become ready")
             time.sleep(0.02)
-        yield router_endpoint(port)
+        yield RouterEndpoint(router_endpoint(port), port, proc.pid)
     finally:
         stop_process(proc)
         if proc.stderr is not None:

@@ -72,5 +72,5 @@ def test_naive_survivors_agree_on_a_biased_answer(fleet):
 
 
 def test_bad_dotted_path_is_one_usage_error(fleet):
-    with pytest.raises(api.UsageError, match=r"^--algorithm: 'examples.average_consensus:Nope': module "):
+    with pytest.raises(api.UsageError, match=r"--algorithm: 'examples.average_consensus:Nope': module .* has no 'Nope'"):
         fleet(mode="simulate", algorithm="examples.average_consensus:Nope")
