@@ -59,12 +59,16 @@ def test_leftover_process_fails_the_test_and_is_killed(pytester: pytest.Pytester
     """A process a run left behind (here: started by the test itself, naming the run folder) is
     killed by its PID at teardown, and the test fails saying so."""
     pytester.makepyfile(test_user=f"""
-        import json, subprocess, sys
+        import json, subprocess, sys, time
+        from launcher.pytest_plugin import _cmdline
 
         def test_leaves_one(fleet, tmp_path):
             r = fleet(mode="simulate", preset="paper", tol=1e-3)
             proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", str(r.out)])
             json.dump(proc.pid, open({_pids_file(pytester)!r}, "w"))
+            deadline = time.monotonic() + 10  # until its command line is readable (it names the run)
+            while str(r.out).encode() not in _cmdline(proc.pid) and time.monotonic() < deadline:
+                time.sleep(0.01)
     """)
     result = pytester.runpytest_subprocess("-q", "-p", "no:cacheprovider")
     result.assert_outcomes(passed=1, errors=1)
