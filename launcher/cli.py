@@ -27,9 +27,9 @@ from typing import Any, NoReturn
 import numpy as np
 
 from launcher import scenario, topology
-from launcher.options import PAPER_GRID, PAPER_SIGMA, Options, add_arguments, options_from_args
+from launcher.options import PAPER_GRID, PAPER_SIGMA, ROBOT_ID_ENV, Options, add_arguments, options_from_args
 from launcher.world import World, build_world
-from protocol.links import LinkFaults, parse_duration
+from protocol.links import LinkFaults
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 1
@@ -303,8 +303,9 @@ def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
 
     from launcher.simulate import FleetFailure, simulate_fleet
 
+    crashes = _crash_plan(args)
     t0 = time.perf_counter()
-    out, world, spec, central = _prepare(args, "simulate")
+    out, world, spec, central = _prepare(args, "simulate", check=_crash_check(crashes))
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     with Progress(
@@ -324,12 +325,23 @@ def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
             bar.update(task, completed=rnd, total=max(planned, rnd), residual=f"{residual:.2e}")
 
         try:
-            outcome = simulate_fleet(spec, progress=None if quiet else progress)
+            outcome = simulate_fleet(spec, progress=None if quiet else progress, crashes=crashes,
+                                     restart=not args.no_restart, restart_after=args.restart_after)
         except FleetFailure as exc:  # a local solve failed or an iterate diverged: no answer
             return RunReport(EXIT_NOT_CONVERGED, out, spec, world, message=f"the run failed: {exc}")
     extra = {"fleet": spec.fleet, "topology": args.topology, "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
-    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra, quiet=quiet)
-    return RunReport(_exit_code(result), out, spec, world, result=result, robots=outcome.robots)
+    report = RunReport(1, out, spec, world, robots=outcome.robots)
+    if crashes:
+        extra["crashes"] = outcome.crash_log
+        report.notes += [f"--crash {c['robot']}@{c['planned_round']} never fired: robot {c['robot']} stopped before "
+                         f"round {c['planned_round']}" for c in outcome.crash_log if not c["fired"]]
+        for line in [] if quiet else report.notes:
+            print(f"shapefleet: {line}", file=sys.stderr)
+        central = _participants(world, spec, central, outcome.robots, extra)
+    report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra,
+                            quiet=quiet)
+    report.code = _exit_code(report.result)
+    return report
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
@@ -337,18 +349,28 @@ def cmd_launch(args: argparse.Namespace) -> int:
     return _say(run_launch(args), quiet=False)
 
 
-def _launch_checks(args: argparse.Namespace) -> list[Any]:
-    """The process flags checked before anything starts; the crash plans."""
-    from launcher.fleet import _port_in_use, parse_crash
+def _crash_plan(args: argparse.Namespace) -> list[Any]:
+    """--crash ID@ROUND ... as CrashPlans (each already checked by the options table)."""
+    from launcher.fleet import parse_crash
 
-    try:
-        crashes = [parse_crash(text) for text in args.crash]
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    _robots_bound(args)
-    if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
-        raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
-    return crashes
+    return [parse_crash(text) for text in args.crash]
+
+
+def _crash_check(crashes: list[Any]) -> Callable[[Any], None]:
+    """The fleet-dependent checks of a crash plan (simulate and launch): a known robot, a round
+    the run can reach."""
+
+    def check(spec: Any) -> None:
+        unknown = [c.robot for c in crashes if c.robot not in spec.robots]
+        if unknown:
+            raise UsageError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
+        budget = _round_budget(spec)
+        late = [c for c in crashes if c.round >= budget]
+        if late:
+            raise UsageError(f"--crash: {late[0].robot}@{late[0].round} is at or past the run's last possible round "
+                             f"({budget - 1}: the round cap is {budget}); it could never fire")
+
+    return check
 
 
 @contextlib.contextmanager
@@ -372,19 +394,13 @@ def _algorithm_importable(spec: Any) -> Any:
 def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | None = None) -> RunReport:
     """The Zenoh fleet on the parsed options; ``router``: a loopback router endpoint that
     already runs (launcher/pytest_plugin.py's ``zenoh_router``) instead of one of its own."""
-    from launcher.fleet import LaunchError, launch_fleet
+    from launcher.fleet import LaunchError, _port_in_use, launch_fleet
 
-    crashes = _launch_checks(args)
-
-    def check(spec: Any) -> None:
-        unknown = [c.robot for c in crashes if c.robot not in spec.robots]
-        if unknown:
-            raise UsageError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
-        budget = _round_budget(spec)
-        late = [c for c in crashes if c.round >= budget]
-        if late:
-            raise UsageError(f"--crash: {late[0].robot}@{late[0].round} is at or past the run's last possible round "
-                             f"({budget - 1}: the round cap is {budget}); it could never fire")
+    crashes = _crash_plan(args)
+    _robots_bound(args)
+    if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
+        raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
+    check = _crash_check(crashes)
 
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "launch", check=check, fleet_id=args.fleet_id)
@@ -459,7 +475,6 @@ def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, 
     return solve_central(spec.basis, pts, labels, spec.C)
 
 
-ROBOT_ID_ENV = "SHAPEFLEET_ROBOT_ID"
 
 
 def _tls_files(args: argparse.Namespace) -> Any:
@@ -556,8 +571,6 @@ def cmd_router(args: argparse.Namespace) -> int:
 
     from launcher.router import run_router
 
-    if not 1 <= args.port <= 65535:
-        raise UsageError(f"--port: {args.port} is not a TCP port (1-65535)")
     tls = _tls_files(args)
     if tls is not None and tls.cert is None:
         raise UsageError("--tls-cert/--tls-key: a TLS router needs its certificate and private key")
@@ -592,8 +605,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
     from agents.problem import solve_central
     from launcher import deploy
 
+    wait_s = args.wait  # seconds (the options table parsed the duration)
     try:
-        wait_s = parse_duration(args.wait, flag="--wait")
         prepared = deploy.load_prepared(args.fleet_file, args.world)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
@@ -648,42 +661,16 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text)
         add_arguments(p, name)
         p.set_defaults(func=func)
-    p = sub.add_parser("robot", help="run one robot process from a fleet file")
-    p.add_argument("--fleet-file", type=Path, required=True, help="the fleet file written by launch or prepare")
-    p.add_argument("--id", type=int, help=f"this robot's id (default: ${ROBOT_ID_ENV}, else the robot a per-robot fleet file is for)")
-    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="router endpoint, e.g. tcp/127.0.0.1:7447 or tls/10.0.0.1:7447")
-    p.add_argument("--checkpoint", type=Path, help="checkpoint file: written every round, resumed from on restart")
-    p.add_argument("--result", help="write the result JSON here, {id} is replaced by the robot id (default: stdout)")
-    p.add_argument("--allow-remote", action="store_true", help="accept non-loopback endpoints (multi-host deployments)")
-    _add_tls_args(p, node="robot")
-    p.set_defaults(func=cmd_robot)
-    p = sub.add_parser("router", help="a Zenoh router (loopback unless --allow-remote)")
-    p.add_argument("--port", type=int, default=7447, help="TCP port (default 7447)")
-    p.add_argument("--host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
-    p.add_argument("--ready-file", type=Path, help="written once the router listens")
-    p.add_argument("--allow-remote", action="store_true", help="listen on a non-loopback address (multi-host deployments)")
-    _add_tls_args(p, node="router")
-    p.set_defaults(func=cmd_router)
-    p = sub.add_parser("collect", help="gather robot result files into result.json and pictures")
-    p.add_argument("--fleet-file", type=Path, required=True, help="the full fleet.json written by prepare (world.json beside it)")
-    p.add_argument("--results", type=Path, required=True, metavar="DIR", help="folder of the robots' result files robot-<id>.json")
-    p.add_argument("--world", type=Path, help="world file (default: world.json beside the fleet file, if there)")
-    p.add_argument("--wait", default="0", metavar="DURATION", help="wait up to this long for every robot's result, e.g. 600s (default: do not wait)")
-    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/)")
-    p.set_defaults(func=cmd_collect)
+    commands = (
+        ("robot", "run one robot process from a fleet file", cmd_robot),
+        ("router", "a Zenoh router (loopback unless --allow-remote)", cmd_router),
+        ("collect", "gather robot result files into result.json and pictures", cmd_collect),
+    )
+    for name, help_text, func in commands:
+        p = sub.add_parser(name, help=help_text)
+        add_arguments(p, name)
+        p.set_defaults(func=func)
     return parser
-
-
-def _add_tls_args(p: argparse.ArgumentParser, *, node: str) -> None:
-    g = p.add_argument_group("TLS (tls/ endpoints, docs/deploy.md)")
-    if node == "router":
-        g.add_argument("--tls-cert", type=Path, metavar="PEM", help="the router's certificate (naming the address robots connect to)")
-        g.add_argument("--tls-key", type=Path, metavar="PEM", help="the router's private key")
-        g.add_argument("--tls-ca", type=Path, metavar="PEM", help="the fleet's CA: robots must show a certificate it signed (mutual TLS)")
-    else:
-        g.add_argument("--tls-ca", type=Path, metavar="PEM", help="the fleet's CA, to verify the router")
-        g.add_argument("--tls-cert", type=Path, metavar="PEM", help="this robot's certificate (for a mutual-TLS router)")
-        g.add_argument("--tls-key", type=Path, metavar="PEM", help="this robot's private key")
 
 
 def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:

@@ -51,16 +51,20 @@ import importlib.metadata
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from agents.spec import ALGORITHMS, PARAMS_CLASSES, Timing
+from launcher.scenario import DEFAULT_SHAPE, parse_bounds, parse_grid, shape_names
+from launcher.topology import TOPOLOGIES
+from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults, parse_duration, parse_probability
 
 # -- kinds: text -> value, and the TOML types a key accepts ---------------------------------------
-INT, FLOAT, STR, PATH, DURATION, PROBABILITY, FLAG, LIST = (
-    "int", "float", "str", "path", "duration", "probability", "flag", "list",
+INT, FLOAT, STR, PATH, FILE, DURATION, PROBABILITY, FLAG, LIST = (
+    "int", "float", "str", "path", "file", "duration", "probability", "flag", "list",
 )
-KINDS = (INT, FLOAT, STR, PATH, DURATION, PROBABILITY, FLAG, LIST)
+KINDS = (INT, FLOAT, STR, PATH, FILE, DURATION, PROBABILITY, FLAG, LIST)  # PATH: text; FILE: a pathlib.Path
 
 #: the paper's fixed grid and kernel width (``--preset paper``; admm/ct-admm without --grid/--sigma)
 PAPER_GRID = "5x3"
@@ -72,6 +76,10 @@ ALGORITHM_CHOICES = ("auto", *ALGORITHMS)
 SCENARIO_COMMANDS = ("simulate", "launch", "central", "prepare", "gridstudy")
 FAULT_COMMANDS = ("simulate", "launch", "prepare")
 FLEET_COMMANDS = ("launch", "prepare")
+NODE_COMMANDS = ("robot", "router")  # the processes of a fleet on other hosts
+#: the robot id of a `shapefleet robot` process when --id is not given
+ROBOT_ID_ENV = "SHAPEFLEET_ROBOT_ID"
+CRASH_COMMANDS = ("simulate", "launch")
 
 
 class _FromParams:
@@ -122,8 +130,8 @@ def _probability(text: str) -> float:
 
 
 _PARSE: dict[str, Callable[[str], Any]] = {
-    INT: parse_int, FLOAT: parse_float, STR: str, PATH: str, DURATION: _duration, PROBABILITY: _probability,
-    LIST: str,
+    INT: parse_int, FLOAT: parse_float, STR: str, PATH: str, FILE: Path, DURATION: _duration,
+    PROBABILITY: _probability, LIST: str,
 }
 
 
@@ -157,18 +165,6 @@ def _max_grid_points(value: int) -> None:
         raise ValueError(f"{value} does not fit a frame (at most {MAX_DIM - 2})")
 
 
-def _grid(value: str) -> None:
-    from launcher.scenario import parse_grid
-
-    parse_grid(value)
-
-
-def _grid_bounds(value: str) -> None:
-    from launcher.scenario import parse_bounds
-
-    parse_bounds(value)
-
-
 def _preset(value: str) -> None:
     if value not in PRESETS:
         raise ValueError(f"{value!r} is not a preset (choose from {', '.join(PRESETS)})")
@@ -185,19 +181,6 @@ def _algorithm(value: str) -> None:
         raise ValueError(f"{value!r} is not one of {', '.join(ALGORITHM_CHOICES)} "
                          "(or a dotted path package.module:ClassName, or an installed entry point)")
     load_algorithm(value)  # ValueError names what is wrong with it
-
-
-def _topology(value: str) -> None:
-    from launcher.topology import TOPOLOGIES
-
-    if value not in TOPOLOGIES:
-        raise ValueError(f"{value!r} is not one of {', '.join(TOPOLOGIES)}")
-
-
-def _fleet_id(value: str) -> None:
-    from protocol.keys import validate_fleet_id
-
-    validate_fleet_id(value)
 
 
 def _crash(value: str) -> None:
@@ -281,7 +264,7 @@ MODEL = "model (default: the fleet chooses grid and sigma itself)"
 ALGORITHM = "fleet and algorithm"
 FAULTS = "network faults (netem vocabulary, injected per directed link)"
 FLEET = "fleet"
-PROCESSES = "processes"
+PROCESSES = "crash injection (simulate: on the virtual clock; launch: SIGKILL)"
 TLS = "TLS (tls/ endpoints, docs/deploy.md)"
 
 _T = Timing()
@@ -293,7 +276,7 @@ OPTIONS: tuple[Option, ...] = (
     # -- every scenario command ------------------------------------------------------------
     Option("config", PATH, None, "scenario file (docs/scenario-file.md); flags given here override it",
            metavar="TOML", target=None),
-    Option("shape", STR, "blob", "built-in shape: blob, bean, crescent, cross, ellipse, star",
+    Option("shape", STR, DEFAULT_SHAPE, f"built-in shape: {', '.join(shape_names())}",
            group=WORLD, section="world", exclusive="source"),
     Option("shape-file", PATH, None, "object outline from a CSV file with header x,y", group=WORLD,
            section="world", metavar="CSV", exclusive="source"),
@@ -312,9 +295,9 @@ OPTIONS: tuple[Option, ...] = (
            section="world"),
     Option("grid", STR, None, f"fixed grid of NXxNY points (default: automatic; the paper's is {PAPER_GRID}). "
            "With --algorithm autogrid: the start grid the fleet refines", group=MODEL, section="model",
-           metavar="NXxNY", check=_grid),
+           metavar="NXxNY", check=parse_grid),
     Option("grid-bounds", STR, None, "region of the --grid points (default: the data's bounding box, padded)",
-           group=MODEL, section="model", metavar="X0,X1,Y0,Y1", check=_grid_bounds),
+           group=MODEL, section="model", metavar="X0,X1,Y0,Y1", check=parse_bounds),
     Option("sigma", FLOAT, None, f"Gaussian kernel width (default: chosen by the fleet; the paper's is "
            f"{PAPER_SIGMA:g}). With --algorithm autogrid: kept fixed", group=MODEL, section="model",
            check=positive),
@@ -325,8 +308,8 @@ OPTIONS: tuple[Option, ...] = (
            metavar="NAME", check=_preset),
     Option("max-grid-points", INT, FROM_PARAMS, "autogrid: budget of grid points, at least 4; frames grow with it",
            group=MODEL, section="model", metavar="N", check=_max_grid_points, feeds={"autogrid": "max_points"}),
-    Option("topology", STR, "complete", "complete | ring | line | geometric", group=ALGORITHM,
-           section="algorithm", check=_topology),
+    Option("topology", STR, "complete", " | ".join(TOPOLOGIES), group=ALGORITHM, section="algorithm",
+           choices=TOPOLOGIES, metavar="TOPOLOGY"),
     Option("comm-range", FLOAT, None, f"link robots within this distance (geometric topology; default 12 "
            f"{_FOLLOWS})", group=ALGORITHM, section="algorithm"),
     Option("algorithm", STR, "auto", "auto (default): admm when --grid and --sigma are given, else autogrid; "
@@ -373,20 +356,20 @@ OPTIONS: tuple[Option, ...] = (
            group=FAULTS, commands=FAULT_COMMANDS, section="faults", check=positive, target="timing.retransmit_s"),
     # -- the fleet on the network ---------------------------------------------------------
     Option("fleet-id", STR, None, "fleet id on the network (default: unique per run)", group=FLEET,
-           commands=FLEET_COMMANDS, section="fleet", check=_fleet_id),
+           commands=FLEET_COMMANDS, section="fleet", check=validate_fleet_id),
     Option("dead-after", DURATION, _T.dead_after_s, "a robot gives up a neighbour silent this long, also at start",
-           group=FLEET, commands=FLEET_COMMANDS, section="fleet", metavar="DURATION", check=positive,
+           group=FLEET, commands=("simulate", *FLEET_COMMANDS), section="fleet", metavar="DURATION", check=positive,
            target="timing.dead_after_s"),
     Option("max-wall", DURATION, _T.max_wall_s, "a robot stops after this long whatever happens", group=FLEET,
            commands=FLEET_COMMANDS, section="fleet", metavar="DURATION", check=positive,
            target="timing.max_wall_s"),
-    # -- launch: robot processes -----------------------------------------------------------
+    # -- crash injection (simulate, launch) and robot processes (launch) -----------------------------------------------------------
     Option("crash", LIST, None, "SIGKILL robot ID when it reaches ROUND (repeatable)", group=PROCESSES,
-           commands=("launch",), section="launch", metavar="ID@ROUND", check=_crash, target=None),
+           commands=CRASH_COMMANDS, section="launch", metavar="ID@ROUND", check=_crash, target=None),
     Option("restart-after", FLOAT, 1.0, "seconds before a crashed robot restarts from its checkpoint",
-           group=PROCESSES, commands=("launch",), section="launch", check=_non_negative, target=None),
+           group=PROCESSES, commands=CRASH_COMMANDS, section="launch", check=_non_negative, target=None),
     Option("no-restart", FLAG, False, "leave crashed robots dead: the others finish without them",
-           group=PROCESSES, commands=("launch",), section="launch", target=None, show_default=False),
+           group=PROCESSES, commands=CRASH_COMMANDS, section="launch", target=None, show_default=False),
     Option("zenoh-port", INT, None, "the router's loopback port (default: a free one)", group=PROCESSES,
            commands=("launch",), section="launch", check=_port, target=None),
     Option("max-robots", INT, None, "allow up to N robot processes (default: derived from this machine's "
@@ -394,7 +377,36 @@ OPTIONS: tuple[Option, ...] = (
            check=at_least(1), target=None),
     # -- gridstudy ----------------------------------------------------------------------
     Option("bad-grid", STR, None, "the coarse grid, shifted by half a cell (default 4x2)", commands=("gridstudy",),
-           metavar="NXxNY", check=_grid, target=None),
+           metavar="NXxNY", check=parse_grid, target=None),
+    # -- robot, router, collect: the processes of a fleet on several hosts (docs/deploy.md) -----
+    Option("fleet-file", FILE, None, "the fleet file (robot: written by launch or prepare; collect: the full "
+           "fleet.json written by prepare, world.json beside it)", commands=("robot", "collect"), target=None,
+           required=True),
+    Option("id", INT, None, f"this robot's id (default: ${ROBOT_ID_ENV}, else the robot a per-robot fleet file is "
+           "for)", commands=("robot",), target=None),
+    Option("connect", LIST, None, "router endpoint, e.g. tcp/127.0.0.1:7447 or tls/10.0.0.1:7447",
+           commands=("robot",), metavar="ENDPOINT", target=None, required=True),
+    Option("checkpoint", FILE, None, "checkpoint file: written every round, resumed from on restart",
+           commands=("robot",), target=None),
+    Option("result", STR, None, "write the result JSON here, {id} is replaced by the robot id (default: stdout)",
+           commands=("robot",), target=None, show_default=False),
+    Option("port", INT, 7447, "TCP port", commands=("router",), check=_port, target=None),
+    Option("host", STR, "127.0.0.1", "listen address", commands=("router",), target=None),
+    Option("ready-file", FILE, None, "written once the router listens", commands=("router",), target=None),
+    Option("allow-remote", FLAG, False, "accept non-loopback endpoints / listen on a non-loopback address "
+           "(multi-host deployments)", commands=NODE_COMMANDS, target=None, show_default=False),
+    Option("tls-ca", FILE, None, "the fleet's CA (robot: to verify the router; router: robots must show a "
+           "certificate it signed, mutual TLS)", group=TLS, commands=NODE_COMMANDS, metavar="PEM", target=None),
+    Option("tls-cert", FILE, None, "this node's certificate (router: naming the address robots connect to; "
+           "robot: for a mutual-TLS router)", group=TLS, commands=NODE_COMMANDS, metavar="PEM", target=None),
+    Option("tls-key", FILE, None, "this node's private key", group=TLS, commands=NODE_COMMANDS, metavar="PEM",
+           target=None),
+    Option("results", FILE, None, "folder of the robots' result files robot-<id>.json", commands=("collect",),
+           metavar="DIR", target=None, required=True),
+    Option("world", FILE, None, "world file (default: world.json beside the fleet file, if there)",
+           commands=("collect",), target=None),
+    Option("wait", DURATION, 0.0, "wait up to this long for every robot's result, e.g. 600s (0: do not wait)",
+           commands=("collect",), metavar="DURATION", target=None),
 )
 
 BY_NAME: dict[str, Option] = {o.name: o for o in OPTIONS}
@@ -448,7 +460,8 @@ def add_arguments(parser: argparse.ArgumentParser, command: str) -> None:
         if option.kind == FLAG:
             target.add_argument(option.flag, action="store_true", default=option.default, **kw)
         elif option.kind == LIST:
-            target.add_argument(option.flag, action="append", default=[], type=_argparse_type(option), **kw)
+            default = None if option.required else []  # argparse appends to a default list
+            target.add_argument(option.flag, action="append", default=default, type=_argparse_type(option), **kw)
         else:
             choices = {"choices": option.choices} if option.choices else {}
             target.add_argument(option.flag, type=_argparse_type(option), default=option.default, **choices, **kw)
@@ -504,8 +517,8 @@ def toml_value(option: Option, value: Any) -> Any:
 
 
 # -- (c) Options, and the algorithms' typed parameters ---------------------------------------------
-_PY_TYPES = {INT: int, FLOAT: float, STR: str, PATH: str, DURATION: float, PROBABILITY: float, FLAG: bool,
-             LIST: list}
+_PY_TYPES = {INT: int, FLOAT: float, STR: str, PATH: str, FILE: Path, DURATION: float, PROBABILITY: float,
+             FLAG: bool, LIST: list}
 
 
 def _options_fields() -> list[tuple[str, Any, Any]]:

@@ -88,7 +88,8 @@ def test_the_file_gives_the_same_options_as_the_flags(tmp_path):
     flags = ["--shape", "bean", "--robots", "4", "--points", "12", "--seed", "7", "--range", "3.5", "--grid", "4x4",
              "--sigma", "0.8", "--C", "10", "--topology", "ring", "--rho", "12", "--max-rounds", "300",
              "--delay", "5ms", "--loss", "0.1", "--duplicate", "2%", "--retransmit", "30ms"]
-    assert _options(parse_args(["simulate", "--config", str(path)])) == _options(parse_args(["simulate", *flags]))
+    from_file = _options(parse_args(["simulate", "--config", str(path)]))
+    assert from_file == _options(parse_args(["simulate", *flags, "--dead-after", "20s"]))  # simulate: crashes too
     scenario_flags = flags[: flags.index("--delay")]  # central has no fault flags: the file's are ignored
     assert _options(parse_args(["central", "--config", str(path)])) == _options(parse_args(["central", *scenario_flags]))
     timing = ["--fleet-id", "from-file", "--dead-after", "20s", "--max-wall", "90s"]
@@ -135,9 +136,9 @@ def test_relative_paths_are_relative_to_the_file(tmp_path, monkeypatch):
 
 
 def test_keys_a_command_has_no_flag_for_are_ignored(tmp_path):
-    path = write(tmp_path, '[launch]\ncrash = ["1@4"]\n[fleet]\ndead-after = "9s"\n')
+    path = write(tmp_path, '[launch]\nzenoh-port = 17447\n[fleet]\nmax-wall = "9s"\n')
     args = parse_args(["simulate", "--config", str(path)])
-    assert not hasattr(args, "crash") and not hasattr(args, "dead_after")
+    assert not hasattr(args, "zenoh_port") and not hasattr(args, "max_wall")
 
 
 def test_defaults_for_leaves_given_dests_alone(tmp_path):
