@@ -152,6 +152,42 @@ def test_verdict_needs_agreement_connectivity_and_every_stopping_rule():
     assert agreement_verdict(rows, _gap, tol=1e-3)["agreement"]["connected"] == nx.is_connected(g)
 
 
+def test_verdict_refuses_agreement_on_a_biased_answer():
+    """Robots that agree with each other but not with the exact answer of their data (a lost dual
+    after a crash) have not converged; unknown references (None) are not held against them."""
+    from launcher.report import WRONG_ANSWER_FACTOR, agreement_verdict
+
+    rows = [_row(0, [1], 1.19), _row(1, [0], 1.19)]
+    exact = 1.0
+    v = agreement_verdict(rows, _gap, tol=1e-3, exact_error=lambda r: abs(r["v"] - exact))
+    assert v["converged"] is False and v["agreement"]["error_vs_exact"] == pytest.approx(0.19)
+    assert "from the exact answer of the participants' data" in v["verdict"]
+    close = [_row(0, [1], 1.0 + 0.9 * WRONG_ANSWER_FACTOR * 1e-3), _row(1, [0], 1.0 + 0.9 * WRONG_ANSWER_FACTOR * 1e-3)]
+    assert agreement_verdict(close, _gap, tol=1e-3, exact_error=lambda r: abs(r["v"] - exact))["converged"] is True
+    v = agreement_verdict(rows, _gap, tol=1e-3, exact_error=lambda r: None)
+    assert v["converged"] is True and v["agreement"]["error_vs_exact"] is None
+
+
+def test_a_run_agreeing_on_a_shifted_answer_is_not_converged(tmp_path):
+    """End to end through build_result: every robot reports the exact answer scaled by 1.2."""
+    from agents.problem import solve_central
+    from launcher.report import build_result
+    from launcher.world import Options, build_world
+
+    world, spec = build_world(Options(robots=3, preset="paper", algorithm="admm"))
+    central = solve_central(spec.basis, world.points, world.labels, None)
+    rows = [
+        {"id": i, "neighbours": [j for j in spec.robot_ids if j != i], "converged": True, "rounds": 50,
+         "x": (1.2 * central.x).tolist(), "gamma": 1.2 * central.gamma}
+        for i in spec.robot_ids
+    ]
+    out = build_result(world, spec.basis, central, rows, algorithm="admm", C=None, wall_s=0.0)
+    assert out["agreement"]["disagreement"] == 0.0 and out["converged"] is False
+    assert out["agreement"]["error_vs_exact"] == pytest.approx(out["metrics"]["function_error"])
+    rows_ok = [dict(r, x=central.x.tolist(), gamma=central.gamma) for r in rows]
+    assert build_result(world, spec.basis, central, rows_ok, algorithm="admm", C=None, wall_s=0.0)["converged"] is True
+
+
 # ----------------------------------------------------------------------------- table rows
 
 
