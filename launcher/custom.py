@@ -4,7 +4,9 @@ The built-in SVM runs are measured on a grid basis (launcher/report.py); a user 
 what its answer is (``answer()`` of each robot, in its result row) and what the exact answer of
 the data is (``reference(spec)``, computed in one place). The verdict is the project's one rule
 (report.agreement_verdict): converged only if every participant met its stopping rule, the
-graph of live links among them is connected and neighbours agree within the run's ``tol``.
+graph of live links among them is connected, neighbours agree within the run's ``tol`` and the
+agreed answer is within report.WRONG_ANSWER_FACTOR x tol of the exact one (agreeing on a biased
+point is not converging).
 
 Error of a robot's answer a against r: ||a - r|| / max(1, ||r||) (relative, absolute near 0).
 """
@@ -58,7 +60,10 @@ def build_custom_result(world: World, spec: Any, robots: list[dict[str, Any]], *
     def pair(a: dict[str, Any], b: dict[str, Any]) -> float:
         return relative_error(answers[int(a["id"])], answers[int(b["id"])])
 
-    verdict = report.agreement_verdict(robots, pair, tol=tol, absent=absent)
+    def exact(r: dict[str, Any]) -> float | None:  # agreeing on a biased point is not converging
+        return None if ref is None else relative_error(answers[int(r["id"])], ref)
+
+    verdict = report.agreement_verdict(robots, pair, tol=tol, absent=absent, exact_error=exact)
     errors = [e["function_error"] for e in rows if e["function_error"] is not None]
     mean = np.mean(list(answers.values()), axis=0) if answers else None
     consensus = max((relative_error(a, mean) for a in answers.values()), default=None)

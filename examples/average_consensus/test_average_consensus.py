@@ -65,10 +65,11 @@ def test_dead_robot_survivors_reach_their_own_centroid(fleet):
 def test_naive_survivors_agree_on_a_biased_answer(fleet):
     """What docs/testing.md's failing test catches: agreement is not correctness."""
     r = fleet(algorithm=NAIVE, crash="1@5", no_restart=True, dead_after="1s", **RING)
-    assert r.converged, r.verdict  # the survivors agree with each other...
+    assert r.raw["agreement"]["disagreement"] <= 1e-10  # the survivors agree with each other...
+    assert all(robot.converged for robot in r.robots)  # ...and each met its stopping rule,
     bias = max(float(np.linalg.norm(robot.answer - centroid(r, (0, 2, 3)))) for robot in r.robots)
-    assert bias > 1e-3, bias  # ...on a point that is not their data's centroid
-    assert r.error > 1e-3
+    assert bias > 1e-3, bias  # ...on a point that is not their data's centroid:
+    assert r.error > 1e-3 and not r.converged and "biased point" in r.verdict  # the verdict says so
 
 
 def test_bad_dotted_path_is_one_usage_error(fleet):
