@@ -75,3 +75,13 @@ def test_naive_survivors_agree_on_a_biased_answer(fleet):
 def test_bad_dotted_path_is_one_usage_error(fleet):
     with pytest.raises(api.UsageError, match=r"--algorithm: 'examples.average_consensus:Nope': module .* has no 'Nope'"):
         fleet(mode="simulate", algorithm="examples.average_consensus:Nope")
+
+
+def test_in_process_crash_survivors_exact_naive_biased(fleet):
+    """simulate injects crashes on its virtual clock: fast, deterministic, no process."""
+    r = fleet(mode="simulate", algorithm=AVERAGE, crash="1@5", no_restart=True, dead_after="1s", **RING)
+    assert r.participants == (0, 2, 3) and r.absent == (1,) and r.converged, r.verdict
+    for robot in r.robots:
+        np.testing.assert_allclose(robot.answer, centroid(r, (0, 2, 3)), rtol=0, atol=1e-9)
+    naive = fleet(mode="simulate", algorithm=NAIVE, crash="1@5", no_restart=True, dead_after="1s", **RING)
+    assert not naive.converged and naive.error > 1e-3 and "biased point" in naive.verdict
