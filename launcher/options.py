@@ -23,24 +23,33 @@ Append one :class:`Option` to :data:`OPTIONS`, next to its neighbours in the hel
 * ``name``: the long flag without dashes; also the TOML key (in ``[section]``; ``section=None``:
   not in scenario files). ``dest`` defaults to the name with ``_`` (``max-grid-points`` ->
   ``max_grid_points``): the attribute on the argparse namespace and on :class:`Options`.
-* ``kind``: how text becomes a value (INT, FLOAT, STR, PATH, DURATION, PROBABILITY, FLAG, LIST)
+* ``kind``: how text becomes a value (INT, FLOAT, STR, PATH (text), FILE (a pathlib.Path),
+  DURATION ("20ms" -> 0.02), PROBABILITY ("30%" -> 0.3), FLAG (store_true), LIST (repeatable))
   and which TOML types the key accepts.
 * ``default``: the typed default (``None``: not given, something else decides -- say what in
   ``help``; ``FROM_PARAMS``: the default of the algorithm parameter it feeds, so that number is
   written only in the agents' *Params class). Help gets "(default ...)" appended automatically.
-* ``check``: ``value -> None``, raises ValueError with a message *without* the flag name; the
-  callers prefix ``--name:`` or ``file: [section] name:``. Use the helpers below (positive,
-  at_least, ...).
-* ``commands``: the subcommands that have the flag (``SCENARIO_COMMANDS``, ``FLEET_COMMANDS``...).
-* ``target``: where the value lands: ``"options"`` (default when it has a section: a field of
-  :class:`Options`), ``"faults.<field>"`` (LinkFaults), ``"timing.<field>"`` (Timing), or None
-  (only on the argparse namespace; the command handler reads it).
+* ``check``: ``value -> None``, raises ValueError with a message saying what is wrong; the callers
+  prefix ``--name:`` (CLI, build_world) or ``file: [section] name:`` (TOML), and strip a leading
+  ``--name:`` the check may carry itself (so scenario.parse_grid serves as it is). ``choices``: a
+  closed set of values (also shown by --help).
+* ``commands``: the subcommands that have the flag (``SCENARIO_COMMANDS``, ``FLEET_COMMANDS``,
+  ``CRASH_COMMANDS``, ``NODE_COMMANDS`` or your own tuple).
+* ``target``: where the value lands: ``"options"`` (the default: a field of :class:`Options`, so
+  ``build_world`` sees ``opts.<dest>``), ``"faults.<field>"`` (LinkFaults), ``"timing.<field>"``
+  (Timing), or None (only on the argparse namespace; the command handler reads ``args.<dest>``).
 * ``feeds``: ``{algorithm: parameter}``: the field of that algorithm's *Params class the value
-  becomes (a None value: the parameter's own default). Parameters no option feeds keep their
-  class default; values derived from the world (the graph's diameter) are added by build_world.
+  becomes in the fleet file (a None value: the parameter's own default). The field must exist
+  (add it to the *Params class first). Parameters no option feeds keep their class default;
+  values derived from the world (the graph's diameter) are added by build_world.
+* ``group``: the --help section; ``metavar``, ``required``, ``exclusive`` (options sharing the name
+  exclude each other, on the command line and in one TOML file) as in argparse.
 
 tests/test_options.py checks that the CLI, the TOML keys, Options and the params agree with the
-table, and that each FROM_PARAMS default equals every *Params default it feeds.
+table, and that each FROM_PARAMS default equals every *Params default it feeds. It needs a valid,
+non-default sample value of each option: INT, FLOAT, DURATION, PROBABILITY, FLAG and PATH get one
+by their kind, an option with choices its last; a STR or LIST option with a check needs an entry
+in its ``_TEXT``.
 """
 
 from __future__ import annotations

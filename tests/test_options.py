@@ -51,6 +51,9 @@ def sample(option: Option) -> tuple[list[str], object]:
     if option.kind in _BY_KIND:
         text, toml = _BY_KIND[option.kind]
         return [option.flag, text], toml
+    if option.name not in _TEXT and option.choices:
+        text = next(c for c in reversed(option.choices) if c != option.default)
+        return [option.flag, text], text
     text = _TEXT.get(option.name, "/tmp/x.csv" if option.kind in (PATH, FILE) else "abc")
     return [option.flag, text], text
 
