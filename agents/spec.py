@@ -18,8 +18,10 @@ import numpy as np
 from agents.admm import ADMMParams, ConsensusADMM, hub_form
 from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
+from agents.extension import load_algorithm
 from agents.kernel import GridBasis
 from agents.newton import DistributedNewton, NewtonParams, frame_size
+from agents.params import params_from
 from protocol.auth import FLEET_SECRET_BYTES, FrameAuth, new_fleet_secret
 from protocol.frames import config_tag as make_config_tag
 from protocol.keys import validate_fleet_id
@@ -91,7 +93,11 @@ class FleetSpec:
         if self.owner is not None and self.owner not in self.robots:
             raise ValueError(f"fleet file is for robot {self.owner}, which is not in the fleet (robots {sorted(self.robots)})")
         if self.algorithm not in ALGORITHMS:
-            raise ValueError(f"unknown algorithm {self.algorithm!r}; choose from {', '.join(ALGORITHMS)}")
+            try:
+                load_algorithm(self.algorithm)  # a user's fleet algorithm (agents/extension.py)
+            except ValueError as exc:
+                raise ValueError(f"unknown algorithm {self.algorithm!r} ({exc}); choose from "
+                                 f"{', '.join(ALGORITHMS)} or name your own (agents/extension.py)") from None
         self.grid = np.asarray(self.grid, dtype=float).reshape(-1, 2)
         if self.algorithm in FIXED_GRID_ALGORITHMS and (self.sigma is None or len(self.grid) == 0):
             raise ValueError(f"{self.algorithm} needs a grid and a sigma (only autogrid chooses them itself)")
@@ -108,6 +114,11 @@ class FleetSpec:
     @property
     def n_robots(self) -> int:
         return len(self.robots)
+
+    @property
+    def custom(self) -> bool:
+        """True for a user's fleet algorithm (a dotted path or entry point: agents/extension.py)."""
+        return self.algorithm not in ALGORITHMS
 
     @property
     def fixed_grid(self) -> bool:
@@ -138,6 +149,8 @@ class FleetSpec:
         CTADMMParams, AutoGridParams or NewtonParams), read strictly from ``params``."""
         if self.algorithm == "autogrid":
             return self.autogrid_params
+        if self.custom:  # a user's fleet algorithm: its own params_class, read as strictly
+            return params_from(load_algorithm(self.algorithm).params_class, self.params, self.algorithm)
         return PARAMS_CLASSES[self.algorithm].from_params(self.params)
 
     def _hub_form(self, params: ADMMParams) -> bool:
@@ -151,7 +164,9 @@ class FleetSpec:
     @property
     def dim(self) -> int:
         """Length of the vector robots exchange: (x, gamma), autogrid's padded frame, or
-        newton's reduction payload."""
+        newton's reduction payload, or a user algorithm's frame_dim."""
+        if self.custom:
+            return int(load_algorithm(self.algorithm).frame_dim(self))
         if not self.fixed_grid:
             return self.autogrid_params.dim
         if self.algorithm == "newton":
@@ -285,7 +300,7 @@ class FleetSpec:
             raise ValueError(f"{path}: not a valid fleet file ({exc})") from None
 
 
-Core = ConsensusADMM | ContinuousTimeADMM | AdaptiveGridCore | DistributedNewton
+Core = ConsensusADMM | ContinuousTimeADMM | AdaptiveGridCore | DistributedNewton  # or a user's RoundCore
 
 
 def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Core:
@@ -299,6 +314,8 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
         raise ValueError(f"robot {robot_id} is not in fleet {spec.fleet} (robots {list(spec.robot_ids)})")
     if spec.owner is not None and spec.owner != robot_id:
         raise ValueError(f"this fleet file holds robot {spec.owner}'s data only, not robot {robot_id}'s")
+    if spec.custom:  # a user's fleet algorithm builds itself from the fleet file
+        return load_algorithm(spec.algorithm).from_spec(spec, robot_id, keep_trace=keep_trace)
     me = spec.robots[robot_id]
     degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
     if spec.algorithm == "autogrid":

@@ -12,6 +12,8 @@ solve failed or diverged, or the machine failed (one line says why; result.json 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import contextvars
 import dataclasses
 import os
 import re
@@ -37,7 +39,13 @@ class UsageError(ValueError):
     """Bad input found after parsing; the message names the flag or file."""
 
 
+#: set by launcher/api.py: bad input raises UsageError instead of printing and exiting 2
+_RAISE_USAGE: contextvars.ContextVar[bool] = contextvars.ContextVar("shapefleet_raise_usage", default=False)
+
+
 def _fail(message: str) -> NoReturn:
+    if _RAISE_USAGE.get():
+        raise UsageError(message)
     print(f"shapefleet: error: {message}", file=sys.stderr)
     raise SystemExit(EXIT_BAD_INPUT)
 
@@ -47,8 +55,7 @@ class _Parser(argparse.ArgumentParser):
     """argparse with the project's rule for bad input: one line (no usage block), exit 2."""
 
     def error(self, message: str) -> NoReturn:
-        print(f"shapefleet: error: {message} (see {self.prog} --help)", file=sys.stderr)
-        raise SystemExit(EXIT_BAD_INPUT)
+        _fail(f"{message} (see {self.prog} --help)")
 
 
 _NEGATIVE_VALUE = re.compile(r"-[0-9.]")
@@ -123,13 +130,19 @@ def _out_dir(args: argparse.Namespace, mode: str) -> Path:
 
 
 # -- jobs -------------------------------------------------------------------------------------
-def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[str, Any]], *, wall_s: float, extra: dict[str, Any]) -> dict[str, Any]:
+def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[str, Any]], *, wall_s: float,
+            extra: dict[str, Any], quiet: bool = False) -> dict[str, Any]:
     """result.json, the pictures and the summary of a run. `central` is the reference of a
-    fixed-grid run; an autogrid run (central None) is measured per robot on its final grid."""
+    fixed-grid run; an autogrid run (central None) is measured per robot on its final grid; a
+    user algorithm's against its own ``reference`` (launcher/custom.py). ``quiet``: no terminal output."""
     from rich.console import Console
 
     from launcher import report
 
+    if spec.custom:
+        from launcher.custom import finish_custom
+
+        return finish_custom(out, world, spec, robots, wall_s=wall_s, extra=extra, quiet=quiet)
     bases = None
     if spec.fixed_grid:
         tol = float(getattr(spec.algorithm_params, "tol", report.DEFAULT_AGREEMENT_TOL))
@@ -157,12 +170,12 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
         reference = np.append(central.x, central.gamma) if central.solved else None
         plot_trajectory(out / "trajectory.png", *trajectory_from_trace(first["trace"], period), reference=reference)
         written.append("trajectory.png")
-    console = Console()
+    console = Console(quiet=quiet)
     console.print(report.summary_table(result))
     if not spec.fixed_grid and result.get("sigma_reason"):
         console.print(f"sigma: {result['sigma_reason']}", soft_wrap=True)
     console.print(f"wrote {out}/: {', '.join(written)}")
-    if not result["converged"]:
+    if not result["converged"] and not quiet:
         print(f"shapefleet: NOT converged: {result.get('verdict', 'see result.json')}", file=sys.stderr)
     return result
 
@@ -253,7 +266,39 @@ def cmd_central(args: argparse.Namespace) -> int:
     return _exit_code(result)
 
 
+@dataclasses.dataclass
+class RunReport:
+    """What one `simulate` / `launch` run produced: shared by the CLI and launcher/api.py.
+
+    ``code`` is the CLI's exit code; ``result`` the content of result.json (None when the run
+    produced no answer: ``message`` says why in one line); ``robots`` every robot's raw result
+    row (with its per-round ``trace``); ``notes`` the one-line warnings the CLI prints."""
+
+    code: int
+    out: Path
+    spec: Any
+    world: World
+    result: dict[str, Any] | None = None
+    robots: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    message: str | None = None
+    notes: list[str] = dataclasses.field(default_factory=list)
+    pids: list[int] = dataclasses.field(default_factory=list)
+    states: dict[int, str] = dataclasses.field(default_factory=dict)  # launch: each robot's last state
+
+
+def _say(report: RunReport, quiet: bool) -> int:
+    """Print a run's failure line as the CLI always did; its exit code."""
+    if not quiet and report.message is not None:
+        print(f"shapefleet: {report.message}", file=sys.stderr)
+    return report.code
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
+    return _say(run_simulate(args), quiet=False)
+
+
+def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
+    """The in-process fleet on the parsed options (bad input: UsageError / ScenarioError)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from launcher.simulate import FleetFailure, simulate_fleet
@@ -270,6 +315,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         TextColumn("residual {task.fields[residual]}"),
         TimeElapsedColumn(),
         transient=True,
+        disable=quiet,
     ) as bar:
         planned = _round_budget(spec)
         task = bar.add_task(f"{spec.n_robots} robots, {spec.algorithm}", total=planned, residual="-")
@@ -279,21 +325,28 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             bar.update(task, completed=rnd, total=max(planned, rnd), residual=f"{residual:.2e}")
 
         try:
-            outcome = simulate_fleet(spec, progress=progress, crashes=crashes, restart=not args.no_restart,
-                                     restart_after=args.restart_after)
+            outcome = simulate_fleet(spec, progress=None if quiet else progress, crashes=crashes,
+                                     restart=not args.no_restart, restart_after=args.restart_after)
         except FleetFailure as exc:  # a local solve failed or an iterate diverged: no answer
-            print(f"shapefleet: the run failed: {exc}", file=sys.stderr)
-            return EXIT_NOT_CONVERGED
+            return RunReport(EXIT_NOT_CONVERGED, out, spec, world, message=f"the run failed: {exc}")
     extra = {"fleet": spec.fleet, "topology": args.topology, "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
+    report = RunReport(1, out, spec, world, robots=outcome.robots)
     if crashes:
         extra["crashes"] = outcome.crash_log
-        for c in outcome.crash_log:
-            if not c["fired"]:
-                print(f"shapefleet: --crash {c['robot']}@{c['planned_round']} never fired: robot {c['robot']} "
-                      f"stopped before round {c['planned_round']}", file=sys.stderr)
+        report.notes += [f"--crash {c['robot']}@{c['planned_round']} never fired: robot {c['robot']} stopped before "
+                         f"round {c['planned_round']}" for c in outcome.crash_log if not c["fired"]]
+        for line in [] if quiet else report.notes:
+            print(f"shapefleet: {line}", file=sys.stderr)
         central = _participants(world, spec, central, outcome.robots, extra)
-    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
-    return _exit_code(result)
+    report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra,
+                            quiet=quiet)
+    report.code = _exit_code(report.result)
+    return report
+
+
+def cmd_launch(args: argparse.Namespace) -> int:
+    """The Zenoh fleet: a router and one process per robot on this machine."""
+    return _say(run_launch(args), quiet=False)
 
 
 def _crash_plan(args: argparse.Namespace) -> list[Any]:
@@ -320,14 +373,31 @@ def _crash_check(crashes: list[Any]) -> Callable[[Any], None]:
     return check
 
 
-def cmd_launch(args: argparse.Namespace) -> int:
-    """The Zenoh fleet: a router and one process per robot on this machine."""
-    from launcher.fleet import LaunchError, launch_fleet
+@contextlib.contextmanager
+def _algorithm_importable(spec: Any) -> Any:
+    """A user algorithm's module root on the robot processes' PYTHONPATH for the launch."""
+    from agents.extension import import_root
+
+    root = import_root(spec.algorithm) if spec.custom else None
+    before = os.environ.get("PYTHONPATH")
+    if root is not None and str(root) not in (before or "").split(os.pathsep):
+        os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(root), before or "") if p)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = before
+
+
+def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | None = None) -> RunReport:
+    """The Zenoh fleet on the parsed options; ``router``: a loopback router endpoint that
+    already runs (launcher/pytest_plugin.py's ``zenoh_router``) instead of one of its own."""
+    from launcher.fleet import LaunchError, _port_in_use, launch_fleet
 
     crashes = _crash_plan(args)
     _robots_bound(args)
-    from launcher.fleet import _port_in_use
-
     if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
         raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
     check = _crash_check(crashes)
@@ -336,24 +406,20 @@ def cmd_launch(args: argparse.Namespace) -> int:
     out, world, spec, central = _prepare(args, "launch", check=check, fleet_id=args.fleet_id)
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
+    fleet_dir = out / "fleet"
     try:
-        outcome = launch_fleet(
-            spec,
-            workdir=out / "fleet",
-            crashes=crashes,
-            restart_after=args.restart_after,
-            restart=not args.no_restart,
-            zenoh_port=args.zenoh_port,
-        )
+        with _algorithm_importable(spec):
+            outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
+                                   restart=not args.no_restart, zenoh_port=args.zenoh_port, progress=not quiet,
+                                   router=router)
     except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag
         raise UsageError(str(exc)) from None
     except LaunchError as exc:  # the machine, not the input: say it in one line, exit 1
-        print(f"shapefleet: launch failed: {exc} (logs in {out / 'fleet'})", file=sys.stderr)
-        return 1
-    fleet_dir = out / "fleet"
+        return RunReport(1, out, spec, world, message=f"launch failed: {exc} (logs in {fleet_dir})")
+    report = RunReport(1, out, spec, world, robots=outcome.robots, pids=list(outcome.pids), states=dict(outcome.states))
     if not outcome.robots and outcome.interrupted is None:
-        print(f"shapefleet: launch failed: no robot produced a result (logs in {fleet_dir})", file=sys.stderr)
-        return 1
+        report.message = f"launch failed: no robot produced a result (logs in {fleet_dir})"
+        return report
     extra: dict[str, Any] = {
         "fleet": spec.fleet,
         "topology": args.topology,
@@ -364,21 +430,22 @@ def cmd_launch(args: argparse.Namespace) -> int:
         "interrupted": outcome.interrupted,
         "timed_out": outcome.timed_out,
     }
-    for c in outcome.crashes_not_fired:
-        print(f"shapefleet: --crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}",
-              file=sys.stderr)
-    for r in outcome.robots:
-        if r.get("error"):
-            print(f"shapefleet: {r['error']}", file=sys.stderr)
+    report.notes += [f"--crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}"
+                     for c in outcome.crashes_not_fired]
+    report.notes += [str(r["error"]) for r in outcome.robots if r.get("error")]
+    for line in [] if quiet else report.notes:  # before the summary, as the CLI always printed them
+        print(f"shapefleet: {line}", file=sys.stderr)
     central = _participants(world, spec, central, outcome.robots, extra)
-    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
+    report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0,
+                            extra=extra, quiet=quiet)
+    report.code = _exit_code(report.result)
     if outcome.interrupted is not None:
         import signal as _signal
 
-        print(f"shapefleet: stopped by {outcome.interrupted}: partial result in {out / 'result.json'}, "
-              f"per-robot results in {fleet_dir}/robot-<id>.json, logs in {fleet_dir}/robot-<id>.log", file=sys.stderr)
-        return 128 + int(getattr(_signal, outcome.interrupted))
-    return _exit_code(result)
+        report.message = (f"stopped by {outcome.interrupted}: partial result in {out / 'result.json'}, "
+                          f"per-robot results in {fleet_dir}/robot-<id>.json, logs in {fleet_dir}/robot-<id>.log")
+        report.code = 128 + int(getattr(_signal, outcome.interrupted))
+    return report
 
 
 def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, Any]], extra: dict[str, Any]) -> Any:

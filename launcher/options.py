@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.metadata
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -176,6 +177,19 @@ def _max_grid_points(value: int) -> None:
 def _preset(value: str) -> None:
     if value not in PRESETS:
         raise ValueError(f"{value!r} is not a preset (choose from {', '.join(PRESETS)})")
+
+
+def _algorithm(value: str) -> None:
+    """A built-in name, or a user's fleet algorithm that loads (agents/extension.py): a dotted
+    path package.module:ClassName or an entry point of group shapefleet.algorithms."""
+    if value in ALGORITHM_CHOICES:
+        return
+    from agents.extension import ENTRY_POINT_GROUP, load_algorithm
+
+    if ":" not in value and not any(ep.name == value for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)):
+        raise ValueError(f"{value!r} is not one of {', '.join(ALGORITHM_CHOICES)} "
+                         "(or a dotted path package.module:ClassName, or an installed entry point)")
+    load_algorithm(value)  # ValueError names what is wrong with it
 
 
 def _crash(value: str) -> None:
@@ -310,8 +324,11 @@ OPTIONS: tuple[Option, ...] = (
     Option("algorithm", STR, "auto", "auto (default): admm when --grid and --sigma are given, else autogrid; "
            "autogrid: the fleet agrees on its data's box, chooses sigma by a held-out vote and refines its grid; "
            "admm / ct-admm / newton (a distributed interior-point method, exact in tens of rounds): fixed grid, "
-           f"the paper's ({PAPER_GRID}, sigma {PAPER_SIGMA:g}) unless --grid/--sigma say otherwise",
-           group=ALGORITHM, section="algorithm", choices=ALGORITHM_CHOICES, show_default=False),
+           f"the paper's ({PAPER_GRID}, sigma {PAPER_SIGMA:g}) unless --grid/--sigma say otherwise; "
+           "or your own fleet algorithm: a dotted path package.module:ClassName or an entry-point name "
+           "(agents/extension.py, docs/testing.md)",
+           group=ALGORITHM, section="algorithm", check=_algorithm, show_default=False,
+           metavar="|".join(ALGORITHM_CHOICES) + "|PKG.MOD:CLASS"),
     Option("rho", FLOAT, FROM_PARAMS, "ADMM penalty", group=ALGORITHM, section="algorithm", check=positive,
            feeds={a: "rho" for a in _ADMM_FAMILY}),
     Option("relax", FLOAT, FROM_PARAMS, "ADMM over-relaxation in (0, 2)", group=ALGORITHM, section="algorithm",
@@ -578,6 +595,8 @@ def algorithm_params(opts: Any, algorithm: str, **derived: Any) -> dict[str, Any
     own name (an option left None gets the parameter's own default, left out if that is None too),
     plus ``derived`` values
     (e.g. the graph's diameter) that the algorithm has a field for. Checked by the typed class."""
+    if algorithm not in PARAMS_CLASSES:
+        return _fleet_algorithm_params(opts, algorithm, derived)
     names = {f.name for f in dataclasses.fields(PARAMS_CLASSES[algorithm])}
     params = {k: v for k, v in derived.items() if k in names}
     for option in OPTIONS:
@@ -589,6 +608,21 @@ def algorithm_params(opts: Any, algorithm: str, **derived: Any) -> dict[str, Any
             value = param_default(algorithm, param)
         if value is not None:
             params[param] = value
+    return params
+
+
+def _fleet_algorithm_params(opts: Any, algorithm: str, derived: Mapping[str, Any]) -> dict[str, Any]:
+    """A user's fleet algorithm (agents/extension.py): each field of its ``params_class`` from the
+    option that feeds the admm parameter of that name (tol, max_rounds, rho, relax) when given,
+    or from ``derived`` (the diameter); the other fields keep the class's default."""
+    from agents.extension import load_algorithm
+
+    names = {f.name for f in dataclasses.fields(load_algorithm(algorithm).params_class)}
+    params = {k: v for k, v in derived.items() if k in names}
+    for option in OPTIONS:
+        param = option.feeds.get("admm")
+        if param in names and option.target == "options" and getattr(opts, option.dest) is not None:
+            params[param] = getattr(opts, option.dest)
     return params
 
 

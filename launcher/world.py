@@ -30,6 +30,7 @@ from shapely import Polygon
 from agents.admm import ADMMParams
 from agents.autogrid import AutoGridParams
 from agents.ct_admm import CTADMMParams
+from agents.extension import ENTRY_POINT_GROUP, load_algorithm
 from agents.spec import ALGORITHMS, FleetSpec, RobotSpec
 from launcher import scenario, topology
 from launcher.options import (  # noqa: F401  (re-exported: Options and the presets are the table's)
@@ -88,12 +89,24 @@ def resolve_options(opts: Options) -> Options:
     algorithm = opts.algorithm
     if algorithm == "auto":
         algorithm = "admm" if grid is not None and sigma is not None else "autogrid"
-    if algorithm not in ALGORITHMS:
-        raise scenario.ScenarioError(f"--algorithm: {algorithm!r} is not one of {', '.join(ALGORITHM_CHOICES)}")
+    if algorithm not in ALGORITHMS:  # a user's fleet algorithm (agents/extension.py), or a typo
+        if ":" not in algorithm and not _is_entry_point(algorithm):
+            raise scenario.ScenarioError(f"--algorithm: {algorithm!r} is not one of {', '.join(ALGORITHM_CHOICES)}, "
+                                         "a dotted path package.module:ClassName or an installed entry point")
+        try:
+            load_algorithm(algorithm)
+        except ValueError as exc:
+            raise scenario.ScenarioError(f"--algorithm: {exc}") from None
     if algorithm != "autogrid":  # a fixed basis: the paper's where not given
         grid = PAPER_GRID if grid is None else grid
         sigma = PAPER_SIGMA if sigma is None else sigma
     return dataclasses.replace(opts, grid=grid, sigma=sigma, algorithm=algorithm, preset=None)
+
+
+def _is_entry_point(name: str) -> bool:
+    import importlib.metadata
+
+    return any(ep.name == name for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP))
 
 
 def build_world(opts: Options) -> tuple[World, FleetSpec]:

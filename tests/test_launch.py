@@ -33,13 +33,13 @@ if str(ROOT) not in sys.path:
 from agents.admm import RATE_WINDOW  # noqa: E402
 from agents.robot import alive_key  # noqa: E402
 from agents.spec import Timing  # noqa: E402
-from launcher.fleet import CrashPlan, launch_fleet, parse_crash, stop_process  # noqa: E402
+from launcher.fleet import CrashPlan, launch_fleet, parse_crash  # noqa: E402
 from launcher.simulate import simulate_fleet  # noqa: E402
 from protocol.frames import StateUpdate, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
-from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint  # noqa: E402
-from tests.conftest import bounded_and_clean, make_run, max_function_error, start_router  # noqa: E402
+from protocol.zenoh_config import robot_config  # noqa: E402
+from tests.conftest import bounded_and_clean, make_run, max_function_error  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
@@ -78,19 +78,6 @@ def bounded(request, tmp_path):
     limit = getattr(request.function, "_bound_s", DEFAULT_BOUND_S)
     with bounded_and_clean(str(tmp_path), limit, request.node.name):
         yield
-
-
-@pytest.fixture(scope="module")
-def shared_router(tmp_path_factory):
-    """One router several fleets (and test clients) connect to."""
-    port = free_loopback_port()
-    proc = start_router(tmp_path_factory.mktemp("shared-router"), port, max_wall_s=240)
-    try:
-        yield router_endpoint(port)
-    finally:
-        stop_process(proc)
-        proc.stderr.close()
-    _assert_gone([proc.pid])
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -296,17 +283,25 @@ def test_crash_and_restart_from_checkpoint(tmp_path):
 
 
 @bound(40)
-def test_crash_without_restart_survivors_finish(tmp_path):
-    world, spec, _central = _run(tol=1e-3, fleet_id="launch-dead")
+def test_crash_without_restart_survivors_finish(tmp_path, fleet):
+    """Through the pytest plugin's ``fleet`` (launcher/api.py): the CLI's options, its report."""
+    from launcher import api
+
+    options = dict(preset="paper", tol=1e-3, fleet_id="launch-dead", retransmit="20ms", dead_after="6s",
+                   max_wall="40s", crash="1@40", no_restart=True, restart_after=0.5)
     t = time.monotonic()
-    out = _launch(spec, tmp_path, crashes=[CrashPlan(1, 40)], restart=False)
+    out = fleet(**options)
     assert time.monotonic() - t < 25
-    assert [r["id"] for r in out.robots] == [0, 2]  # the dead robot has no result
+    assert [r.id for r in out.robots] == [0, 2]  # the dead robot has no result
     assert out.states[1] == "dead" and out.states[0] == out.states[2] == "finished"
-    assert not (tmp_path / "fleet" / "robot-1.json").exists()
-    r0, r2 = out.robots
+    assert not (out.out / "fleet" / "robot-1.json").exists()
+    assert out.participants == (0, 2) and out.absent == (1,)
+    r0, r2 = (r.row for r in out.robots)
     assert r0["neighbours_dropped"] == r2["neighbours_dropped"] == [1]
     assert r0["converged"] and r2["converged"] and r0["rounds"] == r2["rounds"]
+    assert out.converged, out.verdict
+    run = api.build("launch", **options)  # the same world and fleet file (fleet id and seed given)
+    world, spec = run.world, run.spec
     b = spec.basis
     c0, c2 = b.c_from_x(np.asarray(r0["x"])), b.c_from_x(np.asarray(r2["x"]))
     assert b.function_error(c0, r0["gamma"], c2, r2["gamma"]) < 1e-3  # survivors agree (tol 1e-3)
@@ -315,7 +310,8 @@ def test_crash_without_restart_survivors_finish(tmp_path):
 
     kept = [r for r in world.robots if r.id in (0, 2)]
     ref = solve_central(b, np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept]), spec.C)
-    assert max_function_error(spec, ref, out.robots) < 1e-3
+    assert max_function_error(spec, ref, [r0, r2]) < 1e-3
+    assert out.error < 1e-3  # the report measured them against the same reference
 
 
 # ----------------------------------------------------------------------------- 6. bad frames
@@ -349,7 +345,8 @@ def _garbage(spec) -> dict[str, bytes]:
 
 
 @bound(40)
-def test_bad_frames_are_rejected_and_counted(tmp_path, shared_router):
+def test_bad_frames_are_rejected_and_counted(tmp_path, zenoh_router):
+    shared_router = zenoh_router  # the pytest plugin's router (launcher/pytest_plugin.py), stopped by PID
     import zenoh
 
     _world, spec, _central = _run(tol=1e-4, fleet_id="launch-garbage")
@@ -402,8 +399,9 @@ def test_bad_frames_are_rejected_and_counted(tmp_path, shared_router):
 
 
 @bound(45)
-def test_two_fleets_on_one_router_do_not_hear_each_other(tmp_path, shared_router):
+def test_two_fleets_on_one_router_do_not_hear_each_other(tmp_path, zenoh_router):
     """Same robot ids, same key layout, same router, same time: only the fleet id differs."""
+    shared_router = zenoh_router  # the pytest plugin's router (launcher/pytest_plugin.py), stopped by PID
     specs = {
         "a": _run(tol=1e-3, fleet_id="launch-fleet-a")[1],
         "b": _run(tol=1e-3, seed=3, points=15, fleet_id="launch-fleet-b")[1],
