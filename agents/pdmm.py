@@ -1,0 +1,216 @@
+"""Relaxed ADMM for lossy, asynchronous networks (R-ADMM / PDMM), one robot's sans-IO core.
+
+Why it exists: today's consensus ADMM (agents/admm.py) needs the *exact* value of every
+neighbour each round; a stale substitute breaks sum(lambda) = 0 and biases the answer. Robots that
+never wait (free mode, protocol/free.py) need an algorithm for which a lost or late packet is a
+*skipped* update, not a wrong one. This is the relaxed Peaceman-Rachford splitting of the dual
+problem of Bastianello, Carli, Schenato & Todescato ("Asynchronous distributed optimization over
+lossy networks via relaxed ADMM", arXiv 1809.09887), which is PDMM with relaxation; with the
+margin constraints inside f_l it is the inequality-constrained case of arXiv 2309.12897.
+
+State of robot i: one auxiliary vector z_ij per neighbour j (i's end of edge ij). One tick:
+
+    v_i  = argmin_v  f_i(v) - (sum_j z_ij)' v + 1/2 v' diag(sum_j rho_ij) v     (a small QP, piqp)
+    y_ij = 2 rho_ij v_i - z_ij                                                   (sent to j)
+
+and when j's packet y_ji arrives at i:   z_ij <- (1 - alpha) z_ij + alpha y_ji.
+
+A lost packet leaves z_ij as it was (a skipped coordinate update of the relaxed PR operator),
+which is why loss costs time but never accuracy. At a fixed point z_ij + z_ji = 2 rho_ij v_i =
+2 rho_ij v_j (consensus) and sum_i grad f_i = 0 (optimality): the centralized solution.
+
+Old and duplicated packets: every packet carries the sender's tick counter (its sequence number);
+a packet no newer than the last one applied from that sender is dropped. Delay: the relaxation
+``alpha`` (< 1/2 damps, as ARock's step size) is what keeps the iteration stable when the y's in
+flight were computed from old z's.
+
+Stopping (no waiting, so no lockstep flags): a robot is *calm* when, over the last ``window``
+ticks, its change per tick and its gap to every neighbour's newest v stayed below
+``stop_tol``. It publishes a hop count h_i = 0 if not calm, else 1 + min_j h_j (newest values,
+capped at D + 1); it stops at h_i >= D + 1 (D = ``diameter``): every robot within D hops was calm
+too. The launcher still checks agreement on the final answers (success means agreement).
+
+No I/O, no clock: packets in (`receive`), packets out (`tick`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from agents.admm import ADMMParams, edge_penalty
+from agents.problem import MarginQP
+from agents.rounds import RoundCore, check_iterate, relative_gap
+
+
+@dataclass(frozen=True)
+class RelaxedADMMParams:
+    """Penalty, relaxation and the calm-stop rule (the same on every robot)."""
+
+    rho: float = 15.0
+    gamma_penalty: float = 3.0
+    alpha: float = 0.5  # relaxation in (0, 1): 1/2 is ADMM (Douglas-Rachford); smaller damps delay
+    stop_tol: float = 1e-4  # per-tick change and neighbour gap below which a robot is calm
+    window: int = 20  # ticks the robot must stay calm
+    diameter: int = 1
+    max_ticks: int = 20000
+
+    def __post_init__(self) -> None:
+        if not self.rho > 0:
+            raise ValueError(f"rho must be positive, got {self.rho}")
+        if not self.gamma_penalty > 0:
+            raise ValueError(f"gamma_penalty must be positive, got {self.gamma_penalty}")
+        if not 0 < self.alpha < 1:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+        if not self.stop_tol > 0:
+            raise ValueError(f"stop_tol must be positive, got {self.stop_tol}")
+        if self.window < 1 or self.max_ticks < 1:
+            raise ValueError("window and max_ticks must be at least 1")
+        if not 0 <= self.diameter <= 62:
+            raise ValueError(f"diameter must be in [0, 62], got {self.diameter}")
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any]) -> RelaxedADMMParams:
+        """The fleet file's params filtered by this class's fields (other algorithms' keys ignored)."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in params.items() if k in names})
+
+
+@dataclass(frozen=True)
+class Packet:
+    """What robot ``sender`` tells neighbour ``dest`` at tick ``seq``: its v and the edge's y."""
+
+    sender: int
+    seq: int
+    values: np.ndarray  # v_sender = (x, gamma): for the neighbour's gap test and the answer
+    edge: np.ndarray  # y_{sender -> dest}
+    hops: int
+
+
+class RelaxedADMM:
+    """One robot's R-ADMM; drive it with `receive(packet)` and `tick()` at any pace."""
+
+    algorithm = "radmm"
+    #: what a tick may raise when its local solve fails (the session stops the robot with the reason)
+    solve_errors = RoundCore.solve_errors
+
+    def __init__(
+        self,
+        robot_id: int,
+        neighbours: tuple[int, ...],
+        features: np.ndarray,
+        labels: np.ndarray,
+        *,
+        n_robots: int,
+        params: RelaxedADMMParams,
+        C: float | None = None,
+        neighbour_degrees: dict[int, int] | None = None,
+    ) -> None:
+        if robot_id in neighbours:
+            raise ValueError(f"robot {robot_id} lists itself as a neighbour")
+        self.robot_id = robot_id
+        self.neighbours = tuple(sorted(neighbours))
+        self.dim = features.shape[1] + 1
+        self.params = params
+        degrees = neighbour_degrees or {}
+        pen = ADMMParams(rho=params.rho, gamma_penalty=params.gamma_penalty)
+        self._rho = {j: edge_penalty(pen, self.dim, len(self.neighbours), degrees.get(j, 1)) for j in self.neighbours}
+        self._z = {j: np.zeros(self.dim) for j in self.neighbours}
+        self._last_seq = {j: -1 for j in self.neighbours}
+        self._their_v: dict[int, np.ndarray] = {}
+        self._their_hops = {j: 0 for j in self.neighbours}
+        prox = sum(self._rho.values(), np.zeros(self.dim))
+        self._qp = MarginQP(features, labels, x_weight=1.0 / n_robots, prox_weight=prox, C=C)
+        self._values = np.zeros(self.dim)
+        self._calm = 0
+        self.hops = 0
+        self.ticks = 0
+        self.residual = math.inf
+        self.applied = 0
+        self.stale = 0  # packets dropped as old or duplicated
+        self.finished = not self.neighbours
+        if self.finished:  # alone: the whole problem is its own
+            self._values = self._solve()
+            self.residual = 0.0
+
+    @property
+    def values(self) -> np.ndarray:
+        """The current (x, gamma)."""
+        return self._values.copy()
+
+    @property
+    def converged(self) -> bool:
+        """Stopped by the calm-stop rule (not by the tick cap)."""
+        return self.finished and (self.hops > self.params.diameter or not self.neighbours)
+
+    def receive(self, p: Packet) -> bool:
+        """Apply neighbour p.sender's edge update if it is newer than the last one; else drop it."""
+        j = p.sender
+        if j not in self._z:
+            return False
+        if p.seq <= self._last_seq[j]:
+            self.stale += 1
+            return False
+        if p.edge.shape != (self.dim,) or p.values.shape != (self.dim,):
+            raise ValueError(f"robot {j} sent vectors of the wrong length, expected {self.dim}")
+        self._last_seq[j] = p.seq
+        a = self.params.alpha
+        self._z[j] = (1.0 - a) * self._z[j] + a * p.edge
+        self._their_v[j] = p.values
+        self._their_hops[j] = p.hops
+        self.applied += 1
+        return True
+
+    def tick(self) -> list[Packet]:
+        """One local update from the newest z's: the packets to send (one per neighbour)."""
+        if self.finished:
+            return self.final_packets()
+        new = self._solve()
+        change = relative_gap(new, self._values) if self.ticks else math.inf
+        theirs = [self._their_v[j] for j in self.neighbours if j in self._their_v]
+        gap = relative_gap(new, np.array(theirs)) if len(theirs) == len(self.neighbours) else math.inf
+        self._values = new
+        self.ticks += 1
+        self.residual = max(change, gap)
+        self._calm = self._calm + 1 if self.residual < self.params.stop_tol else 0
+        cap = self.params.diameter + 1
+        calm = self._calm >= self.params.window
+        self.hops = min(cap, 1 + min(self._their_hops.values())) if calm else 0
+        if self.hops >= cap or self.ticks >= self.params.max_ticks:
+            self.finished = True
+        return self.final_packets()
+
+    def final_packets(self) -> list[Packet]:
+        """The packets of the current state (also what a finished robot repeats while lingering)."""
+        return [
+            Packet(self.robot_id, self.ticks, self._values.copy(), 2.0 * self._rho[j] * self._values - self._z[j], self.hops)
+            for j in self.neighbours
+        ]
+
+    def divergence(self) -> str | None:
+        """Why the current function cannot be a result, or None."""
+        return check_iterate(self._values)
+
+    def result(self) -> dict[str, Any]:
+        """x and gamma of this robot; the shell adds its counters."""
+        return {
+            "id": self.robot_id,
+            "algorithm": self.algorithm,
+            "x": self._values[:-1].tolist(),
+            "gamma": float(self._values[-1]),
+            "rounds": self.ticks,
+            "converged": self.converged,
+            "residual": self.residual,
+            "neighbours": list(self.neighbours),
+            "dropped": [],
+            "packets_applied": self.applied,
+            "packets_stale": self.stale,
+        }
+
+    def _solve(self) -> np.ndarray:
+        q = -sum(self._z.values(), np.zeros(self.dim))
+        sol = self._qp.solve(q)
+        return np.append(sol.x, sol.gamma)
