@@ -150,20 +150,28 @@ class ClockModel:
             raise ValueError(f"drift must be below 0.5, got {self.drift}")
 
 
-FREE_ALGORITHMS = ("radmm",)
+FREE_ALGORITHMS = ("radmm", "admm-newest")
 TickFn = Callable[[float, int, "np.ndarray"], None]
 
 
-def build_free_core(spec: FleetSpec, rid: int, params: dict[str, Any] | None = None) -> Any:
-    """Robot ``rid``'s free-mode core: the relaxed ADMM of agents/pdmm.py on the spec's grid."""
-    from agents.pdmm import RelaxedADMM, RelaxedADMMParams
+def build_free_core(spec: FleetSpec, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm") -> Any:
+    """Robot ``rid``'s free-mode core on the spec's grid: the relaxed ADMM of agents/pdmm.py, or
+    (``admm-newest``, for measuring its bias) today's ADMM fed the newest values."""
+    from agents.pdmm import NewestValueADMM, RelaxedADMM, RelaxedADMMParams
 
+    if algorithm not in FREE_ALGORITHMS:
+        raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
+    if not spec.fixed_grid:
+        raise ValueError("free sync needs a fixed grid and sigma (--grid and --sigma, or --preset paper)")
     me = spec.robots[rid]
     degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
-    given = {**spec.params, **(params or {})}
-    given.setdefault("diameter", spec.params.get("diameter", 1))
-    return RelaxedADMM(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
-                       params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees)
+    # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
+    # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
+    given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
+    kw: dict[str, Any] = {} if algorithm == "radmm" else {"relax": float(given.get("relax", spec.params.get("relax", 1.95)))}
+    cls = RelaxedADMM if algorithm == "radmm" else NewestValueADMM
+    return cls(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
+               params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees, **kw)
 
 
 def simulate_free(
@@ -172,6 +180,7 @@ def simulate_free(
     period: float = 0.01,
     clock: ClockModel | None = None,
     params: dict[str, Any] | None = None,
+    algorithm: str = "radmm",
     max_virtual_s: float | None = None,
     on_tick: TickFn | None = None,
 ) -> FleetOutcome:
@@ -197,7 +206,7 @@ def simulate_free(
     sessions: dict[int, FreeSession] = {}
     for rid in ids:
         try:
-            core = build_free_core(spec, rid, params)
+            core = build_free_core(spec, rid, params, algorithm)
         except (SolverError, InfeasibleError) as exc:
             raise FleetFailure(f"robot {rid}: local solver failed: {exc}") from None
         sessions[rid] = FreeSession(core, fleet=spec.fleet, graph=spec.graph, config_tag=spec.config_tag, period=period,
