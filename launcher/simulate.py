@@ -9,20 +9,28 @@ delayed and lost frames are recovered exactly as in the Zenoh shell.
 Liveliness on the virtual clock: every robot's "token" is there from the start and vanishes when
 its session closes (``peer_gone`` to its neighbours), so ``dead_after_s`` / ``give_up_s`` mean what
 they mean in a Zenoh fleet: a neighbour that stopped for good is dropped after ``dead_after_s`` of
-silence (crash injection is not modelled here; see docs/robot.md).
+silence.
+
+Crash injection (``crashes``, the CLI's ``--crash ID@ROUND``, as `launch` does with SIGKILL): a
+robot that reaches the planned round is gone at once -- its token vanishes, frames to it are lost;
+with ``restart`` it comes back ``restart_after`` virtual seconds later from the checkpoint it took
+before its last round (what the robot process writes before every round), otherwise its
+neighbours drop it after ``dead_after_s`` (fitted to the plan as `launch` fits it,
+launcher/fleet.py ``fleet_timing``) and it has no result row.
 """
 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from agents.problem import InfeasibleError, SolverError
-from agents.spec import FleetSpec, build_core
+from agents.spec import FleetSpec, build_core, restore_core
 from protocol.links import LinkLayer
 from protocol.session import BROADCAST, RobotSession
 
@@ -38,6 +46,38 @@ class FleetOutcome:
     wall_s: float
     virtual_s: float
     link_stats: dict[str, int] = field(default_factory=dict)
+    #: the in-process crash plan as carried out: robot, planned_round, round, at_s, restarted_at_s
+    #: (None: dead for good), fired (False: the robot stopped before the planned round)
+    crash_log: list[dict[str, Any]] = field(default_factory=list)
+
+
+@dataclass
+class _Crashes:
+    """The crash plan on the virtual clock: who goes down when, and their last checkpoints."""
+
+    plans: dict[int, list[int]]  # robot -> planned rounds, ascending
+    restart: bool
+    restart_after: float
+    saved: dict[int, dict[str, Any]] = field(default_factory=dict)  # robot -> envelope before its last round
+    down: dict[int, float] = field(default_factory=dict)  # robot -> restart time (inf: dead for good)
+    log: list[dict[str, Any]] = field(default_factory=list)
+
+    def save(self, rid: int, session: RobotSession) -> None:
+        """The checkpoint a robot process writes before each round (only robots with a plan)."""
+        if self.plans.get(rid) and session.ready():
+            self.saved[rid] = session.checkpoint({})
+
+    def due(self, rid: int, session: RobotSession) -> int | None:
+        plans = self.plans.get(rid)
+        return plans[0] if plans and session.core.round >= plans[0] else None
+
+    def next_restart(self) -> float | None:
+        finite = [t for t in self.down.values() if t != float("inf")]
+        return min(finite) if finite else None
+
+    def not_fired(self) -> None:
+        for rid, plans in self.plans.items():
+            self.log += [{"robot": rid, "planned_round": r, "fired": False} for r in plans]
 
 
 class DeadlockError(RuntimeError):
@@ -70,25 +110,42 @@ def simulate_fleet(
     *,
     progress: ProgressFn | None = None,
     max_virtual_s: float | None = None,
+    crashes: Sequence[Any] = (),
+    restart: bool = True,
+    restart_after: float = 1.0,
 ) -> FleetOutcome:
     """Run every robot of `spec` to completion in this process and return their result rows.
 
     ``max_virtual_s`` replaces ``spec.timing.max_wall_s`` as the cap on the virtual clock.
+    ``crashes``: plans with ``robot`` and ``round`` (launcher/fleet.py CrashPlan), carried out as
+    the module doc says; ``restart`` / ``restart_after`` as `launch`'s --no-restart / --restart-after.
     """
     started = time.perf_counter()
+    plan = _Crashes({}, restart, restart_after)
+    if crashes:
+        from launcher.fleet import fleet_timing  # the same dead_after_s as launch (lazy: fleet imports us)
+
+        spec = dataclasses.replace(spec, timing=fleet_timing(spec, list(crashes), restart=restart,
+                                                             restart_after=restart_after))
+        for c in sorted(crashes, key=lambda c: (c.robot, c.round)):
+            plan.plans.setdefault(int(c.robot), []).append(int(c.round))
     sessions = _sessions(spec, max_virtual_s)
     links = LinkLayer(spec.faults, spec.seed)
     received: collections.Counter[int] = collections.Counter()  # frames put on links into a robot
     running = dict(sessions)
     now = 0.0
     slowest = -1
-    while running:
+    while running or plan.next_restart() is not None:
+        _restart_due(spec, plan, sessions, running, now, max_virtual_s)
         for src, dst, payload in links.deliver(now):
-            sessions[dst].receive(src, payload, now)
+            if dst in running:  # a crashed robot's frames are lost
+                sessions[dst].receive(src, payload, now)
         advanced = False
-        for s in running.values():
+        for rid, s in running.items():
+            plan.save(rid, s)
             while s.advance(now):
                 advanced = True
+                plan.save(rid, s)
             if s.stopped in FAILED:
                 raise FleetFailure(s.error)
         for rid, s in running.items():
@@ -96,24 +153,53 @@ def simulate_fleet(
                 for j in s.peers if dest is BROADCAST else (dest,):
                     links.send(rid, j, payload, now)
                     received[j] += 1
-        for rid in [rid for rid, s in running.items() if s.done]:
+        for rid in [rid for rid, s in running.items() if s.done or plan.due(rid, s) is not None]:
+            if not running[rid].done:
+                _crash(plan, rid, running[rid], now)
             del running[rid]
             for s in running.values():
                 s.peer_gone(rid, now)  # its session closed: its token is gone
-        current = min(s.core.round for s in sessions.values())
+        alive = [s for rid, s in sessions.items() if rid not in plan.down or rid in running]
+        current = min((s.core.round for s in alive), default=slowest)
         if progress is not None and current != slowest:
             slowest = current
-            progress(current, max(s.core.residual for s in sessions.values()))
+            progress(current, max(s.core.residual for s in alive))
         if advanced:
             continue
         due = [d for d in (s.next_deadline() for s in running.values()) if d is not None]
-        if links.next_due() is not None:
-            due.append(links.next_due())
+        for extra in (links.next_due(), plan.next_restart()):
+            if extra is not None:
+                due.append(extra)
         if running and not due:
             raise DeadlockError("no robot can advance and no frame is in flight")
         if due:
             now = max(now, min(due))
-    return FleetOutcome(_rows(sessions, links, received, now), time.perf_counter() - started, now, links.stats())
+    plan.not_fired()
+    kept = {rid: s for rid, s in sessions.items() if plan.down.get(rid) != float("inf")}
+    return FleetOutcome(_rows(kept, links, received, now), time.perf_counter() - started, now, links.stats(),
+                        plan.log)
+
+
+def _crash(plan: _Crashes, rid: int, session: RobotSession, now: float) -> None:
+    """Robot ``rid`` is killed now (its planned round reached): down until its restart, or for good."""
+    planned = plan.plans[rid].pop(0)
+    plan.down[rid] = now + plan.restart_after if plan.restart else float("inf")
+    plan.log.append({"robot": rid, "planned_round": planned, "round": int(session.core.round), "at_s": now,
+                     "restarted_at_s": plan.down[rid] if plan.restart else None, "fired": True})
+
+
+def _restart_due(spec: FleetSpec, plan: _Crashes, sessions: dict[int, RobotSession],
+                 running: dict[int, RobotSession], now: float, cap: float | None) -> None:
+    """Robots whose restart time has come resume from their last checkpoint, as a process would."""
+    for rid in [rid for rid, t in plan.down.items() if t <= now]:
+        del plan.down[rid]
+        env = plan.saved[rid]
+        s = RobotSession.for_spec(spec, restore_core(spec, rid, env["core"]), now=now, max_wall_s=cap, resume=env)
+        sessions[rid] = running[rid] = s
+        for j in s.peers:
+            if j in running and j != rid:
+                s.peer_up(j, now)
+                running[j].peer_up(rid, now)
 
 
 def _rows(sessions: dict[int, RobotSession], links: LinkLayer, received: collections.Counter[int],
@@ -121,6 +207,8 @@ def _rows(sessions: dict[int, RobotSession], links: LinkLayer, received: collect
     """One row per robot (RobotSession.row), with what its incoming links did."""
     transport = {rid: {"received": received[rid], "lost": 0, "duplicated": 0} for rid in sessions}
     for (_, dst), stats in links.link_stats().items():
+        if dst not in transport:  # a robot dead for good has no row
+            continue
         transport[dst]["lost"] += stats["dropped"]
         transport[dst]["duplicated"] += stats["duplicated"]
     return [s.row(now, transport[rid]) for rid, s in sessions.items()]

@@ -1,0 +1,107 @@
+"""Crash injection in both shells: `simulate --crash` on the virtual clock equals a clean run bit
+for bit across a restart, and `launch` (SIGKILL) equals `simulate` bit for bit across a restart
+and across a permanent loss."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from agents.problem import solve_central
+from agents.spec import Timing
+from launcher.fleet import CrashPlan, launch_fleet
+from launcher.simulate import simulate_fleet
+from tests.conftest import ROOT, bounded_and_clean, make_run, max_function_error
+
+TIMING = Timing(retransmit_s=0.02, dead_after_s=6.0, max_wall_s=40.0, linger_s=1.0)
+
+
+def same_iterates(robots: list[dict], want: dict[int, dict], *, restarted=()) -> None:
+    """Round for round, bit for bit: every recorded iterate, the final x and gamma, the rounds."""
+    for r in robots:
+        w = want[r["id"]]
+        assert r["stopped"] == "finished" and (r["rounds"], r["converged"]) == (w["rounds"], w["converged"])
+        rounds = sorted(r["trace"])
+        assert rounds == list(range(0 if r["id"] not in restarted else rounds[0], w["rounds"] + 1))
+        np.testing.assert_array_equal(np.array([r["trace"][k] for k in rounds]),
+                                      np.array([w["trace"][k] for k in rounds]))
+        assert r["x"] == w["x"] and r["gamma"] == w["gamma"]
+
+
+@pytest.fixture(scope="module")
+def run():
+    return make_run(fleet_id="crash", timing=TIMING)
+
+
+def test_simulate_crash_and_restart_is_the_clean_run_bit_for_bit(run):
+    _, spec, central = run
+    clean = {r["id"]: r for r in simulate_fleet(spec).robots}
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, 40)], restart=True, restart_after=0.5)
+    assert [(c["robot"], c["planned_round"], c["round"], c["fired"]) for c in out.crash_log] == [(1, 40, 40, True)]
+    by_id = {r["id"]: r for r in out.robots}
+    assert [by_id[i]["restarts"] for i in (0, 1, 2)] == [0, 1, 0]
+    assert min(by_id[1]["trace"]) < 40  # resumed from the checkpoint before its last round
+    same_iterates(out.robots, clean, restarted=(1,))
+    assert all(r["neighbours_dropped"] == [] for r in out.robots)
+    assert max_function_error(spec, central, out.robots) < 1e-3
+
+
+def test_simulate_permanent_loss_survivors_solve_their_data(run):
+    world, spec, _ = run
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, 40)], restart=False)
+    assert [r["id"] for r in out.robots] == [0, 2]  # the dead robot has no row
+    r0, r2 = out.robots
+    assert r0["neighbours_dropped"] == r2["neighbours_dropped"] == [1]
+    assert r0["dropped_at"] == r2["dropped_at"] == {1: 41}  # its round-40 frame got out: stuck at 41
+    assert r0["converged"] and r2["converged"] and r0["rounds"] == r2["rounds"]
+    kept = [r for r in world.robots if r.id in (0, 2)]
+    ref = solve_central(spec.basis, np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept]), spec.C)
+    assert max_function_error(spec, ref, out.robots) < 1e-3
+    # without restarts the survivors wait launch's NO_RESTART_DEAD_AFTER_S (2.5 s), not 6 s
+    assert 2.5 <= out.virtual_s < 6.0
+
+
+def test_a_crash_that_cannot_fire_is_reported(run):
+    _, spec, _ = run
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, 4000)], restart=True)
+    assert out.crash_log == [{"robot": 1, "planned_round": 4000, "fired": False}]
+    assert len(out.robots) == 3
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "launcher.cli", *args], capture_output=True, text=True,
+                          timeout=240, cwd=ROOT)
+
+
+def test_simulate_crash_flags(tmp_path):
+    out = tmp_path / "dead"
+    proc = _cli("simulate", "--preset", "paper", "--crash", "1@40", "--no-restart", "--dead-after", "3s",
+                "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((out / "result.json").read_text())
+    assert result["crashes"][0]["robot"] == 1 and result["crashes"][0]["restarted_at_s"] is None
+    assert result["absent"] == [1] and result["participants"] == [0, 2]
+    assert result["virtual_s"] >= 2.5 and result["converged"]
+    for args, needle in ((["--crash", "7@10"], "--crash: robot 7 is not in the fleet"),
+                         (["--crash", "x"], "--crash"), (["--dead-after", "0s"], "--dead-after")):
+        proc = _cli("simulate", "--preset", "paper", *args, "--out", str(tmp_path / "bad"))
+        assert proc.returncode == 2 and needle in proc.stderr.strip().splitlines()[-1], proc.stderr
+
+
+@pytest.mark.integration
+def test_launch_permanent_loss_equals_simulate_bit_for_bit(run, tmp_path):
+    """SIGKILL lands a little after the planned round; the survivors' drop round says where the
+    dead robot stopped, and `simulate` with the crash one round before it gives the same iterates."""
+    _, spec, _ = run
+    with bounded_and_clean(str(tmp_path), 45.0, "launch-permanent-loss"):
+        out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[CrashPlan(1, 40)], restart_after=0.5,
+                           restart=False, zenoh_port=None, progress=False)
+    assert not out.timed_out and [r["id"] for r in out.robots] == [0, 2]
+    stuck = {r["dropped_at"][1] for r in out.robots}
+    assert len(stuck) == 1, f"survivors dropped robot 1 at different rounds: {stuck}"
+    want = simulate_fleet(spec, crashes=[CrashPlan(1, stuck.pop() - 1)], restart=False)
+    same_iterates(out.robots, {r["id"]: r for r in want.robots})
