@@ -258,6 +258,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     from launcher.simulate import FleetFailure, simulate_fleet
 
+    if getattr(args, "sync", "lockstep") == "free":
+        return _simulate_free(args)
     crashes = _crash_plan(args)
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "simulate", check=_crash_check(crashes))
@@ -292,6 +294,44 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 print(f"shapefleet: --crash {c['robot']}@{c['planned_round']} never fired: robot {c['robot']} "
                       f"stopped before round {c['planned_round']}", file=sys.stderr)
         central = _participants(world, spec, central, outcome.robots, extra)
+    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
+    return _exit_code(result)
+
+
+def _free_check(args: argparse.Namespace) -> Callable[[Any], None]:
+    """What --sync free refuses before anything is written: autogrid (its fleet-wide phases are
+    lockstep), another fixed-grid algorithm, crash injection (a free robot has no checkpoint)."""
+
+    def check(spec: Any) -> None:
+        if args.crash:
+            raise UsageError("--crash: crash injection is lockstep only (a free robot has no checkpoint to resume)")
+        if spec.algorithm != "admm":
+            raise UsageError(f"--sync free: runs the relaxed ADMM on a fixed grid, not {spec.algorithm}; give "
+                             "--preset paper (or --grid and --sigma) and --algorithm admm or auto")
+
+    return check
+
+
+def _simulate_free(args: argparse.Namespace) -> int:
+    """`simulate --sync free`: every robot on its own virtual clock (protocol/free.py), no waiting."""
+    from rich.console import Console
+
+    from launcher.simulate import FleetFailure, simulate_free
+
+    t0 = time.perf_counter()
+    out, world, spec, central = _prepare(args, "simulate", check=_free_check(args))
+    if not central.solved:
+        _infeasible(out, world, spec, central)
+    with Console(stderr=True).status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms (relaxed ADMM)"):
+        try:
+            outcome = simulate_free(spec, period=args.period)
+        except FleetFailure as exc:
+            print(f"shapefleet: the run failed: {exc}", file=sys.stderr)
+            return EXIT_NOT_CONVERGED
+    spec = dataclasses.replace(spec, algorithm="admm")
+    extra = {"fleet": spec.fleet, "topology": args.topology, "sync": "free", "period_s": args.period,
+             "free_algorithm": "radmm", "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults),
+             "links": outcome.link_stats}
     result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
     return _exit_code(result)
 

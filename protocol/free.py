@@ -83,6 +83,7 @@ class FreeSession:
         self.stopped: str | None = None
         self.error: str | None = None
         self.tick_times: list[float] = []
+        self._final: list[Packet] = []
 
     @property
     def done(self) -> bool:
@@ -128,8 +129,9 @@ class FreeSession:
             self.tick_times.append(now)
             if self.core.finished:
                 self.stopped = "finished"
+                self._final = packets  # repeated as they are: a changed repeat would be equivocation
         else:
-            packets = self.core.final_packets()
+            packets = self._final
             self._linger -= 1
         self._next = None if self.stopped is not None and self._linger <= 0 else now + self.period
         return [(BROADCAST, self._encode(packets))]

@@ -15,6 +15,7 @@ import itertools
 import math
 import re
 from collections.abc import Iterator
+from typing import Any
 from dataclasses import dataclass, replace
 from statistics import NormalDist
 
@@ -116,19 +117,15 @@ class LinkFaults:
         if self.delay_dist not in DELAY_DISTRIBUTIONS:
             raise ValueError(f"delay_dist must be one of {', '.join(DELAY_DISTRIBUTIONS)}, got {self.delay_dist!r}")
         if self.loss_burst > 1 and 0 < self.loss < 1 and self.good_to_bad > 1:
-            raise ValueError(f"loss_burst {self.loss_burst:g} is too short for loss {self.loss:g} "
+            raise ValueError(f"loss_burst (--loss-burst) {self.loss_burst:g} is too short for loss {self.loss:g} "
                              f"(needs loss <= loss_burst / (loss_burst + 1))")
-        object.__setattr__(self, "link_loss", tuple((_rid(a), _rid(b), _prob("link_loss", p)) for a, b, p in self.link_loss))
-        object.__setattr__(self, "robot_loss", tuple((_rid(a), _prob("robot_loss", p)) for a, p in self.robot_loss))
+        link_loss = [parse_link_loss(e) if isinstance(e, str) else e for e in self.link_loss]
+        robot_loss = [parse_robot_loss(e) if isinstance(e, str) else e for e in self.robot_loss]
+        object.__setattr__(self, "link_loss", tuple((_rid(a), _rid(b), _prob("link_loss", p)) for a, b, p in link_loss))
+        object.__setattr__(self, "robot_loss", tuple((_rid(a), _prob("robot_loss", p)) for a, p in robot_loss))
         parts = []
-        for a, b, t0, t1 in self.partitions:
-            ga, gb = tuple(sorted(_rid(i) for i in a)), tuple(sorted(_rid(i) for i in b))
-            if not ga or not gb or set(ga) & set(gb):
-                raise ValueError(f"partitions: two non-empty disjoint groups needed, got {ga} and {gb}")
-            t0, t1 = float(t0), float(t1)
-            if not (math.isfinite(t0) and math.isfinite(t1) and 0 <= t0 < t1):
-                raise ValueError(f"partitions: need 0 <= start < end, got {t0:g}..{t1:g}")
-            parts.append((ga, gb, t0, t1))
+        for entry in self.partitions:
+            parts.append(parse_partition(entry) if isinstance(entry, str) else _check_partition(*entry))
         object.__setattr__(self, "partitions", tuple(parts))
 
     @classmethod
@@ -176,6 +173,53 @@ class LinkFaults:
             if t0 <= t < t1 and ((src in a and dst in b) or (src in b and dst in a)):
                 return True
         return False
+
+
+def _ids(text: str, what: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(t) for t in text.split(","))
+    except ValueError:
+        raise ValueError(f"{what}: {text!r} is not a comma-separated list of robot ids") from None
+
+
+def parse_link_loss(text: str) -> tuple[int, int, float]:
+    """"SRC-DST:P" (e.g. "0-1:0.5" or "0-1:50%"): the loss of the directed link SRC -> DST."""
+    link, sep, prob = text.partition(":")
+    src, dash, dst = link.partition("-")
+    if not (sep and dash):
+        raise ValueError(f"{text!r} is not SRC-DST:P (e.g. 0-1:0.5)")
+    (a,), (b,) = _ids(src, "link loss"), _ids(dst, "link loss")
+    return a, b, parse_probability(prob, flag="link loss")
+
+
+def parse_robot_loss(text: str) -> tuple[int, float]:
+    """"ID:P" (e.g. "2:0.3"): the loss of every link into and out of robot ID."""
+    rid, sep, prob = text.partition(":")
+    if not sep:
+        raise ValueError(f"{text!r} is not ID:P (e.g. 2:0.3)")
+    (r,) = _ids(rid, "robot loss")
+    return r, parse_probability(prob, flag="robot loss")
+
+
+def parse_partition(text: str) -> tuple[tuple[int, ...], tuple[int, ...], float, float]:
+    """"A,B/C,D@START-END" (e.g. "0,1/2,3@2s-5s"): robots {A,B} cut from {C,D} in [START, END)."""
+    groups, sep, window = text.partition("@")
+    left, slash, right = groups.partition("/")
+    start, dash, end = window.partition("-")
+    if not (sep and slash and dash):
+        raise ValueError(f"{text!r} is not A,B/C,D@START-END (e.g. 0,1/2,3@2s-5s)")
+    return _check_partition(_ids(left, "partition"), _ids(right, "partition"),
+                            parse_duration(start, flag="partition start"), parse_duration(end, flag="partition end"))
+
+
+def _check_partition(a: Any, b: Any, t0: Any, t1: Any) -> tuple[tuple[int, ...], tuple[int, ...], float, float]:
+    ga, gb = tuple(sorted(_rid(i) for i in a)), tuple(sorted(_rid(i) for i in b))
+    if not ga or not gb or set(ga) & set(gb):
+        raise ValueError(f"partitions: two non-empty disjoint groups needed, got {ga} and {gb}")
+    t0, t1 = float(t0), float(t1)
+    if not (math.isfinite(t0) and math.isfinite(t1) and 0 <= t0 < t1):
+        raise ValueError(f"partitions: need 0 <= start < end, got {t0:g}..{t1:g}")
+    return ga, gb, t0, t1
 
 
 def _rid(value: object) -> int:

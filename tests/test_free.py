@@ -135,3 +135,27 @@ def test_clock_model_refuses_bad_values():
         ClockModel(drift=0.7)
     with pytest.raises(ValueError, match="offset_s"):
         ClockModel(offset_s=-1.0)
+
+
+def test_cli_free_run_converges_and_bad_input_exits_2(tmp_path, capsys):
+    import json
+
+    from launcher.cli import main
+
+    out = tmp_path / "run"
+    code = main(["simulate", "--sync", "free", "--preset", "paper", "--loss", "0.3", "--delay", "20ms",
+                 "--loss-burst", "3", "--out", str(out)])
+    result = json.loads((out / "result.json").read_text())
+    assert code == 0 and result["converged"] and result["sync"] == "free"
+    assert result["metrics"]["function_error"] < BOUND
+    assert all(r["frames_rejected"] == 0 for r in result["robots"])  # lingering repeats are not equivocation
+    assert result["faults"]["loss_burst"] == 3.0
+    for argv, flag in ((["--sync", "free"], "--sync free"), (["--sync", "free", "--preset", "paper", "--crash", "1@5"], "--crash"),
+                       (["--loss", "0.9", "--loss-burst", "2"], "--loss-burst"), (["--partition", "0,1/1@2s-5s"], "--partition")):
+        with pytest.raises(SystemExit) as exc:
+            main(["simulate", *argv, "--out", str(tmp_path / "bad")])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert flag in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "bad").exists()
+
