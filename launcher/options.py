@@ -211,6 +211,24 @@ def _non_negative(value: float) -> None:
         raise ValueError(f"{value!r} must be a non-negative number")
 
 
+def _durations(value: str) -> None:
+    from launcher.sweep import parse_list
+
+    parse_list(value, _duration, "delays")
+
+
+def _probabilities(value: str) -> None:
+    from launcher.sweep import parse_list
+
+    parse_list(value, _probability, "losses")
+
+
+def _syncs(value: str) -> None:
+    bad = [m for m in value.split(",") if m.strip() not in ("lockstep", "free")]
+    if bad or not value.strip():
+        raise ValueError(f"{value!r}: modes are lockstep and free")
+
+
 # -- the table ----------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Option:
@@ -278,6 +296,7 @@ FAULTS = "network faults (netem vocabulary, injected per directed link)"
 FLEET = "fleet"
 PROCESSES = "crash injection (simulate: on the virtual clock; launch: SIGKILL)"
 TLS = "TLS (tls/ endpoints, docs/deploy.md)"
+SWEEP = "sweep grid (in-process, virtual time; the default world on the paper's 5x3 grid)"
 
 _T = Timing()
 _FOLLOWS = ("times the object's scale: its bounding-box diagonal/5 rounded to 1, 2, 5, 10, 20...; "
@@ -354,9 +373,19 @@ OPTIONS: tuple[Option, ...] = (
            "never waits (the relaxed ADMM, on a fixed grid)", group=ALGORITHM, commands=("simulate",),
            section="algorithm", choices=("lockstep", "free"), target=None),
     Option("period", DURATION, 0.01, "free sync: each robot's tick period", group=ALGORITHM,
-           commands=("simulate",), section="algorithm", check=positive, target=None),
+           commands=("simulate", "sweep"), section="algorithm", check=positive, target=None),
+    # -- sweep (issue 13): delay x loss x sync, in-process ------------------------------------
+    Option("delays", STR, "0ms,10ms,20ms,50ms", "sweep: one-way delays, comma-separated", group=SWEEP,
+           commands=("sweep",), metavar="D1,D2,...", check=_durations, target=None),
+    Option("losses", STR, "0,0.1,0.3,0.5", "sweep: loss probabilities, comma-separated", group=SWEEP,
+           commands=("sweep",), metavar="P1,P2,...", check=_probabilities, target=None),
+    Option("syncs", STR, "lockstep,free", "sweep: sync modes, comma-separated (lockstep: today's ADMM, the "
+           "reference; free: the relaxed ADMM)", group=SWEEP, commands=("sweep",), metavar="MODES",
+           check=_syncs, target=None),
+    Option("jobs", INT, None, "sweep: worker processes (default: one per core)", group=SWEEP,
+           commands=("sweep",), check=at_least(1), target=None),
     Option("out", PATH, None, "output folder (default: a new folder under runs/)", metavar="DIR", target=None,
-           commands=(*SCENARIO_COMMANDS, "collect"), show_default=False),
+           commands=(*SCENARIO_COMMANDS, "collect", "sweep"), show_default=False),
     # -- network faults ------------------------------------------------------------------
     Option("delay", DURATION, 0.0, "one-way delay, e.g. 20ms or 0.5s", group=FAULTS, commands=FAULT_COMMANDS,
            section="faults", target="faults.delay"),

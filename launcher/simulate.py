@@ -176,8 +176,8 @@ def simulate_fleet(
             now = max(now, min(due))
     plan.not_fired()
     kept = {rid: s for rid, s in sessions.items() if plan.down.get(rid) != float("inf")}
-    return FleetOutcome(_rows(kept, links, received, now), time.perf_counter() - started, now, links.stats(),
-                        plan.log)
+    stats = {**links.stats(), "bytes_sent": links.bytes_sent()}  # bytes: the sweep's (issue 13)
+    return FleetOutcome(_rows(kept, links, received, now), time.perf_counter() - started, now, stats, plan.log)
 
 
 def _crash(plan: _Crashes, rid: int, session: RobotSession, now: float) -> None:
@@ -301,7 +301,6 @@ def simulate_free(
                                     now=local(rid, start[rid]), max_wall_s=cap, auth=spec.frame_auth(rid))
     links = LinkLayer(spec.faults, spec.seed)
     received: collections.Counter[int] = collections.Counter()
-    bytes_sent = 0
     now = 0.0
     while True:
         for src, dst, payload in links.deliver(now):
@@ -320,7 +319,6 @@ def simulate_free(
                 for j in s.core.neighbours:
                     links.send(rid, j, payload, sent_at)
                     received[j] += 1
-                    bytes_sent += len(payload)
         dues = [(d - off[r]) / rate[r] for r, d in ((r, s.next_deadline()) for r, s in sessions.items()) if d is not None]
         if links.next_due() is not None and dues:
             dues.append(links.next_due())
@@ -332,5 +330,5 @@ def simulate_free(
         transport[dst]["lost"] += st["dropped"]
         transport[dst]["duplicated"] += st["duplicated"]
     rows = [s.row(local(rid, now), transport[rid]) for rid, s in sessions.items()]
-    stats = {**links.stats(), "bytes_sent": bytes_sent}
+    stats = {**links.stats(), "bytes_sent": links.bytes_sent()}
     return FleetOutcome(rows, time.perf_counter() - started, now, stats)

@@ -249,6 +249,7 @@ class Link:
         # Send-order stamps; LinkLayer shares one counter between its links to order ties.
         self._stamps: Iterator[int] = itertools.count()
         self._bad = False  # Gilbert-Elliott state (only with loss_burst > 1)
+        self.bytes_sent = 0  # payload bytes handed to the link (lost ones included)
         self.sent = 0
         self.dropped = 0
         self.duplicated = 0
@@ -263,6 +264,7 @@ class Link:
         f = self.faults
         u_loss, u_dup, u_jit1, u_hold1, u_jit2, u_hold2 = self._rng.random(6).tolist()
         self.sent += 1
+        self.bytes_sent += len(payload)
         if f.loss_burst > 1 and 0 < f.loss < 1:  # Gilbert-Elliott: the draw moves the chain
             self._bad = u_loss >= 1.0 / f.loss_burst if self._bad else u_loss < f.good_to_bad
             lost = self._bad
@@ -374,6 +376,10 @@ class LinkLayer:
             for name, value in link.stats().items():
                 total[name] += value
         return total
+
+    def bytes_sent(self) -> int:
+        """Payload bytes handed to every link (what the robots put on the air, lost or not)."""
+        return sum(link.bytes_sent for link in self._links.values())
 
     def link_stats(self) -> dict[tuple[int, int], dict[str, int]]:
         """Counters of each link used so far, keyed by (src, dst)."""

@@ -40,7 +40,7 @@ _TEXT = {"shape": "bean", "grid": "4x4", "grid-bounds": "0,1,0,1", "preset": "pa
          "fleet-id": "opt-test", "bad-grid": "3x2", "algorithm": "admm", "crash": "1@4",
          # issue 13 (free sync, fault models)
          "sync": "free", "delay-dist": "pareto", "link-loss": "0-1:0.5", "robot-loss": "2:0.3",
-         "partition": "0,1/2,3@2s-5s"}
+         "partition": "0,1/2,3@2s-5s", "delays": "0ms,5ms", "losses": "0,0.2", "syncs": "free"}
 _BY_KIND = {INT: ("7", 7), FLOAT: ("0.5", 0.5), DURATION: ("30ms", "30ms"), PROBABILITY: ("0.25", 0.25)}
 
 
