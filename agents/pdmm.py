@@ -54,7 +54,7 @@ import numpy as np
 
 from agents.admm import ADMMParams, ConsensusADMM, edge_penalty
 from agents.problem import MarginQP
-from agents.rounds import RoundCore, check_iterate, relative_gap
+from agents.rounds import RoundCore, check_iterate
 
 
 @dataclass(frozen=True)
@@ -101,6 +101,18 @@ class Packet:
     values: np.ndarray  # v_sender = (x, gamma): for the neighbour's gap test and the answer
     edge: np.ndarray  # y_{sender -> dest}
     hops: int
+
+
+def _gap(v: np.ndarray, others: list[np.ndarray]) -> float:
+    """agents.rounds.relative_gap's metric (largest over ``others``), without its einsum: a tick
+    calls it twice and the einsum on a 16-vector was a sixth of a free run's time (profiled)."""
+    nx = max(math.sqrt(float(v[:-1] @ v[:-1])), 1e-12)
+    ng = max(1.0, abs(float(v[-1])))
+    worst = 0.0
+    for w in others:
+        d = w - v
+        worst = max(worst, math.sqrt(float(d[:-1] @ d[:-1])) / nx + abs(float(d[-1])) / ng)
+    return worst
 
 
 def error_estimate(residuals: list[float], window: int) -> float:
@@ -197,9 +209,9 @@ class RelaxedADMM:
         if self.finished:
             return self.final_packets()
         new = self._solve()
-        change = relative_gap(new, self._values) if self.ticks else math.inf
+        change = _gap(new, [self._values]) if self.ticks else math.inf
         theirs = [self._their_v[j] for j in self.neighbours if j in self._their_v]
-        gap = relative_gap(new, np.array(theirs)) if len(theirs) == len(self.neighbours) else math.inf
+        gap = _gap(new, theirs) if len(theirs) == len(self.neighbours) else math.inf
         self._values = new
         self.ticks += 1
         self.residual = max(change, gap)
@@ -249,7 +261,26 @@ class RelaxedADMM:
         return np.append(sol.x, sol.gamma)
 
 
-class NewestValueADMM(RelaxedADMM):
+class _NewestValues(RelaxedADMM):
+    """A free core that keeps the newest v of each neighbour and ignores the edge vector."""
+
+    def receive(self, p: Packet) -> bool:
+        """Keep the newest v of p.sender (by sequence number); its edge vector is not used."""
+        j = p.sender
+        if j not in self._z:
+            return False
+        if p.seq <= self._last_seq[j]:
+            self.stale += 1
+            return False
+        self._last_seq[j] = p.seq
+        self._their_v[j] = p.values
+        self._their_hops[j] = p.hops
+        self._heard[j] = self.ticks
+        self.applied += 1
+        return True
+
+
+class NewestValueADMM(_NewestValues):
     """Today's edge-form ADMM on whatever neighbour value arrived last (biased; for measurement).
 
     Same packets, sequence numbers and calm-stop rule as the relaxed ADMM, so the two differ only
@@ -267,21 +298,6 @@ class NewestValueADMM(RelaxedADMM):
                                    neighbour_degrees=neighbour_degrees, keep_trace=False)
         self._started = False
 
-    def receive(self, p: Packet) -> bool:
-        """Keep the newest v of p.sender (by sequence number); its edge vector is not used."""
-        j = p.sender
-        if j not in self._z:
-            return False
-        if p.seq <= self._last_seq[j]:
-            self.stale += 1
-            return False
-        self._last_seq[j] = p.seq
-        self._their_v[j] = p.values
-        self._their_hops[j] = p.hops
-        self._heard[j] = self.ticks
-        self.applied += 1
-        return True
-
     def _solve(self) -> np.ndarray:
         core = self._admm
         if not self._started:  # tick 0: the robot's own solution (the lockstep core's round 0)
@@ -296,3 +312,31 @@ class NewestValueADMM(RelaxedADMM):
             low, high = (mine, theirs) if self.robot_id < j else (theirs, mine)
             edge.update(low, high, relax)
         return core._primal_step()
+
+
+class FreeCTADMM(_NewestValues):
+    """The paper's CT-ADMM on the robot's own clock: each tick integrates one period T_sp of the
+    flow (agents/ct_admm.py) with the newest neighbour samples held -- stale by the network's delay
+    and by lost packets, so delay enters the feedback loop (measured: benchmarks/free.py).
+    A neighbour not heard yet is held at the robot's own value. The tick period must be T_sp."""
+
+    algorithm = "ct-admm-free"
+
+    def __init__(self, robot_id: int, neighbours: tuple[int, ...], features: np.ndarray, labels: np.ndarray, *,
+                 n_robots: int, params: RelaxedADMMParams, ct_params: Any, C: float | None = None,
+                 neighbour_degrees: dict[int, int] | None = None) -> None:
+        from agents.ct_admm import ContinuousTimeADMM
+
+        self._ct = ContinuousTimeADMM(robot_id, neighbours, features, labels, n_robots=n_robots, params=ct_params,
+                                      C=C, keep_trace=False)
+        super().__init__(robot_id, neighbours, features, labels, n_robots=n_robots, params=params, C=C,
+                         neighbour_degrees=neighbour_degrees)
+
+    def _solve(self) -> np.ndarray:
+        ct = self._ct
+        mine = ct._values
+        theirs = {j: self._their_v.get(j, mine) for j in ct.neighbours}
+        new, _ = ct._step(mine, theirs)
+        ct._prev_values, ct._values = mine, new
+        ct.round += 1
+        return new

@@ -365,7 +365,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     console = Console()
     console.print(sweep.summary(rows))
     bad = [r for r in rows if not (r["converged"] and r["error"] < sweep.CLAIM)]
-    console.print(f"{len(rows)} runs in {wall:.0f} s on {args.jobs or os.cpu_count()} processes; "
+    jobs = args.jobs or os.cpu_count() or 1
+    cpu = sum(r["cpu_s"] for r in rows)
+    console.print(f"{len(rows)} runs in {wall:.0f} s wall on {jobs} processes ({cpu:.0f} s of CPU: "
+                  f"{cpu / jobs:.0f} s on {jobs} idle cores; the difference is other load); "
                   f"wrote {out}/: sweep.csv, robustness.png")
     if bad:
         print(f"shapefleet: {len(bad)} runs did not end in agreement within {sweep.CLAIM:g} of the exact answer "

@@ -238,14 +238,17 @@ class ClockModel:
             raise ValueError(f"drift must be below 0.5, got {self.drift}")
 
 
-FREE_ALGORITHMS = ("radmm", "admm-newest")
+FREE_ALGORITHMS = ("radmm", "admm-newest", "ct-admm-free")
 TickFn = Callable[[float, int, "np.ndarray"], None]
 
 
-def build_free_core(spec: FleetSpec, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm") -> Any:
+def build_free_core(spec: FleetSpec, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm",
+                    period: float = 0.01) -> Any:
     """Robot ``rid``'s free-mode core on the spec's grid: the relaxed ADMM of agents/pdmm.py, or
-    (``admm-newest``, for measuring its bias) today's ADMM fed the newest values."""
-    from agents.pdmm import NewestValueADMM, RelaxedADMM, RelaxedADMMParams
+    (for measurement) today's ADMM fed the newest values (``admm-newest``) or the paper's CT-ADMM
+    integrating one ``period`` per tick with held samples (``ct-admm-free``)."""
+    from agents.ct_admm import CTADMMParams
+    from agents.pdmm import FreeCTADMM, NewestValueADMM, RelaxedADMM, RelaxedADMMParams
 
     if algorithm not in FREE_ALGORITHMS:
         raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
@@ -256,8 +259,12 @@ def build_free_core(spec: FleetSpec, rid: int, params: dict[str, Any] | None = N
     # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
     # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
     given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
-    kw: dict[str, Any] = {} if algorithm == "radmm" else {"relax": float(given.get("relax", spec.params.get("relax", 1.95)))}
-    cls = RelaxedADMM if algorithm == "radmm" else NewestValueADMM
+    kw: dict[str, Any] = {}
+    if algorithm == "admm-newest":
+        kw["relax"] = float(given.get("relax", spec.params.get("relax", 1.95)))
+    if algorithm == "ct-admm-free":
+        kw["ct_params"] = CTADMMParams(period=period)
+    cls = {"radmm": RelaxedADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
     return cls(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
                params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees, **kw)
 
@@ -294,7 +301,7 @@ def simulate_free(
     sessions: dict[int, FreeSession] = {}
     for rid in ids:
         try:
-            core = build_free_core(spec, rid, params, algorithm)
+            core = build_free_core(spec, rid, params, algorithm, period)
         except (SolverError, InfeasibleError) as exc:
             raise FleetFailure(f"robot {rid}: local solver failed: {exc}") from None
         sessions[rid] = FreeSession(core, fleet=spec.fleet, graph=spec.graph, config_tag=spec.config_tag, period=period,

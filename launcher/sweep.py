@@ -25,7 +25,7 @@ import numpy as np
 
 CLAIM = 1e-3
 FIELDS = ("sync", "delay_s", "loss", "converged", "error", "time_to_claim_s", "stop_s", "rounds", "bytes_sent",
-          "frames_sent", "verdict", "wall_s")
+          "frames_sent", "verdict", "wall_s", "cpu_s")
 _CACHE: dict[tuple[int, int], Any] = {}
 
 
@@ -61,7 +61,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     from launcher.simulate import FleetFailure, simulate_fleet, simulate_free
     from protocol.links import LinkFaults
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     world, spec, central = _scenario(cell["seed"], cell["robots"])
     spec = dataclasses.replace(spec, faults=LinkFaults(delay=cell["delay_s"], loss=cell["loss"]),
                                timing=dataclasses.replace(spec.timing, max_wall_s=cell["max_s"]))
@@ -79,7 +79,8 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
             out = simulate_fleet(spec, max_virtual_s=cell["max_s"])
     except FleetFailure as exc:
         return {**row, "converged": False, "error": math.nan, "time_to_claim_s": math.nan, "stop_s": math.nan,
-                "rounds": 0, "bytes_sent": 0, "frames_sent": 0, "verdict": str(exc), "wall_s": time.perf_counter() - t0}
+                "rounds": 0, "bytes_sent": 0, "frames_sent": 0, "verdict": str(exc), "wall_s": time.perf_counter() - t0,
+                "cpu_s": time.process_time() - c0}
     errors = [_error(spec, central, np.append(r["x"], r["gamma"])) for r in out.robots]
     if cell["sync"] == "lockstep":  # the trace holds every round, round_times when it was reached
         for r in out.robots:
@@ -96,7 +97,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
             "time_to_claim_s": max(last_bad.values(), default=0.0) if max(errors) < CLAIM else math.nan,
             "stop_s": out.virtual_s, "rounds": max(int(r["rounds"]) for r in out.robots),
             "bytes_sent": int(out.link_stats.get("bytes_sent", 0)), "frames_sent": int(out.link_stats["sent"]),
-            "verdict": verdict["verdict"], "wall_s": time.perf_counter() - t0}
+            "verdict": verdict["verdict"], "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
 
 
 def cells(delays: list[float], losses: list[float], syncs: list[str], *, seed: int = 0, robots: int = 3,

@@ -159,3 +159,13 @@ def test_cli_free_run_converges_and_bad_input_exits_2(tmp_path, capsys):
         assert flag in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
         assert not (tmp_path / "bad").exists()
 
+
+
+def test_the_fast_gap_is_relative_gap():
+    from agents.pdmm import _gap
+    from agents.rounds import relative_gap
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        v, w = rng.normal(size=16), [rng.normal(size=16) for _ in range(3)]
+        assert _gap(v, w) == pytest.approx(relative_gap(v, np.array(w)), rel=1e-12)
