@@ -112,3 +112,30 @@ def test_partition_two_to_five_seconds_lockstep_and_free_both_reach_the_exact_an
     free = simulate_free(cut, max_virtual_s=60.0)
     assert all(r["converged"] for r in free.robots) and max_function_error(spec, central, free.robots) < 1e-3
     assert free.virtual_s > 5.0 and free.link_stats["dropped"] > 0
+
+
+def test_a_robot_side_layer_sees_the_simulators_new_faults_too():
+    """Bursts, per-link / per-robot loss and delay shapes are per-link state: a robot process that
+    passes only its incoming frames through its own layer sees the in-process fleet's schedule."""
+    faults = LinkFaults(delay=0.01, jitter=0.008, loss=0.2, loss_burst=4, delay_dist="pareto",
+                        link_loss=((0, 1, 0.6),), robot_loss=((2, 0.5),))
+    fleet, robot2 = LinkLayer(faults, seed=7), LinkLayer(faults, seed=7)
+    for i in range(2000):
+        src, dst, t = i % 5, (i * 7 + 1) % 5, i * 0.002
+        if src == dst:
+            continue
+        fleet.send(src, dst, i.to_bytes(2, "big"), t)
+        if dst == 2:
+            robot2.send(src, dst, i.to_bytes(2, "big"), t)
+
+    def drain(layer):
+        out = []
+        while (t := layer.next_due()) is not None:
+            out.extend((t, *item) for item in layer.deliver(t))
+        return out
+
+    into2 = [item for item in drain(fleet) if item[2] == 2]
+    assert into2 == drain(robot2) and len(into2) > 100
+    lost = {k: v["dropped"] / v["sent"] for k, v in fleet.link_stats().items() if v["sent"] > 50}
+    # links 0->1, 1->3, 2->0, 3->2 carry the traffic; the per-link and per-robot losses are there
+    assert min(lost[(0, 1)], lost[(2, 0)], lost[(3, 2)]) > lost[(1, 3)] + 0.15
