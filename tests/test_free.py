@@ -169,3 +169,22 @@ def test_the_fast_gap_is_relative_gap():
     for _ in range(50):
         v, w = rng.normal(size=16), [rng.normal(size=16) for _ in range(3)]
         assert _gap(v, w) == pytest.approx(relative_gap(v, np.array(w)), rel=1e-12)
+
+
+def test_a_free_run_cut_short_is_not_converged(default_run):
+    """Success means agreement: robots stopped by the time cap report no convergence, and the
+    launcher's verdict says which robots did not meet their stopping rule."""
+    _, spec, _ = default_run
+    out = simulate_free(dataclasses.replace(spec, faults=LinkFaults(loss=0.3)), max_virtual_s=0.5)
+    assert all(r["stopped"] == "max_wall" and not r["converged"] for r in out.robots)
+    verdict = _agree(spec, out.robots)
+    assert not verdict["converged"] and "did not meet their stopping rule" in verdict["verdict"]
+
+
+def test_a_silent_neighbour_is_no_evidence_of_calm(default_run):
+    """Robot 2 never speaks (its frames are all lost): robots 0 and 1 may agree with each other but
+    never stop as converged, since 2 was not heard within the window."""
+    _, spec, _ = default_run
+    out = simulate_free(dataclasses.replace(spec, faults=LinkFaults(robot_loss=((2, 1.0),))), max_virtual_s=3.0)
+    assert not any(r["converged"] for r in out.robots)
+    assert {r["stopped"] for r in out.robots} == {"max_wall"}
