@@ -224,9 +224,11 @@ def _probabilities(value: str) -> None:
 
 
 def _syncs(value: str) -> None:
-    bad = [m for m in value.split(",") if m.strip() not in ("lockstep", "free")]
+    from launcher.sweep import MODES
+
+    bad = [m for m in value.split(",") if m.strip() not in MODES]
     if bad or not value.strip():
-        raise ValueError(f"{value!r}: modes are lockstep and free")
+        raise ValueError(f"{value!r}: modes are {', '.join(MODES)}")
 
 
 # -- the table ----------------------------------------------------------------------------------
@@ -379,8 +381,9 @@ OPTIONS: tuple[Option, ...] = (
            commands=("sweep",), metavar="D1,D2,...", check=_durations, target=None),
     Option("losses", STR, "0,0.1,0.3,0.5", "sweep: loss probabilities, comma-separated", group=SWEEP,
            commands=("sweep",), metavar="P1,P2,...", check=_probabilities, target=None),
-    Option("syncs", STR, "lockstep,free", "sweep: sync modes, comma-separated (lockstep: today's ADMM, the "
-           "reference; free: the relaxed ADMM)", group=SWEEP, commands=("sweep",), metavar="MODES",
+    Option("syncs", STR, "lockstep,free", "sweep: modes, comma-separated: lockstep (today's ADMM, the "
+           "reference), free (the relaxed ADMM), free-newest (today's ADMM fed the newest values: biased) or "
+           "free-ct (CT-ADMM with held samples)", group=SWEEP, commands=("sweep",), metavar="MODES",
            check=_syncs, target=None),
     Option("jobs", INT, None, "sweep: worker processes (default: one per core)", group=SWEEP,
            commands=("sweep",), check=at_least(1), target=None),

@@ -24,6 +24,9 @@ from typing import Any
 import numpy as np
 
 CLAIM = 1e-3
+#: sweep modes: lockstep (today's ADMM, the reference) and the free cores (launcher/simulate.py);
+#: free-newest and free-ct are the measurements of docs/robustness.md (they may diverge: a row says so)
+MODES = {"lockstep": None, "free": "radmm", "free-newest": "admm-newest", "free-ct": "ct-admm-free"}
 FIELDS = ("sync", "delay_s", "loss", "converged", "error", "time_to_claim_s", "stop_s", "rounds", "bytes_sent",
           "frames_sent", "verdict", "wall_s", "cpu_s")
 _CACHE: dict[tuple[int, int], Any] = {}
@@ -73,8 +76,9 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
 
     row: dict[str, Any] = {"sync": cell["sync"], "delay_s": cell["delay_s"], "loss": cell["loss"]}
     try:
-        if cell["sync"] == "free":
-            out = simulate_free(spec, period=cell["period"], on_tick=on_tick, max_virtual_s=cell["max_s"])
+        if cell["sync"] != "lockstep":
+            out = simulate_free(spec, period=cell["period"], on_tick=on_tick, max_virtual_s=cell["max_s"],
+                                algorithm=MODES[cell["sync"]], params={"max_ticks": int(cell["max_s"] / cell["period"])})
         else:
             out = simulate_fleet(spec, max_virtual_s=cell["max_s"])
     except FleetFailure as exc:
@@ -103,9 +107,12 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
 def cells(delays: list[float], losses: list[float], syncs: list[str], *, seed: int = 0, robots: int = 3,
           period: float = 0.01, max_s: float = 60.0) -> list[dict[str, Any]]:
     """Every run of the grid, slowest first (free runs at high delay) so the pool ends together."""
+    unknown = [m for m in syncs if m not in MODES]
+    if unknown:
+        raise ValueError(f"unknown sweep mode {unknown[0]!r}; choose from {', '.join(MODES)}")
     out = [{"sync": s, "delay_s": d, "loss": p, "seed": seed, "robots": robots, "period": period, "max_s": max_s}
            for s in syncs for d in delays for p in losses]
-    return sorted(out, key=lambda c: (c["sync"] != "free", -c["delay_s"], -c["loss"]))
+    return sorted(out, key=lambda c: (c["sync"] == "lockstep", -c["delay_s"], -c["loss"]))
 
 
 def run_sweep(grid: list[dict[str, Any]], *, jobs: int | None = None,
@@ -181,12 +188,13 @@ def summary(rows: list[dict[str, Any]]) -> Any:
     """A rich table: one line per run."""
     from rich.table import Table
 
-    t = Table(title="sweep: error vs exact and time to 1e-3 (robots' virtual seconds)")
-    for name in ("sync", "delay", "loss", "ok", "error", "to 1e-3", "stop", "rounds", "MB"):
+    t = Table(title="sweep: error vs exact and time to 1e-3 (robots' virtual seconds); agree = the verdict "
+                "(robots agree, connected) -- a biased fleet can agree on a wrong answer")
+    for name in ("mode", "delay", "loss", "agree", "error", "to 1e-3", "stop", "rounds", "MB"):
         t.add_column(name, justify="right", no_wrap=True)
     for r in rows:
         to = r["time_to_claim_s"]
-        t.add_row(r["sync"][:4], f"{r['delay_s'] * 1e3:g}ms", f"{r['loss']:g}", "yes" if r["converged"] else "NO",
-                  f"{r['error']:.0e}", "-" if not np.isfinite(to) else f"{to:.2f}s", f"{r['stop_s']:.2f}s",
+        t.add_row(r["sync"], f"{r['delay_s'] * 1e3:g}ms", f"{r['loss']:g}", "yes" if r["converged"] else "NO",
+                  "div." if not np.isfinite(r["error"]) else f"{r['error']:.0e}", "-" if not np.isfinite(to) else f"{to:.2f}s", "-" if not np.isfinite(r["stop_s"]) else f"{r['stop_s']:.2f}s",
                   str(r["rounds"]), f"{r['bytes_sent'] / 1e6:.2f}")
     return t

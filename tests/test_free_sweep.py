@@ -40,3 +40,20 @@ def test_bad_sweep_input_exits_2_naming_the_flag(argv, flag, tmp_path, capsys):
     err = capsys.readouterr().err
     assert exc.value.code == 2 and flag in err and "Traceback" not in err
     assert not (tmp_path / "bad").exists()
+
+
+def test_the_newest_value_modes_are_measured_not_trusted():
+    """free-newest / free-ct rows are kept with what happened (diverged, or biased yet agreeing),
+    and their error against the exact answer is what tells."""
+    from launcher.sweep import run_cell
+
+    grid = cells([0.0], [0.3], ["free-newest", "free-ct"], max_s=20.0)
+    rows = {r["sync"]: r for r in (run_cell(c) for c in grid)}
+    assert not rows["free-newest"]["converged"] and "exploding" in rows["free-newest"]["verdict"]
+    ct = rows["free-ct"]
+    assert ct["error"] > 0.05  # biased by the held samples: far outside the 1e-3 claim
+
+
+def test_unknown_mode_is_refused():
+    with pytest.raises(ValueError, match="unknown sweep mode 'fast'"):
+        cells([0.0], [0.0], ["fast"])
