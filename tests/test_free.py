@@ -188,3 +188,13 @@ def test_a_silent_neighbour_is_no_evidence_of_calm(default_run):
     out = simulate_free(dataclasses.replace(spec, faults=LinkFaults(robot_loss=((2, 1.0),))), max_virtual_s=3.0)
     assert not any(r["converged"] for r in out.robots)
     assert {r["stopped"] for r in out.robots} == {"max_wall"}
+
+
+def test_free_rows_have_the_session_schema(default_run):
+    from protocol.session import ROW_KEYS, row_from_file, row_to_file
+
+    _, spec, _ = default_run
+    out = simulate_free(spec, max_virtual_s=30.0)
+    for row in out.robots:
+        assert set(ROW_KEYS) <= set(row)
+        assert row_from_file(row_to_file(row))["x"] == row["x"]
