@@ -104,7 +104,7 @@ def test_new_faults_survive_the_fleet_file(default_run):
 def test_partition_two_to_five_seconds_lockstep_and_free_both_reach_the_exact_answer():
     """Robots {0,1} cut from {2,3} from 2 s to 5 s (shorter than dead_after 6 s): lockstep waits,
     free robots keep ticking on stale edge values; both end at the exact answer."""
-    world, spec, central = make_run(robots=4, seed=5)
+    world, spec, central = make_run(robots=4, seed=5, points=12)  # 12 points: the test in seconds
     cut = dataclasses.replace(spec, faults=LinkFaults(delay=0.01, partitions=(((0, 1), (2, 3), 2.0, 5.0),)))
     lock = simulate_fleet(cut)
     assert all(r["converged"] for r in lock.robots) and max_function_error(spec, central, lock.robots) < 1e-3
