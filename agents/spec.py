@@ -301,39 +301,13 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
             keep_trace=False,
         )
     features = spec.basis.features(me.points)
+    common = {"params": spec.algorithm_params, "C": spec.C, "keep_trace": keep_trace}
     if spec.algorithm == "newton":
-        return DistributedNewton(
-            robot_id,
-            me.neighbours,
-            features,
-            me.labels,
-            graph=spec.graph,
-            params=spec.algorithm_params,
-            C=spec.C,
-            keep_trace=keep_trace,
-        )
+        return DistributedNewton(robot_id, me.neighbours, features, me.labels, graph=spec.graph, **common)
     if spec.algorithm == "ct-admm":
-        return ContinuousTimeADMM(
-            robot_id,
-            me.neighbours,
-            features,
-            me.labels,
-            n_robots=spec.n_robots,
-            params=spec.algorithm_params,
-            C=spec.C,
-            keep_trace=keep_trace,
-        )
-    return ConsensusADMM(
-        robot_id,
-        me.neighbours,
-        features,
-        me.labels,
-        n_robots=spec.n_robots,
-        params=spec.algorithm_params,
-        C=spec.C,
-        neighbour_degrees=degrees,
-        keep_trace=keep_trace,
-    )
+        return ContinuousTimeADMM(robot_id, me.neighbours, features, me.labels, n_robots=spec.n_robots, **common)
+    return ConsensusADMM(robot_id, me.neighbours, features, me.labels, n_robots=spec.n_robots,
+                         neighbour_degrees=degrees, **common)
 
 
 def restore_core(spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]) -> Core:

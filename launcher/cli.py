@@ -25,9 +25,9 @@ from typing import Any, NoReturn
 import numpy as np
 
 from launcher import scenario, topology
-from launcher.options import PAPER_GRID, PAPER_SIGMA, Options, add_arguments, options_from_args
+from launcher.options import PAPER_GRID, PAPER_SIGMA, ROBOT_ID_ENV, Options, add_arguments, options_from_args
 from launcher.world import World, build_world
-from protocol.links import LinkFaults, parse_duration
+from protocol.links import LinkFaults
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 1
@@ -488,7 +488,6 @@ def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, 
     return solve_central(spec.basis, pts, labels, spec.C)
 
 
-ROBOT_ID_ENV = "SHAPEFLEET_ROBOT_ID"
 
 
 def _tls_files(args: argparse.Namespace) -> Any:
@@ -585,8 +584,6 @@ def cmd_router(args: argparse.Namespace) -> int:
 
     from launcher.router import run_router
 
-    if not 1 <= args.port <= 65535:
-        raise UsageError(f"--port: {args.port} is not a TCP port (1-65535)")
     tls = _tls_files(args)
     if tls is not None and tls.cert is None:
         raise UsageError("--tls-cert/--tls-key: a TLS router needs its certificate and private key")
@@ -621,8 +618,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
     from agents.problem import solve_central
     from launcher import deploy
 
+    wait_s = args.wait  # seconds (the options table parsed the duration)
     try:
-        wait_s = parse_duration(args.wait, flag="--wait")
         prepared = deploy.load_prepared(args.fleet_file, args.world)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
@@ -678,42 +675,16 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text)
         add_arguments(p, name)
         p.set_defaults(func=func)
-    p = sub.add_parser("robot", help="run one robot process from a fleet file")
-    p.add_argument("--fleet-file", type=Path, required=True, help="the fleet file written by launch or prepare")
-    p.add_argument("--id", type=int, help=f"this robot's id (default: ${ROBOT_ID_ENV}, else the robot a per-robot fleet file is for)")
-    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="router endpoint, e.g. tcp/127.0.0.1:7447 or tls/10.0.0.1:7447")
-    p.add_argument("--checkpoint", type=Path, help="checkpoint file: written every round, resumed from on restart")
-    p.add_argument("--result", help="write the result JSON here, {id} is replaced by the robot id (default: stdout)")
-    p.add_argument("--allow-remote", action="store_true", help="accept non-loopback endpoints (multi-host deployments)")
-    _add_tls_args(p, node="robot")
-    p.set_defaults(func=cmd_robot)
-    p = sub.add_parser("router", help="a Zenoh router (loopback unless --allow-remote)")
-    p.add_argument("--port", type=int, default=7447, help="TCP port (default 7447)")
-    p.add_argument("--host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
-    p.add_argument("--ready-file", type=Path, help="written once the router listens")
-    p.add_argument("--allow-remote", action="store_true", help="listen on a non-loopback address (multi-host deployments)")
-    _add_tls_args(p, node="router")
-    p.set_defaults(func=cmd_router)
-    p = sub.add_parser("collect", help="gather robot result files into result.json and pictures")
-    p.add_argument("--fleet-file", type=Path, required=True, help="the full fleet.json written by prepare (world.json beside it)")
-    p.add_argument("--results", type=Path, required=True, metavar="DIR", help="folder of the robots' result files robot-<id>.json")
-    p.add_argument("--world", type=Path, help="world file (default: world.json beside the fleet file, if there)")
-    p.add_argument("--wait", default="0", metavar="DURATION", help="wait up to this long for every robot's result, e.g. 600s (default: do not wait)")
-    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/)")
-    p.set_defaults(func=cmd_collect)
+    commands = (
+        ("robot", "run one robot process from a fleet file", cmd_robot),
+        ("router", "a Zenoh router (loopback unless --allow-remote)", cmd_router),
+        ("collect", "gather robot result files into result.json and pictures", cmd_collect),
+    )
+    for name, help_text, func in commands:
+        p = sub.add_parser(name, help=help_text)
+        add_arguments(p, name)
+        p.set_defaults(func=func)
     return parser
-
-
-def _add_tls_args(p: argparse.ArgumentParser, *, node: str) -> None:
-    g = p.add_argument_group("TLS (tls/ endpoints, docs/deploy.md)")
-    if node == "router":
-        g.add_argument("--tls-cert", type=Path, metavar="PEM", help="the router's certificate (naming the address robots connect to)")
-        g.add_argument("--tls-key", type=Path, metavar="PEM", help="the router's private key")
-        g.add_argument("--tls-ca", type=Path, metavar="PEM", help="the fleet's CA: robots must show a certificate it signed (mutual TLS)")
-    else:
-        g.add_argument("--tls-ca", type=Path, metavar="PEM", help="the fleet's CA, to verify the router")
-        g.add_argument("--tls-cert", type=Path, metavar="PEM", help="this robot's certificate (for a mutual-TLS router)")
-        g.add_argument("--tls-key", type=Path, metavar="PEM", help="this robot's private key")
 
 
 def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:

@@ -23,24 +23,33 @@ Append one :class:`Option` to :data:`OPTIONS`, next to its neighbours in the hel
 * ``name``: the long flag without dashes; also the TOML key (in ``[section]``; ``section=None``:
   not in scenario files). ``dest`` defaults to the name with ``_`` (``max-grid-points`` ->
   ``max_grid_points``): the attribute on the argparse namespace and on :class:`Options`.
-* ``kind``: how text becomes a value (INT, FLOAT, STR, PATH, DURATION, PROBABILITY, FLAG, LIST)
+* ``kind``: how text becomes a value (INT, FLOAT, STR, PATH (text), FILE (a pathlib.Path),
+  DURATION ("20ms" -> 0.02), PROBABILITY ("30%" -> 0.3), FLAG (store_true), LIST (repeatable))
   and which TOML types the key accepts.
 * ``default``: the typed default (``None``: not given, something else decides -- say what in
   ``help``; ``FROM_PARAMS``: the default of the algorithm parameter it feeds, so that number is
   written only in the agents' *Params class). Help gets "(default ...)" appended automatically.
-* ``check``: ``value -> None``, raises ValueError with a message *without* the flag name; the
-  callers prefix ``--name:`` or ``file: [section] name:``. Use the helpers below (positive,
-  at_least, ...).
-* ``commands``: the subcommands that have the flag (``SCENARIO_COMMANDS``, ``FLEET_COMMANDS``...).
-* ``target``: where the value lands: ``"options"`` (default when it has a section: a field of
-  :class:`Options`), ``"faults.<field>"`` (LinkFaults), ``"timing.<field>"`` (Timing), or None
-  (only on the argparse namespace; the command handler reads it).
+* ``check``: ``value -> None``, raises ValueError with a message saying what is wrong; the callers
+  prefix ``--name:`` (CLI, build_world) or ``file: [section] name:`` (TOML), and strip a leading
+  ``--name:`` the check may carry itself (so scenario.parse_grid serves as it is). ``choices``: a
+  closed set of values (also shown by --help).
+* ``commands``: the subcommands that have the flag (``SCENARIO_COMMANDS``, ``FLEET_COMMANDS``,
+  ``CRASH_COMMANDS``, ``NODE_COMMANDS`` or your own tuple).
+* ``target``: where the value lands: ``"options"`` (the default: a field of :class:`Options`, so
+  ``build_world`` sees ``opts.<dest>``), ``"faults.<field>"`` (LinkFaults), ``"timing.<field>"``
+  (Timing), or None (only on the argparse namespace; the command handler reads ``args.<dest>``).
 * ``feeds``: ``{algorithm: parameter}``: the field of that algorithm's *Params class the value
-  becomes (a None value: the parameter's own default). Parameters no option feeds keep their
-  class default; values derived from the world (the graph's diameter) are added by build_world.
+  becomes in the fleet file (a None value: the parameter's own default). The field must exist
+  (add it to the *Params class first). Parameters no option feeds keep their class default;
+  values derived from the world (the graph's diameter) are added by build_world.
+* ``group``: the --help section; ``metavar``, ``required``, ``exclusive`` (options sharing the name
+  exclude each other, on the command line and in one TOML file) as in argparse.
 
 tests/test_options.py checks that the CLI, the TOML keys, Options and the params agree with the
-table, and that each FROM_PARAMS default equals every *Params default it feeds.
+table, and that each FROM_PARAMS default equals every *Params default it feeds. It needs a valid,
+non-default sample value of each option: INT, FLOAT, DURATION, PROBABILITY, FLAG and PATH get one
+by their kind, an option with choices its last; a STR or LIST option with a check needs an entry
+in its ``_TEXT``.
 """
 
 from __future__ import annotations
@@ -50,9 +59,13 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from agents.spec import ALGORITHMS, PARAMS_CLASSES, Timing
+from launcher.scenario import DEFAULT_SHAPE, parse_bounds, parse_grid, shape_names
+from launcher.topology import TOPOLOGIES
+from protocol.keys import validate_fleet_id
 from protocol.links import (
     DELAY_DISTRIBUTIONS,
     LinkFaults,
@@ -64,10 +77,10 @@ from protocol.links import (
 )
 
 # -- kinds: text -> value, and the TOML types a key accepts ---------------------------------------
-INT, FLOAT, STR, PATH, DURATION, PROBABILITY, FLAG, LIST = (
-    "int", "float", "str", "path", "duration", "probability", "flag", "list",
+INT, FLOAT, STR, PATH, FILE, DURATION, PROBABILITY, FLAG, LIST = (
+    "int", "float", "str", "path", "file", "duration", "probability", "flag", "list",
 )
-KINDS = (INT, FLOAT, STR, PATH, DURATION, PROBABILITY, FLAG, LIST)
+KINDS = (INT, FLOAT, STR, PATH, FILE, DURATION, PROBABILITY, FLAG, LIST)  # PATH: text; FILE: a pathlib.Path
 
 #: the paper's fixed grid and kernel width (``--preset paper``; admm/ct-admm without --grid/--sigma)
 PAPER_GRID = "5x3"
@@ -79,6 +92,9 @@ ALGORITHM_CHOICES = ("auto", *ALGORITHMS)
 SCENARIO_COMMANDS = ("simulate", "launch", "central", "prepare", "gridstudy")
 FAULT_COMMANDS = ("simulate", "launch", "prepare")
 FLEET_COMMANDS = ("launch", "prepare")
+NODE_COMMANDS = ("robot", "router")  # the processes of a fleet on other hosts
+#: the robot id of a `shapefleet robot` process when --id is not given
+ROBOT_ID_ENV = "SHAPEFLEET_ROBOT_ID"
 CRASH_COMMANDS = ("simulate", "launch")
 
 
@@ -130,8 +146,8 @@ def _probability(text: str) -> float:
 
 
 _PARSE: dict[str, Callable[[str], Any]] = {
-    INT: parse_int, FLOAT: parse_float, STR: str, PATH: str, DURATION: _duration, PROBABILITY: _probability,
-    LIST: str,
+    INT: parse_int, FLOAT: parse_float, STR: str, PATH: str, FILE: Path, DURATION: _duration,
+    PROBABILITY: _probability, LIST: str,
 }
 
 
@@ -165,34 +181,9 @@ def _max_grid_points(value: int) -> None:
         raise ValueError(f"{value} does not fit a frame (at most {MAX_DIM - 2})")
 
 
-def _grid(value: str) -> None:
-    from launcher.scenario import parse_grid
-
-    parse_grid(value)
-
-
-def _grid_bounds(value: str) -> None:
-    from launcher.scenario import parse_bounds
-
-    parse_bounds(value)
-
-
 def _preset(value: str) -> None:
     if value not in PRESETS:
         raise ValueError(f"{value!r} is not a preset (choose from {', '.join(PRESETS)})")
-
-
-def _topology(value: str) -> None:
-    from launcher.topology import TOPOLOGIES
-
-    if value not in TOPOLOGIES:
-        raise ValueError(f"{value!r} is not one of {', '.join(TOPOLOGIES)}")
-
-
-def _fleet_id(value: str) -> None:
-    from protocol.keys import validate_fleet_id
-
-    validate_fleet_id(value)
 
 
 def _crash(value: str) -> None:
@@ -309,7 +300,7 @@ OPTIONS: tuple[Option, ...] = (
     # -- every scenario command ------------------------------------------------------------
     Option("config", PATH, None, "scenario file (docs/scenario-file.md); flags given here override it",
            metavar="TOML", target=None),
-    Option("shape", STR, "blob", "built-in shape: blob, bean, crescent, cross, ellipse, star",
+    Option("shape", STR, DEFAULT_SHAPE, f"built-in shape: {', '.join(shape_names())}",
            group=WORLD, section="world", exclusive="source"),
     Option("shape-file", PATH, None, "object outline from a CSV file with header x,y", group=WORLD,
            section="world", metavar="CSV", exclusive="source"),
@@ -328,9 +319,9 @@ OPTIONS: tuple[Option, ...] = (
            section="world"),
     Option("grid", STR, None, f"fixed grid of NXxNY points (default: automatic; the paper's is {PAPER_GRID}). "
            "With --algorithm autogrid: the start grid the fleet refines", group=MODEL, section="model",
-           metavar="NXxNY", check=_grid),
+           metavar="NXxNY", check=parse_grid),
     Option("grid-bounds", STR, None, "region of the --grid points (default: the data's bounding box, padded)",
-           group=MODEL, section="model", metavar="X0,X1,Y0,Y1", check=_grid_bounds),
+           group=MODEL, section="model", metavar="X0,X1,Y0,Y1", check=parse_bounds),
     Option("sigma", FLOAT, None, f"Gaussian kernel width (default: chosen by the fleet; the paper's is "
            f"{PAPER_SIGMA:g}). With --algorithm autogrid: kept fixed", group=MODEL, section="model",
            check=positive),
@@ -341,8 +332,8 @@ OPTIONS: tuple[Option, ...] = (
            metavar="NAME", check=_preset),
     Option("max-grid-points", INT, FROM_PARAMS, "autogrid: budget of grid points, at least 4; frames grow with it",
            group=MODEL, section="model", metavar="N", check=_max_grid_points, feeds={"autogrid": "max_points"}),
-    Option("topology", STR, "complete", "complete | ring | line | geometric", group=ALGORITHM,
-           section="algorithm", check=_topology),
+    Option("topology", STR, "complete", " | ".join(TOPOLOGIES), group=ALGORITHM, section="algorithm",
+           choices=TOPOLOGIES, metavar="TOPOLOGY"),
     Option("comm-range", FLOAT, None, f"link robots within this distance (geometric topology; default 12 "
            f"{_FOLLOWS})", group=ALGORITHM, section="algorithm"),
     Option("algorithm", STR, "auto", "auto (default): admm when --grid and --sigma are given, else autogrid; "
@@ -422,7 +413,7 @@ OPTIONS: tuple[Option, ...] = (
            group=FAULTS, commands=FAULT_COMMANDS, section="faults", check=positive, target="timing.retransmit_s"),
     # -- the fleet on the network ---------------------------------------------------------
     Option("fleet-id", STR, None, "fleet id on the network (default: unique per run)", group=FLEET,
-           commands=FLEET_COMMANDS, section="fleet", check=_fleet_id),
+           commands=FLEET_COMMANDS, section="fleet", check=validate_fleet_id),
     Option("dead-after", DURATION, _T.dead_after_s, "a robot gives up a neighbour silent this long, also at start",
            group=FLEET, commands=("simulate", *FLEET_COMMANDS), section="fleet", metavar="DURATION", check=positive,
            target="timing.dead_after_s"),
@@ -443,7 +434,36 @@ OPTIONS: tuple[Option, ...] = (
            check=at_least(1), target=None),
     # -- gridstudy ----------------------------------------------------------------------
     Option("bad-grid", STR, None, "the coarse grid, shifted by half a cell (default 4x2)", commands=("gridstudy",),
-           metavar="NXxNY", check=_grid, target=None),
+           metavar="NXxNY", check=parse_grid, target=None),
+    # -- robot, router, collect: the processes of a fleet on several hosts (docs/deploy.md) -----
+    Option("fleet-file", FILE, None, "the fleet file (robot: written by launch or prepare; collect: the full "
+           "fleet.json written by prepare, world.json beside it)", commands=("robot", "collect"), target=None,
+           required=True),
+    Option("id", INT, None, f"this robot's id (default: ${ROBOT_ID_ENV}, else the robot a per-robot fleet file is "
+           "for)", commands=("robot",), target=None),
+    Option("connect", LIST, None, "router endpoint, e.g. tcp/127.0.0.1:7447 or tls/10.0.0.1:7447",
+           commands=("robot",), metavar="ENDPOINT", target=None, required=True),
+    Option("checkpoint", FILE, None, "checkpoint file: written every round, resumed from on restart",
+           commands=("robot",), target=None),
+    Option("result", STR, None, "write the result JSON here, {id} is replaced by the robot id (default: stdout)",
+           commands=("robot",), target=None, show_default=False),
+    Option("port", INT, 7447, "TCP port", commands=("router",), check=_port, target=None),
+    Option("host", STR, "127.0.0.1", "listen address", commands=("router",), target=None),
+    Option("ready-file", FILE, None, "written once the router listens", commands=("router",), target=None),
+    Option("allow-remote", FLAG, False, "accept non-loopback endpoints / listen on a non-loopback address "
+           "(multi-host deployments)", commands=NODE_COMMANDS, target=None, show_default=False),
+    Option("tls-ca", FILE, None, "the fleet's CA (robot: to verify the router; router: robots must show a "
+           "certificate it signed, mutual TLS)", group=TLS, commands=NODE_COMMANDS, metavar="PEM", target=None),
+    Option("tls-cert", FILE, None, "this node's certificate (router: naming the address robots connect to; "
+           "robot: for a mutual-TLS router)", group=TLS, commands=NODE_COMMANDS, metavar="PEM", target=None),
+    Option("tls-key", FILE, None, "this node's private key", group=TLS, commands=NODE_COMMANDS, metavar="PEM",
+           target=None),
+    Option("results", FILE, None, "folder of the robots' result files robot-<id>.json", commands=("collect",),
+           metavar="DIR", target=None, required=True),
+    Option("world", FILE, None, "world file (default: world.json beside the fleet file, if there)",
+           commands=("collect",), target=None),
+    Option("wait", DURATION, 0.0, "wait up to this long for every robot's result, e.g. 600s (0: do not wait)",
+           commands=("collect",), metavar="DURATION", target=None),
 )
 
 BY_NAME: dict[str, Option] = {o.name: o for o in OPTIONS}
@@ -497,7 +517,8 @@ def add_arguments(parser: argparse.ArgumentParser, command: str) -> None:
         if option.kind == FLAG:
             target.add_argument(option.flag, action="store_true", default=option.default, **kw)
         elif option.kind == LIST:
-            target.add_argument(option.flag, action="append", default=[], type=_argparse_type(option), **kw)
+            default = None if option.required else []  # argparse appends to a default list
+            target.add_argument(option.flag, action="append", default=default, type=_argparse_type(option), **kw)
         else:
             choices = {"choices": option.choices} if option.choices else {}
             target.add_argument(option.flag, type=_argparse_type(option), default=option.default, **choices, **kw)
@@ -553,8 +574,8 @@ def toml_value(option: Option, value: Any) -> Any:
 
 
 # -- (c) Options, and the algorithms' typed parameters ---------------------------------------------
-_PY_TYPES = {INT: int, FLOAT: float, STR: str, PATH: str, DURATION: float, PROBABILITY: float, FLAG: bool,
-             LIST: list}
+_PY_TYPES = {INT: int, FLOAT: float, STR: str, PATH: str, FILE: Path, DURATION: float, PROBABILITY: float,
+             FLAG: bool, LIST: list}
 
 
 def _options_fields() -> list[tuple[str, Any, Any]]:

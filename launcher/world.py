@@ -112,37 +112,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             "by itself); give --grid too, or --preset paper"
         )
 
-    radio = opts.topology == "geometric"
-    if opts.data is not None:
-        shape = None
-        robots = scenario.load_data_csv(opts.data)
-        ids = [r.id for r in robots]
-        gaps = sorted(set(range(max(ids) + 1)) - set(ids))
-        if gaps:
-            raise scenario.ScenarioError(
-                f"{opts.data}: robot {gaps[0]} has no data (robot ids must run 0..{max(ids)} without gaps; "
-                f"the file has {', '.join(map(str, ids))})"
-            )
-        length = scenario.characteristic_length(points=np.vstack([r.points for r in robots]))
-        lengths = scenario.world_lengths(length, "data diagonal", comm_range=opts.comm_range, lidar=False, radio=radio)
-    else:
-        shape = scenario.load_polygon_csv(opts.shape_file) if opts.shape_file else scenario.get_shape(opts.shape)
-        lengths = scenario.world_lengths(
-            scenario.characteristic_length(shape), "outline diagonal", standoff=opts.standoff,
-            lidar_range=opts.lidar_range, offset=opts.offset, noise=opts.noise, comm_range=opts.comm_range, radio=radio,
-        )
-        assert lengths.standoff is not None and lengths.lidar_range is not None
-        assert lengths.offset is not None and lengths.noise is not None
-        poses = scenario.place_robots(shape, opts.robots, standoff=lengths.standoff)
-        robots = scenario.sample_robot_data(
-            shape,
-            poses,
-            points_per_robot=opts.points,
-            rng=opts.seed,
-            max_range=lengths.lidar_range,
-            range_noise=lengths.noise,
-            offset=lengths.offset,
-        )
+    shape, robots, lengths = _robots_and_lengths(opts)
     points = np.vstack([r.points for r in robots])
     bounds = given_bounds if given_bounds is not None else scenario.default_bounds(points, scale=lengths.scale)
     grid = np.zeros((0, 2)) if grid_shape is None else scenario.make_grid(*grid_shape, bounds)
@@ -186,6 +156,42 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             "use a coarser --grid or --algorithm admm"
         )
     return World(shape, robots, grid, bounds, graph, lengths), spec
+
+
+def _robots_and_lengths(opts: Options) -> tuple[Polygon | None, list[scenario.RobotData], scenario.WorldLengths]:
+    """Each robot's data (from --data, or LiDAR on the shape) and the world's lengths used."""
+    radio = opts.topology == "geometric"
+    if opts.data is not None:
+        shape = None
+        robots = scenario.load_data_csv(opts.data)
+        ids = [r.id for r in robots]
+        gaps = sorted(set(range(max(ids) + 1)) - set(ids))
+        if gaps:
+            raise scenario.ScenarioError(
+                f"{opts.data}: robot {gaps[0]} has no data (robot ids must run 0..{max(ids)} without gaps; "
+                f"the file has {', '.join(map(str, ids))})"
+            )
+        length = scenario.characteristic_length(points=np.vstack([r.points for r in robots]))
+        lengths = scenario.world_lengths(length, "data diagonal", comm_range=opts.comm_range, lidar=False, radio=radio)
+    else:
+        shape = scenario.load_polygon_csv(opts.shape_file) if opts.shape_file else scenario.get_shape(opts.shape)
+        lengths = scenario.world_lengths(
+            scenario.characteristic_length(shape), "outline diagonal", standoff=opts.standoff,
+            lidar_range=opts.lidar_range, offset=opts.offset, noise=opts.noise, comm_range=opts.comm_range, radio=radio,
+        )
+        assert lengths.standoff is not None and lengths.lidar_range is not None
+        assert lengths.offset is not None and lengths.noise is not None
+        poses = scenario.place_robots(shape, opts.robots, standoff=lengths.standoff)
+        robots = scenario.sample_robot_data(
+            shape,
+            poses,
+            points_per_robot=opts.points,
+            rng=opts.seed,
+            max_range=lengths.lidar_range,
+            range_noise=lengths.noise,
+            offset=lengths.offset,
+        )
+    return shape, robots, lengths
 
 
 def _check_autogrid(opts: Options, spec: FleetSpec) -> None:

@@ -14,6 +14,7 @@ from launcher import config
 from launcher.cli import _options, _subparser, build_parser, parse_args
 from launcher.options import (
     DURATION,
+    FILE,
     FLAG,
     FLOAT,
     INT,
@@ -33,11 +34,12 @@ from launcher.scenario import ScenarioError
 from launcher.world import build_world
 from protocol.links import LinkFaults
 
-TABLE_COMMANDS = sorted({c for o in OPTIONS for c in o.commands} - {"collect"})
+TABLE_COMMANDS = sorted({c for o in OPTIONS for c in o.commands})
 
 #: a valid non-default value of each option, as a command-line word and as a TOML value
 _TEXT = {"shape": "bean", "grid": "4x4", "grid-bounds": "0,1,0,1", "preset": "paper", "topology": "ring",
          "fleet-id": "opt-test", "bad-grid": "3x2", "algorithm": "admm", "crash": "1@4",
+         "connect": "tcp/127.0.0.1:7447",
          # issue 13 (free sync, fault models)
          "sync": "free", "delay-dist": "pareto", "link-loss": "0-1:0.5", "robot-loss": "2:0.3",
          "partition": "0,1/2,3@2s-5s", "delays": "0ms,5ms", "losses": "0,0.2", "syncs": "free"}
@@ -53,8 +55,16 @@ def sample(option: Option) -> tuple[list[str], object]:
     if option.kind in _BY_KIND:
         text, toml = _BY_KIND[option.kind]
         return [option.flag, text], toml
-    text = _TEXT.get(option.name, "/tmp/x.csv" if option.kind == PATH else "abc")
+    if option.name not in _TEXT and option.choices:
+        text = next(c for c in reversed(option.choices) if c != option.default)
+        return [option.flag, text], text
+    text = _TEXT.get(option.name, "/tmp/x.csv" if option.kind in (PATH, FILE) else "abc")
     return [option.flag, text], text
+
+
+def required(command: str, but: Option | None = None) -> list[str]:
+    """Words for the required flags of ``command`` (robot: --fleet-file, --connect), except ``but``."""
+    return [w for o in options_of(command) if o.required and o is not but for w in sample(o)[0]]
 
 
 def _long_flags(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
@@ -69,7 +79,7 @@ def test_each_command_has_exactly_the_table_flags_with_their_dest_and_default(co
     for option in options_of(command):
         action = actions[option.name]
         assert action.dest == option.dest
-        assert action.default == ([] if option.kind == LIST else option.default), option.name
+        assert action.default == ([] if option.kind == LIST and not option.required else option.default), option.name
         assert action.help and action.help.startswith(option.help.split(" (default")[0][:20])
 
 
@@ -77,7 +87,7 @@ def test_each_command_has_exactly_the_table_flags_with_their_dest_and_default(co
 def test_a_flag_and_its_toml_key_give_the_same_value(option, tmp_path):
     command = next(c for c in option.commands if c in TABLE_COMMANDS)
     words, toml = sample(option)
-    from_flag = getattr(parse_args([command, *words]), option.dest)
+    from_flag = getattr(parse_args([command, *required(command, option), *words]), option.dest)
     assert from_flag != option.default, "the sample must differ from the default"
     if option.section is None:
         return
