@@ -303,6 +303,8 @@ def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
 
     from launcher.simulate import FleetFailure, simulate_fleet
 
+    if getattr(args, "sync", "lockstep") == "free":
+        return _simulate_free(args)
     crashes = _crash_plan(args)
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "simulate", check=_crash_check(crashes))
@@ -347,6 +349,84 @@ def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
 def cmd_launch(args: argparse.Namespace) -> int:
     """The Zenoh fleet: a router and one process per robot on this machine."""
     return _say(run_launch(args), quiet=False)
+
+
+def _free_check(args: argparse.Namespace) -> Callable[[Any], None]:
+    """What --sync free refuses before anything is written: autogrid (its fleet-wide phases are
+    lockstep), another fixed-grid algorithm, crash injection (a free robot has no checkpoint)."""
+
+    def check(spec: Any) -> None:
+        if args.crash:
+            raise UsageError("--crash: crash injection is lockstep only (a free robot has no checkpoint to resume)")
+        if spec.algorithm != "admm":
+            raise UsageError(f"--sync free: runs the relaxed ADMM on a fixed grid, not {spec.algorithm}; give "
+                             "--preset paper (or --grid and --sigma) and --algorithm admm or auto")
+
+    return check
+
+
+def _simulate_free(args: argparse.Namespace) -> int:
+    """`simulate --sync free`: every robot on its own virtual clock (protocol/free.py), no waiting."""
+    from rich.console import Console
+
+    from launcher.simulate import FleetFailure, simulate_free
+
+    t0 = time.perf_counter()
+    out, world, spec, central = _prepare(args, "simulate", check=_free_check(args))
+    if not central.solved:
+        _infeasible(out, world, spec, central)
+    with Console(stderr=True).status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms (relaxed ADMM)"):
+        try:
+            outcome = simulate_free(spec, period=args.period)
+        except FleetFailure as exc:
+            print(f"shapefleet: the run failed: {exc}", file=sys.stderr)
+            return EXIT_NOT_CONVERGED
+    spec = dataclasses.replace(spec, algorithm="admm")
+    extra = {"fleet": spec.fleet, "topology": args.topology, "sync": "free", "period_s": args.period,
+             "free_algorithm": "radmm", "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults),
+             "links": outcome.link_stats}
+    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
+    return _exit_code(result)
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """`shapefleet sweep`: the robustness map (launcher/sweep.py); exit 0 when every run finished
+    within 1e-3 of the exact answer in agreement, 1 otherwise (the table says which)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from launcher import sweep
+    from protocol.links import parse_duration, parse_probability
+
+    delays = sweep.parse_list(args.delays, lambda t: parse_duration(t, flag="--delays"), "--delays")
+    losses = sweep.parse_list(args.losses, lambda t: parse_probability(t, flag="--losses"), "--losses")
+    syncs = [m.strip() for m in args.syncs.split(",") if m.strip()]
+    out = _out_dir(args, "sweep")
+    grid = sweep.cells(delays, losses, syncs, period=args.period)
+    t0 = time.perf_counter()
+    with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[last]}"),
+                  TimeElapsedColumn(), console=Console(stderr=True)) as bar:
+        task = bar.add_task("sweep", total=len(grid), last="")
+
+        def progress(row: dict[str, Any]) -> None:
+            bar.update(task, advance=1, last=f"{row['sync']} {row['delay_s'] * 1e3:g} ms loss {row['loss']:g}")
+
+        rows = sweep.run_sweep(grid, jobs=args.jobs, progress=progress)
+    wall = time.perf_counter() - t0
+    sweep.write_csv(out / "sweep.csv", rows)
+    sweep.plot(out / "robustness.png", rows, delays, losses, syncs)
+    console = Console()
+    console.print(sweep.summary(rows))
+    bad = [r for r in rows if not (r["converged"] and r["error"] < sweep.CLAIM)]
+    jobs = args.jobs or os.cpu_count() or 1
+    cpu = sum(r["cpu_s"] for r in rows)
+    console.print(f"{len(rows)} runs in {wall:.0f} s wall on {jobs} processes ({cpu:.0f} s of CPU: "
+                  f"{cpu / jobs:.0f} s on {jobs} idle cores; the difference is other load); "
+                  f"wrote {out}/: sweep.csv, robustness.png")
+    if bad:
+        print(f"shapefleet: {len(bad)} runs did not end in agreement within {sweep.CLAIM:g} of the exact answer "
+              "(see sweep.csv)", file=sys.stderr)
+    return 0 if not bad else EXIT_NOT_CONVERGED
 
 
 def _crash_plan(args: argparse.Namespace) -> list[Any]:
@@ -656,6 +736,7 @@ def build_parser() -> argparse.ArgumentParser:
         ("central", "solve the same problem with all data in one place", cmd_central),
         ("prepare", "write the fleet files for robots on other hosts (one per robot: its own data)", cmd_prepare),
         ("gridstudy", "the paper's Fig. 5: a coarse, shifted grid leaves the hard margin infeasible", cmd_gridstudy),
+        ("sweep", "delay x loss x sync grid of in-process runs: sweep.csv, robustness.png", cmd_sweep),
     )
     for name, help_text, func in commands:  # their flags: launcher/options.py
         p = sub.add_parser(name, help=help_text)

@@ -67,7 +67,15 @@ from agents.spec import ALGORITHMS, PARAMS_CLASSES, Timing
 from launcher.scenario import DEFAULT_SHAPE, parse_bounds, parse_grid, shape_names
 from launcher.topology import TOPOLOGIES
 from protocol.keys import validate_fleet_id
-from protocol.links import LinkFaults, parse_duration, parse_probability
+from protocol.links import (
+    DELAY_DISTRIBUTIONS,
+    LinkFaults,
+    parse_duration,
+    parse_link_loss,
+    parse_partition,
+    parse_probability,
+    parse_robot_loss,
+)
 
 # -- kinds: text -> value, and the TOML types a key accepts ---------------------------------------
 INT, FLOAT, STR, PATH, FILE, DURATION, PROBABILITY, FLAG, LIST = (
@@ -208,6 +216,26 @@ def _non_negative(value: float) -> None:
         raise ValueError(f"{value!r} must be a non-negative number")
 
 
+def _durations(value: str) -> None:
+    from launcher.sweep import parse_list
+
+    parse_list(value, _duration, "delays")
+
+
+def _probabilities(value: str) -> None:
+    from launcher.sweep import parse_list
+
+    parse_list(value, _probability, "losses")
+
+
+def _syncs(value: str) -> None:
+    from launcher.sweep import MODES
+
+    bad = [m for m in value.split(",") if m.strip() not in MODES]
+    if bad or not value.strip():
+        raise ValueError(f"{value!r}: modes are {', '.join(MODES)}")
+
+
 # -- the table ----------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Option:
@@ -275,6 +303,7 @@ FAULTS = "network faults (netem vocabulary, injected per directed link)"
 FLEET = "fleet"
 PROCESSES = "crash injection (simulate: on the virtual clock; launch: SIGKILL)"
 TLS = "TLS (tls/ endpoints, docs/deploy.md)"
+SWEEP = "sweep grid (in-process, virtual time; the default world on the paper's 5x3 grid)"
 
 _T = Timing()
 _FOLLOWS = ("times the object's scale: its bounding-box diagonal/5 rounded to 1, 2, 5, 10, 20...; "
@@ -348,8 +377,26 @@ OPTIONS: tuple[Option, ...] = (
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "stop_time"}),
     Option("ct-tol", FLOAT, FROM_PARAMS, "ct-admm: stop earlier when every robot's residual is below",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "tol"}),
+    # issue 13: free-running robots (protocol/free.py, agents/pdmm.py, docs/robustness.md)
+    Option("sync", STR, "lockstep", "lockstep: a round waits for every neighbour's exact value (resent until it "
+           "arrives); free: every robot ticks each --period on its own clock with the newest values it holds and "
+           "never waits (the relaxed ADMM, on a fixed grid)", group=ALGORITHM, commands=("simulate",),
+           section="algorithm", choices=("lockstep", "free"), target=None),
+    Option("period", DURATION, 0.01, "free sync: each robot's tick period", group=ALGORITHM,
+           commands=("simulate", "sweep"), section="algorithm", check=positive, target=None),
+    # -- sweep (issue 13): delay x loss x sync, in-process ------------------------------------
+    Option("delays", STR, "0ms,10ms,20ms,50ms", "sweep: one-way delays, comma-separated", group=SWEEP,
+           commands=("sweep",), metavar="D1,D2,...", check=_durations, target=None),
+    Option("losses", STR, "0,0.1,0.3,0.5", "sweep: loss probabilities, comma-separated", group=SWEEP,
+           commands=("sweep",), metavar="P1,P2,...", check=_probabilities, target=None),
+    Option("syncs", STR, "lockstep,free", "sweep: modes, comma-separated: lockstep (today's ADMM, the "
+           "reference), free (the relaxed ADMM), free-newest (today's ADMM fed the newest values: biased) or "
+           "free-ct (CT-ADMM with held samples)", group=SWEEP, commands=("sweep",), metavar="MODES",
+           check=_syncs, target=None),
+    Option("jobs", INT, None, "sweep: worker processes (default: one per core)", group=SWEEP,
+           commands=("sweep",), check=at_least(1), target=None),
     Option("out", PATH, None, "output folder (default: a new folder under runs/)", metavar="DIR", target=None,
-           commands=(*SCENARIO_COMMANDS, "collect"), show_default=False),
+           commands=(*SCENARIO_COMMANDS, "collect", "sweep"), show_default=False),
     # -- network faults ------------------------------------------------------------------
     Option("delay", DURATION, 0.0, "one-way delay, e.g. 20ms or 0.5s", group=FAULTS, commands=FAULT_COMMANDS,
            section="faults", target="faults.delay"),
@@ -361,6 +408,24 @@ OPTIONS: tuple[Option, ...] = (
            section="faults", target="faults.duplicate"),
     Option("reorder", PROBABILITY, 0.0, "probability that a frame is held back and overtaken", group=FAULTS,
            commands=FAULT_COMMANDS, section="faults", target="faults.reorder"),
+    # issue 13: fault models beyond independent loss and uniform jitter (protocol/links.py)
+    Option("loss-burst", FLOAT, 0.0, "mean length of a loss burst in frames (Gilbert-Elliott, with --loss as "
+           "the long-run rate; 0: independent losses)", group=FAULTS, commands=FAULT_COMMANDS, section="faults",
+           check=_non_negative, target="faults.loss_burst"),
+    Option("delay-dist", STR, "uniform", "shape of the delay: uniform (--delay +- --jitter), normal (sd --jitter), "
+           "exponential or pareto (--delay plus a one-sided extra of mean --jitter; pareto: heavy tail)",
+           group=FAULTS, commands=FAULT_COMMANDS, section="faults", choices=DELAY_DISTRIBUTIONS,
+           target="faults.delay_dist"),
+    Option("link-loss", LIST, (), "loss of one directed link, e.g. 0-1:0.5 (repeatable; the largest "
+           "applicable loss counts)", group=FAULTS, commands=FAULT_COMMANDS, section="faults",
+           metavar="SRC-DST:P", check=parse_link_loss, target="faults.link_loss", show_default=False),
+    Option("robot-loss", LIST, (), "loss of every link into and out of one robot, e.g. 2:0.3 (repeatable)",
+           group=FAULTS, commands=FAULT_COMMANDS, section="faults", metavar="ID:P", check=parse_robot_loss,
+           target="faults.robot_loss", show_default=False),
+    Option("partition", LIST, (), "cut robots A,B from C,D between START and END after the first frame, "
+           "e.g. 0,1/2,3@2s-5s (repeatable)", group=FAULTS, commands=FAULT_COMMANDS, section="faults",
+           metavar="A,B/C,D@START-END", check=parse_partition, dest="partitions", target="faults.partitions",
+           show_default=False),
     Option("retransmit", DURATION, _T.retransmit_s, "resend the latest frame after this long without progress",
            group=FAULTS, commands=FAULT_COMMANDS, section="faults", check=positive, target="timing.retransmit_s"),
     # -- the fleet on the network ---------------------------------------------------------

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -175,8 +176,8 @@ def simulate_fleet(
             now = max(now, min(due))
     plan.not_fired()
     kept = {rid: s for rid, s in sessions.items() if plan.down.get(rid) != float("inf")}
-    return FleetOutcome(_rows(kept, links, received, now), time.perf_counter() - started, now, links.stats(),
-                        plan.log)
+    stats = {**links.stats(), "bytes_sent": links.bytes_sent()}  # bytes: the sweep's (issue 13)
+    return FleetOutcome(_rows(kept, links, received, now), time.perf_counter() - started, now, stats, plan.log)
 
 
 def _crash(plan: _Crashes, rid: int, session: RobotSession, now: float) -> None:
@@ -211,3 +212,130 @@ def _rows(sessions: dict[int, RobotSession], links: LinkLayer, received: collect
         transport[dst]["lost"] += stats["dropped"]
         transport[dst]["duplicated"] += stats["duplicated"]
     return [s.row(now, transport[rid]) for rid, s in sessions.items()]
+
+
+# -- free-running sync (issue 13): robots on their own clocks, no waiting, no retransmission ------
+
+
+@dataclass(frozen=True)
+class ClockModel:
+    """How far apart the robots' clocks and computers are in a free in-process run (all seeded).
+
+    Robot i's clock reads ``offset_i + (1 + drift_i) t`` at true time t, with offset_i uniform in
+    [0, offset_s) and drift_i uniform in [-drift, drift]; it starts ticking at a uniform time in
+    [0, period); each tick's frame leaves after a compute time uniform in [0, compute_jitter_s)."""
+
+    offset_s: float = 1.0
+    drift: float = 1e-3
+    compute_jitter_s: float = 0.002
+
+    def __post_init__(self) -> None:
+        for name in ("offset_s", "drift", "compute_jitter_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        if self.drift >= 0.5:
+            raise ValueError(f"drift must be below 0.5, got {self.drift}")
+
+
+FREE_ALGORITHMS = ("radmm", "admm-newest", "ct-admm-free")
+TickFn = Callable[[float, int, "np.ndarray"], None]
+
+
+def build_free_core(spec: FleetSpec, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm",
+                    period: float = 0.01) -> Any:
+    """Robot ``rid``'s free-mode core on the spec's grid: the relaxed ADMM of agents/pdmm.py, or
+    (for measurement) today's ADMM fed the newest values (``admm-newest``) or the paper's CT-ADMM
+    integrating one ``period`` per tick with held samples (``ct-admm-free``)."""
+    from agents.ct_admm import CTADMMParams
+    from agents.pdmm import FreeCTADMM, NewestValueADMM, RelaxedADMM, RelaxedADMMParams
+
+    if algorithm not in FREE_ALGORITHMS:
+        raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
+    if not spec.fixed_grid:
+        raise ValueError("free sync needs a fixed grid and sigma (--grid and --sigma, or --preset paper)")
+    me = spec.robots[rid]
+    degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
+    # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
+    # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
+    given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
+    kw: dict[str, Any] = {}
+    if algorithm == "admm-newest":
+        kw["relax"] = float(given.get("relax", spec.params.get("relax", 1.95)))
+    if algorithm == "ct-admm-free":
+        kw["ct_params"] = CTADMMParams(period=period)
+    cls = {"radmm": RelaxedADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
+    return cls(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
+               params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees, **kw)
+
+
+def simulate_free(
+    spec: FleetSpec,
+    *,
+    period: float = 0.01,
+    clock: ClockModel | None = None,
+    params: dict[str, Any] | None = None,
+    algorithm: str = "radmm",
+    max_virtual_s: float | None = None,
+    on_tick: TickFn | None = None,
+) -> FleetOutcome:
+    """Every robot of ``spec`` free-running on a virtual clock (protocol/free.py), through the
+    same seeded links as lockstep. ``on_tick(t, robot, values)`` sees every update (true time t).
+    Deterministic for a given spec (its seed draws the clocks too)."""
+    import numpy as np
+
+    from protocol.free import FreeSession
+
+    started = time.perf_counter()
+    clock = clock or ClockModel()
+    rng = np.random.default_rng([spec.seed, 13])
+    ids = spec.robot_ids
+    off = dict(zip(ids, rng.uniform(0.0, clock.offset_s, len(ids)).tolist()))
+    rate = dict(zip(ids, (1.0 + rng.uniform(-clock.drift, clock.drift, len(ids))).tolist()))
+    start = dict(zip(ids, rng.uniform(0.0, period, len(ids)).tolist()))
+    cap = float(spec.timing.max_wall_s if max_virtual_s is None else max_virtual_s)
+
+    def local(i: int, t: float) -> float:
+        return off[i] + rate[i] * t
+
+    sessions: dict[int, FreeSession] = {}
+    for rid in ids:
+        try:
+            core = build_free_core(spec, rid, params, algorithm, period)
+        except (SolverError, InfeasibleError) as exc:
+            raise FleetFailure(f"robot {rid}: local solver failed: {exc}") from None
+        sessions[rid] = FreeSession(core, fleet=spec.fleet, graph=spec.graph, config_tag=spec.config_tag, period=period,
+                                    now=local(rid, start[rid]), max_wall_s=cap, auth=spec.frame_auth(rid))
+    links = LinkLayer(spec.faults, spec.seed)
+    received: collections.Counter[int] = collections.Counter()
+    now = 0.0
+    while True:
+        for src, dst, payload in links.deliver(now):
+            sessions[dst].receive(src, payload, local(dst, now))
+        for rid, s in sessions.items():
+            due = s.next_deadline()
+            if due is None or (due - off[rid]) / rate[rid] > now:
+                continue
+            frames = s.tick(max(local(rid, now), due))
+            if s.stopped in FAILED:
+                raise FleetFailure(s.error)
+            if frames and on_tick is not None and s.stopped in (None, "finished"):
+                on_tick(now, rid, s.core.values)
+            sent_at = now + float(rng.uniform(0.0, clock.compute_jitter_s)) if clock.compute_jitter_s else now
+            for _, payload in frames:
+                for j in s.core.neighbours:
+                    links.send(rid, j, payload, sent_at)
+                    received[j] += 1
+        dues = [(d - off[r]) / rate[r] for r, d in ((r, s.next_deadline()) for r, s in sessions.items()) if d is not None]
+        if links.next_due() is not None and dues:
+            dues.append(links.next_due())
+        if not dues:
+            break
+        now = max(now, min(dues))
+    transport = {rid: {"received": received[rid], "lost": 0, "duplicated": 0} for rid in sessions}
+    for (_, dst), st in links.link_stats().items():
+        transport[dst]["lost"] += st["dropped"]
+        transport[dst]["duplicated"] += st["duplicated"]
+    rows = [s.row(local(rid, now), transport[rid]) for rid, s in sessions.items()]
+    stats = {**links.stats(), "bytes_sent": links.bytes_sent()}
+    return FleetOutcome(rows, time.perf_counter() - started, now, stats)

@@ -32,13 +32,17 @@ from launcher.options import (
 )
 from launcher.scenario import ScenarioError
 from launcher.world import build_world
+from protocol.links import LinkFaults
 
 TABLE_COMMANDS = sorted({c for o in OPTIONS for c in o.commands})
 
 #: a valid non-default value of each option, as a command-line word and as a TOML value
 _TEXT = {"shape": "bean", "grid": "4x4", "grid-bounds": "0,1,0,1", "preset": "paper", "topology": "ring",
          "fleet-id": "opt-test", "bad-grid": "3x2", "algorithm": "admm", "crash": "1@4",
-         "connect": "tcp/127.0.0.1:7447"}
+         "connect": "tcp/127.0.0.1:7447",
+         # issue 13 (free sync, fault models)
+         "sync": "free", "delay-dist": "pareto", "link-loss": "0-1:0.5", "robot-loss": "2:0.3",
+         "partition": "0,1/2,3@2s-5s", "delays": "0ms,5ms", "losses": "0,0.2", "syncs": "free"}
 _BY_KIND = {INT: ("7", 7), FLOAT: ("0.5", 0.5), DURATION: ("30ms", "30ms"), PROBABILITY: ("0.25", 0.25)}
 
 
@@ -162,7 +166,10 @@ def test_every_flag_reaches_options():
         else:
             part, name = option.target.split(".")
             got = getattr(getattr(opts, part), name)
-        assert got == getattr(parse_args([command, *words]), option.dest) and got != option.default, option.name
+        want = getattr(parse_args([command, *words]), option.dest)
+        if option.target.startswith("faults."):  # LinkFaults reads "0-1:0.5" as (0, 1, 0.5): compare what it stores
+            want = getattr(LinkFaults(**{name: want}), name)
+        assert got == want and got != option.default, option.name
 
 
 # -- the algorithms' typed parameters ---------------------------------------------------------------------

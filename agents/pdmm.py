@@ -1,0 +1,342 @@
+"""Relaxed ADMM for lossy, asynchronous networks (R-ADMM / PDMM), one robot's sans-IO core.
+
+Why it exists: today's consensus ADMM (agents/admm.py) needs the *exact* value of every
+neighbour each round; a stale substitute breaks sum(lambda) = 0 and biases the answer. Robots that
+never wait (free mode, protocol/free.py) need an algorithm for which a lost or late packet is a
+*skipped* update, not a wrong one. This is the relaxed Peaceman-Rachford splitting of the dual
+problem of Bastianello, Carli, Schenato & Todescato ("Asynchronous distributed optimization over
+lossy networks via relaxed ADMM", arXiv 1809.09887), which is PDMM with relaxation; with the
+margin constraints inside f_l it is the inequality-constrained case of arXiv 2309.12897.
+
+State of robot i: one auxiliary vector z_ij per neighbour j (i's end of edge ij). One tick:
+
+    v_i  = argmin_v  f_i(v) - (sum_j z_ij)' v + 1/2 v' diag(sum_j rho_ij) v     (a small QP, piqp)
+    y_ij = 2 rho_ij v_i - z_ij                                                   (sent to j)
+
+and when j's packet y_ji arrives at i:   z_ij <- (1 - alpha) z_ij + alpha y_ji.
+
+A lost packet leaves z_ij as it was (a skipped coordinate update of the relaxed PR operator),
+which is why loss costs time but never accuracy. At a fixed point z_ij + z_ji = 2 rho_ij v_i =
+2 rho_ij v_j (consensus) and sum_i grad f_i = 0 (optimality): the centralized solution.
+
+Old and duplicated packets: every packet carries the sender's tick counter (its sequence number);
+a packet no newer than the last one applied from that sender is dropped. Delay: the relaxation
+``alpha`` (< 1/2 damps, as ARock's step size) is what keeps the iteration stable when the y's in
+flight were computed from old z's.
+
+Stopping (no waiting, so no lockstep flags): a robot is *calm* when it heard every neighbour in
+the last ``window`` ticks (a silent or partitioned neighbour is no evidence) and its distance to
+the fixed point, estimated as r / (1 - rate) from its residual r (change per tick and gap to every
+neighbour's newest v) and the contraction seen over the last two windows, is below ``tol``.
+A raw residual bound is not enough: measured on a 4-robot fleet after a partition, residuals
+of 1e-4 per tick still stood 2.5e-3 from the answer. It publishes a hop count h_i = 0 if not
+calm, else 1 + min_j h_j (newest values, capped at D + 1); it stops at h_i >= D + 1
+(D = ``diameter``): every robot within D hops was calm too; and it stops when a neighbour
+announced its stop (h_j = D + 1), so the decision floods through the fleet and no robot is left
+iterating alone against frozen neighbours. The launcher still checks agreement on the final answers (success means agreement).
+
+`NewestValueADMM` is the counter-example kept for measurement: today's edge-form consensus ADMM
+(agents/admm.py, no acceleration) fed the newest value each neighbour sent. Both ends of an edge
+then update their copies of (z, lambda) from different pairs of vectors, lambda_ij = -lambda_ji
+breaks, and the fleet drifts: benchmarks/free.py measures it (it diverges, or stops calm and in
+agreement 0.5 away from the answer -- agreement cannot detect that bias).
+
+No I/O, no clock: packets in (`receive`), packets out (`tick`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from agents.admm import ADMMParams, ConsensusADMM, edge_penalty
+from agents.problem import MarginQP
+from agents.rounds import RoundCore, check_iterate
+
+
+@dataclass(frozen=True)
+class RelaxedADMMParams:
+    """Penalty, relaxation and the calm-stop rule (the same on every robot)."""
+
+    # measured (benchmarks/free.py, loss 0.3, 20 ms): alpha 0.9 stops about 20 % sooner than
+    # ADMM's 0.5; rho 8 was faster on the default fleet but twice slower on 4 robots, 15 is even
+    rho: float = 15.0
+    gamma_penalty: float = 3.0
+    alpha: float = 0.9  # relaxation in (0, 1): 1/2 is ADMM (Douglas-Rachford); smaller damps delay
+    tol: float = 1e-3  # bound on the estimated relative function error at the stop
+    window: int = 40  # ticks per window of the contraction estimate (two are needed)
+    diameter: int = 1
+    max_ticks: int = 20000
+
+    def __post_init__(self) -> None:
+        if not self.rho > 0:
+            raise ValueError(f"rho must be positive, got {self.rho}")
+        if not self.gamma_penalty > 0:
+            raise ValueError(f"gamma_penalty must be positive, got {self.gamma_penalty}")
+        if not 0 < self.alpha < 1:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+        if not self.tol > 0:
+            raise ValueError(f"tol must be positive, got {self.tol}")
+        if self.window < 1 or self.max_ticks < 1:
+            raise ValueError("window and max_ticks must be at least 1")
+        if not 0 <= self.diameter <= 62:
+            raise ValueError(f"diameter must be in [0, 62], got {self.diameter}")
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any]) -> RelaxedADMMParams:
+        """The fleet file's params filtered by this class's fields (other algorithms' keys ignored)."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in params.items() if k in names})
+
+
+@dataclass(frozen=True)
+class Packet:
+    """What robot ``sender`` tells neighbour ``dest`` at tick ``seq``: its v and the edge's y."""
+
+    sender: int
+    seq: int
+    values: np.ndarray  # v_sender = (x, gamma): for the neighbour's gap test and the answer
+    edge: np.ndarray  # y_{sender -> dest}
+    hops: int
+
+
+def _gap(v: np.ndarray, others: list[np.ndarray]) -> float:
+    """agents.rounds.relative_gap's metric (largest over ``others``), without its einsum: a tick
+    calls it twice and the einsum on a 16-vector was a sixth of a free run's time (profiled)."""
+    nx = max(math.sqrt(float(v[:-1] @ v[:-1])), 1e-12)
+    ng = max(1.0, abs(float(v[-1])))
+    worst = 0.0
+    for w in others:
+        d = w - v
+        worst = max(worst, math.sqrt(float(d[:-1] @ d[:-1])) / nx + abs(float(d[-1])) / ng)
+    return worst
+
+
+def error_estimate(residuals: list[float], window: int) -> float:
+    """Distance to the fixed point implied by the last two windows of residuals: r / (1 - rate),
+    the per-tick rate from the windows' largest residuals (robust to loss's noisy residuals).
+    Infinite until two windows exist or while the residual is not shrinking."""
+    if len(residuals) < 2 * window or not all(map(math.isfinite, residuals)):
+        return math.inf
+    recent, older = max(residuals[-window:]), max(residuals[:window])
+    if not older > 0:
+        return 0.0 if recent == 0 else math.inf
+    rate = (recent / older) ** (1.0 / window)
+    return math.inf if rate >= 1.0 else recent / (1.0 - rate)
+
+
+class RelaxedADMM:
+    """One robot's R-ADMM; drive it with `receive(packet)` and `tick()` at any pace."""
+
+    algorithm = "radmm"
+    #: what a tick may raise when its local solve fails (the session stops the robot with the reason)
+    solve_errors = RoundCore.solve_errors
+
+    def __init__(
+        self,
+        robot_id: int,
+        neighbours: tuple[int, ...],
+        features: np.ndarray,
+        labels: np.ndarray,
+        *,
+        n_robots: int,
+        params: RelaxedADMMParams,
+        C: float | None = None,
+        neighbour_degrees: dict[int, int] | None = None,
+    ) -> None:
+        if robot_id in neighbours:
+            raise ValueError(f"robot {robot_id} lists itself as a neighbour")
+        self.robot_id = robot_id
+        self.neighbours = tuple(sorted(neighbours))
+        self.dim = features.shape[1] + 1
+        self.params = params
+        degrees = neighbour_degrees or {}
+        pen = ADMMParams(rho=params.rho, gamma_penalty=params.gamma_penalty)
+        self._rho = {j: edge_penalty(pen, self.dim, len(self.neighbours), degrees.get(j, 1)) for j in self.neighbours}
+        self._z = {j: np.zeros(self.dim) for j in self.neighbours}
+        self._last_seq = {j: -1 for j in self.neighbours}
+        self._their_v: dict[int, np.ndarray] = {}
+        self._their_hops = {j: 0 for j in self.neighbours}
+        prox = sum(self._rho.values(), np.zeros(self.dim))
+        self._qp = MarginQP(features, labels, x_weight=1.0 / n_robots, prox_weight=prox, C=C)
+        self._values = np.zeros(self.dim)
+        self._residuals: list[float] = []
+        self._heard = {j: -(10**9) for j in self.neighbours}
+        self.hops = 0
+        self.ticks = 0
+        self.residual = math.inf
+        self.applied = 0
+        self.stale = 0  # packets dropped as old or duplicated
+        self.finished = not self.neighbours
+        if self.finished:  # alone: the whole problem is its own
+            self._values = self._solve()
+            self.residual = 0.0
+
+    @property
+    def values(self) -> np.ndarray:
+        """The current (x, gamma)."""
+        return self._values.copy()
+
+    @property
+    def converged(self) -> bool:
+        """Stopped by the calm-stop rule (not by the tick cap)."""
+        return self.finished and (self.hops > self.params.diameter or not self.neighbours)
+
+    def receive(self, p: Packet) -> bool:
+        """Apply neighbour p.sender's edge update if it is newer than the last one; else drop it."""
+        j = p.sender
+        if j not in self._z:
+            return False
+        if p.seq <= self._last_seq[j]:
+            self.stale += 1
+            return False
+        if p.edge.shape != (self.dim,) or p.values.shape != (self.dim,):
+            raise ValueError(f"robot {j} sent vectors of the wrong length, expected {self.dim}")
+        self._last_seq[j] = p.seq
+        a = self.params.alpha
+        self._z[j] = (1.0 - a) * self._z[j] + a * p.edge
+        self._their_v[j] = p.values
+        self._their_hops[j] = p.hops
+        self._heard[j] = self.ticks
+        self.applied += 1
+        return True
+
+    def tick(self) -> list[Packet]:
+        """One local update from the newest z's: the packets to send (one per neighbour)."""
+        if self.finished:
+            return self.final_packets()
+        new = self._solve()
+        change = _gap(new, [self._values]) if self.ticks else math.inf
+        theirs = [self._their_v[j] for j in self.neighbours if j in self._their_v]
+        gap = _gap(new, theirs) if len(theirs) == len(self.neighbours) else math.inf
+        self._values = new
+        self.ticks += 1
+        self.residual = max(change, gap)
+        w = self.params.window
+        self._residuals = (self._residuals + [self.residual])[-2 * w :]
+        cap = self.params.diameter + 1
+        # a neighbour that finished (hop count at the cap) is final, not silent
+        fresh = all(self.ticks - self._heard[j] <= w or self._their_hops[j] >= cap for j in self.neighbours)
+        calm = fresh and error_estimate(self._residuals, w) < self.params.tol
+        self.hops = min(cap, 1 + min(self._their_hops.values())) if calm else 0
+        if max(self._their_hops.values()) >= cap:  # a neighbour stopped: the decision floods on
+            self.hops = cap
+        if self.hops >= cap or self.ticks >= self.params.max_ticks:
+            self.finished = True
+        return self.final_packets()
+
+    def final_packets(self) -> list[Packet]:
+        """The packets of the current state (also what a finished robot repeats while lingering)."""
+        return [
+            Packet(self.robot_id, self.ticks, self._values.copy(), 2.0 * self._rho[j] * self._values - self._z[j], self.hops)
+            for j in self.neighbours
+        ]
+
+    def divergence(self) -> str | None:
+        """Why the current function cannot be a result, or None."""
+        return check_iterate(self._values)
+
+    def result(self) -> dict[str, Any]:
+        """x and gamma of this robot; the shell adds its counters."""
+        return {
+            "id": self.robot_id,
+            "algorithm": self.algorithm,
+            "x": self._values[:-1].tolist(),
+            "gamma": float(self._values[-1]),
+            "rounds": self.ticks,
+            "converged": self.converged,
+            "residual": self.residual,
+            "neighbours": list(self.neighbours),
+            "dropped": [],
+            "packets_applied": self.applied,
+            "packets_stale": self.stale,
+        }
+
+    def _solve(self) -> np.ndarray:
+        q = -sum(self._z.values(), np.zeros(self.dim))
+        sol = self._qp.solve(q)
+        return np.append(sol.x, sol.gamma)
+
+
+class _NewestValues(RelaxedADMM):
+    """A free core that keeps the newest v of each neighbour and ignores the edge vector."""
+
+    def receive(self, p: Packet) -> bool:
+        """Keep the newest v of p.sender (by sequence number); its edge vector is not used."""
+        j = p.sender
+        if j not in self._z:
+            return False
+        if p.seq <= self._last_seq[j]:
+            self.stale += 1
+            return False
+        self._last_seq[j] = p.seq
+        self._their_v[j] = p.values
+        self._their_hops[j] = p.hops
+        self._heard[j] = self.ticks
+        self.applied += 1
+        return True
+
+
+class NewestValueADMM(_NewestValues):
+    """Today's edge-form ADMM on whatever neighbour value arrived last (biased; for measurement).
+
+    Same packets, sequence numbers and calm-stop rule as the relaxed ADMM, so the two differ only
+    in the mathematics; the edge vector of a packet is ignored."""
+
+    algorithm = "admm-newest"
+
+    def __init__(self, robot_id: int, neighbours: tuple[int, ...], features: np.ndarray, labels: np.ndarray, *,
+                 n_robots: int, params: RelaxedADMMParams, C: float | None = None,
+                 neighbour_degrees: dict[int, int] | None = None, relax: float = 1.95) -> None:
+        super().__init__(robot_id, neighbours, features, labels, n_robots=n_robots, params=params, C=C,
+                         neighbour_degrees=neighbour_degrees)
+        admm = ADMMParams(rho=params.rho, gamma_penalty=params.gamma_penalty, relax=relax, anderson=0)
+        self._admm = ConsensusADMM(robot_id, neighbours, features, labels, n_robots=n_robots, params=admm, C=C,
+                                   neighbour_degrees=neighbour_degrees, keep_trace=False)
+        self._started = False
+
+    def _solve(self) -> np.ndarray:
+        core = self._admm
+        if not self._started:  # tick 0: the robot's own solution (the lockstep core's round 0)
+            self._started = True
+            return core.values
+        relax = core.params.relax
+        mine = self._values
+        for j, edge in core._edges.items():
+            theirs = self._their_v.get(j)
+            if theirs is None:
+                continue
+            low, high = (mine, theirs) if self.robot_id < j else (theirs, mine)
+            edge.update(low, high, relax)
+        return core._primal_step()
+
+
+class FreeCTADMM(_NewestValues):
+    """The paper's CT-ADMM on the robot's own clock: each tick integrates one period T_sp of the
+    flow (agents/ct_admm.py) with the newest neighbour samples held -- stale by the network's delay
+    and by lost packets, so delay enters the feedback loop (measured: benchmarks/free.py).
+    A neighbour not heard yet is held at the robot's own value. The tick period must be T_sp."""
+
+    algorithm = "ct-admm-free"
+
+    def __init__(self, robot_id: int, neighbours: tuple[int, ...], features: np.ndarray, labels: np.ndarray, *,
+                 n_robots: int, params: RelaxedADMMParams, ct_params: Any, C: float | None = None,
+                 neighbour_degrees: dict[int, int] | None = None) -> None:
+        from agents.ct_admm import ContinuousTimeADMM
+
+        self._ct = ContinuousTimeADMM(robot_id, neighbours, features, labels, n_robots=n_robots, params=ct_params,
+                                      C=C, keep_trace=False)
+        super().__init__(robot_id, neighbours, features, labels, n_robots=n_robots, params=params, C=C,
+                         neighbour_degrees=neighbour_degrees)
+
+    def _solve(self) -> np.ndarray:
+        ct = self._ct
+        mine = ct._values
+        theirs = {j: self._their_v.get(j, mine) for j in ct.neighbours}
+        new, _ = ct._step(mine, theirs)
+        ct._prev_values, ct._values = mine, new
+        ct.round += 1
+        return new
