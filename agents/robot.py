@@ -741,7 +741,9 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m agents.robot", description=main.__doc__.splitlines()[0])
     ap.add_argument("--fleet-file", type=Path, required=True)
-    ap.add_argument("--ids", required=True, help="comma-separated robot ids, e.g. 0,1,2")
+    who = ap.add_mutually_exclusive_group(required=True)
+    who.add_argument("--id", dest="ids", help="one robot id")
+    who.add_argument("--ids", help="comma-separated robot ids, e.g. 0,1,2")
     ap.add_argument("--connect", action="append", required=True)
     ap.add_argument("--workdir", type=Path, required=True, help="robot-I.ckpt / robot-I.json go here")
     ap.add_argument("--status-interval", type=float, default=0.0, help="seconds between status lines (0: every round)")

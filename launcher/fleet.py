@@ -93,6 +93,7 @@ ROBOT_MEMORY_MB = 50.0
 AUTO_SOLO_PER_CORE = 2
 STATUS_INTERVAL_S = 0.05
 SHARED_ROBOT_MEMORY_MB = 10.0  # a robot as a task of a shared process: its session, core, buffers
+SHARED_ROBOTS_PER_CORE = 32  # 32 robots on 2 cores converge in well under a minute (docs/scaling.md)
 STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
 REFRESH_PER_S = 4
 
@@ -183,11 +184,12 @@ def max_robots(per_process: int | str | None = "auto") -> tuple[int, str]:
         why = (f"{cores} cores x {ROBOTS_PER_CORE}"
                + ("" if mem is None else f", half of {mem:.0f} MB available memory / {ROBOT_MEMORY_MB:g} MB per robot"))
         return bound, why
-    if mem is None:
-        return 64 * cores, f"{cores} cores x 64 robots as tasks of shared processes"
-    bound = max(1, int(0.5 * mem / SHARED_ROBOT_MEMORY_MB))
-    return bound, (f"half of {mem:.0f} MB available memory / {SHARED_ROBOT_MEMORY_MB:g} MB per robot "
-                   "sharing a process")
+    by_cores = SHARED_ROBOTS_PER_CORE * cores
+    by_memory = int(0.5 * mem / SHARED_ROBOT_MEMORY_MB) if mem is not None else by_cores
+    why = (f"{cores} cores x {SHARED_ROBOTS_PER_CORE} robots sharing processes"
+           + ("" if mem is None else f", half of {mem:.0f} MB available memory / {SHARED_ROBOT_MEMORY_MB:g} MB "
+                                     "per robot"))
+    return max(1, min(by_cores, by_memory)), why
 
 
 def fleet_timing(spec: FleetSpec, crashes: list[CrashPlan], *, restart: bool, restart_after: float) -> Any:
@@ -337,8 +339,14 @@ class _PortInUse(LaunchError):
         self.port = port
 
 
-def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, started: list[int]) -> _Router:
-    """Start the router on ``zenoh_port`` (ValueError if taken) or on a free port (retried)."""
+def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, started: list[int],
+                  meanwhile: Callable[[str], Any] | None = None) -> tuple[_Router, Any]:
+    """Start the router on ``zenoh_port`` (ValueError if taken) or on a free port (retried).
+
+    ``meanwhile(endpoint)`` runs as soon as the router process is spawned, before it listens: the
+    robots start then, and import while the router starts (their Zenoh clients retry until it
+    listens). What it returns is handed back; if this port fails, its ``abandon()`` is called.
+    """
     attempts = 1 if zenoh_port is not None else ROUTER_PORT_ATTEMPTS
     for attempt in range(attempts):
         port = zenoh_port if zenoh_port is not None else free_loopback_port(HOST)
@@ -346,16 +354,24 @@ def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, star
             raise ValueError(f"--zenoh-port {port} is in use")
         router = _Router(port, workdir, lifetime_s)
         started.append(router.proc.pid)
+        extra = None
         try:
+            extra = None if meanwhile is None else meanwhile(router.endpoint)
             router.wait_ready(ROUTER_START_TIMEOUT_S)
-            return router
+            return router, extra
         except _PortInUse:
+            if extra is not None:
+                extra.abandon()
             router.stop()
             if zenoh_port is not None:
                 raise ValueError(f"--zenoh-port {port} is in use") from None
             log.info("port %d was taken before the router bound it (attempt %d)", port, attempt + 1)
         except BaseException:
-            router.stop()
+            try:
+                if extra is not None:
+                    extra.abandon()
+            finally:
+                router.stop()
             raise
     raise LaunchError(f"no free loopback port for the Zenoh router after {attempts} attempts")
 
@@ -459,7 +475,8 @@ class _Fleet:
             # robot it is for; a robot with a crash plan reports every round so it dies on time
             interval = 0.0 if solo & set(ids) else STATUS_INTERVAL_S
             argv = [sys.executable, "-m", "agents.robot", "--fleet-file", str(fleet_file),
-                    "--ids", ",".join(map(str, ids)), "--connect", endpoint, "--workdir", str(workdir),
+                    "--id" if len(ids) == 1 else "--ids", ",".join(map(str, ids)), "--connect", endpoint,
+                    "--workdir", str(workdir),
                     "--status-interval", f"{interval:g}"]
             name = f"robot-{ids[0]}" if len(ids) == 1 else f"robots-{ids[0]}-{ids[-1]}"
             proc = _Proc(ids, argv, workdir / f"{name}.log")
@@ -591,6 +608,13 @@ class _Fleet:
                     r.state = "dead"
                     self._say(f"robot {r.id} exited with code {rc} (see {p.log_path})")
 
+    def abandon(self) -> None:
+        """Stop every robot process started so far (the router they were given failed)."""
+        try:
+            _stop_all(self.live())
+        finally:
+            self.close()
+
     def close(self) -> None:
         for p in self.procs:
             if p.reader is not None:
@@ -714,20 +738,29 @@ def launch_fleet(
             previous_handlers[sig] = signal.signal(sig, on_signal)
     router_restarts: list[float] = []
     timeline = {"launch": t0}
+
+    def start_robots(endpoint: str) -> _Fleet:
+        robots = _Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
+                        started, console, per_process)
+        try:
+            robots.start_all()
+        except BaseException:
+            robots.abandon()
+            raise
+        timeline["robots_started"] = time.monotonic()
+        return robots
+
     if router is None:
-        own_router: _Router | None = _start_router(zenoh_port, workdir, bound_s + 2 * WALL_MARGIN_S, started)
+        own_router, fleet = _start_router(zenoh_port, workdir, bound_s + 2 * WALL_MARGIN_S, started,
+                                          meanwhile=start_robots)
         endpoint, port = own_router.endpoint, own_router.port
     else:
         own_router, endpoint, port = None, router, parse_endpoint(router)[2]
+        fleet = start_robots(endpoint)
     timeline["router_ready"] = time.monotonic()
-    fleet: _Fleet | None = None
     timed_out = False
     live_display = None
     try:
-        fleet = _Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
-                       started, console, per_process)
-        fleet.start_all()
-        timeline["robots_started"] = time.monotonic()
         if on_running is not None:
             on_running(endpoint)
         title = f"fleet {spec.fleet}: {spec.n_robots} robots on {endpoint}"
