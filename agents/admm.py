@@ -33,11 +33,13 @@ No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from agents.params import params_from
 from agents.problem import MarginQP
 from agents.rounds import RoundCore, from_bytes, relative_gap, to_bytes
 
@@ -72,6 +74,12 @@ class ADMMParams:
             raise ValueError(f"anderson memory must be in [0, 100], got {self.anderson}")
         if not self.safeguard > 1:
             raise ValueError(f"safeguard must be above 1, got {self.safeguard}")
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> ADMMParams:
+        """From a fleet file's ``params``: exactly this class's fields; any other key is an
+        error naming it."""
+        return params_from(cls, params, "admm")
 
 
 class _Edge:

@@ -8,6 +8,7 @@ lattice and refined grid without sending them. See agents/autogrid.py for the ph
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -15,6 +16,7 @@ import numpy as np
 from scipy import ndimage
 
 from agents.kernel import GridBasis
+from agents.params import params_from
 from protocol.frames import MAX_DIM
 
 #: sigma = (diagonal of the data's bounding box) / SIGMA_DIVISOR
@@ -93,6 +95,12 @@ class AutoGridParams:
             raise ValueError(f"relax must be in (0, 2), got {self.relax}")
         if self.dim > MAX_DIM:
             raise ValueError(f"max_points {self.max_points}: frames of {self.dim} numbers exceed MAX_DIM={MAX_DIM}")
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> AutoGridParams:
+        """From a fleet file's ``params`` (sigma and C are the fleet file's own fields, added by
+        FleetSpec): exactly this class's fields; any other key is an error naming it."""
+        return params_from(cls, params, "autogrid")
 
     @property
     def dim(self) -> int:

@@ -32,17 +32,14 @@ No I/O, no clock, no randomness: time is round * period, frames in (`receive`), 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from agents.params import params_from
 from agents.rounds import RoundCore, from_bytes, relative_gap, to_bytes
-
-#: Parameters of a fleet file that belong to the discrete ADMM: its penalty `rho` is not the
-#: flow's (that one is `ct_rho`), and relaxation has no meaning here.
-_ADMM_ONLY = ("rho", "gamma_penalty", "relax")
-
 
 @dataclass(frozen=True)
 class CTADMMParams:
@@ -116,23 +113,10 @@ class CTADMMParams:
         return ((1.0 - math.sqrt(1.0 - eta)) / eta) ** 2
 
     @classmethod
-    def from_params(cls, params: dict[str, Any]) -> CTADMMParams:
-        """From a fleet file's `params`: ADMM-only keys are ignored, `ct_<field>` sets <field>.
-
-        One fleet file serves both algorithms, so the flags the CLI adds for this one can be
-        namespaced (`ct_step`, `ct_period`, `ct_stop_time`, `ct_rho`, ...); a key that is
-        neither ours nor the ADMM's is an error naming it.
-        """
-        names = {f.name for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in params.items():
-            if key in _ADMM_ONLY:
-                continue
-            key = key.removeprefix("ct_")
-            if key not in names:
-                raise ValueError(f"unknown ct-admm parameter {key!r}; known: {', '.join(sorted(names))}")
-            kwargs[key] = value
-        return cls(**kwargs)
+    def from_params(cls, params: Mapping[str, Any]) -> CTADMMParams:
+        """From a fleet file's ``params``: exactly this class's fields (``rho`` is the flow's
+        gain, not the discrete ADMM's); any other key is an error naming it."""
+        return params_from(cls, params, "ct-admm")
 
 
 class ContinuousTimeADMM(RoundCore):

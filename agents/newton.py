@@ -34,18 +34,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from agents.allreduce import SCHEDULES, AllReduce, ReducePlan, frame_slots
 from agents.problem import INFEASIBLE_ADVICE, margin_rows
+from agents.params import params_from
 from agents.rounds import RoundCore, from_bytes, to_bytes
-
-#: keys of a fleet file's params that belong to the ADMM family and mean nothing here
-_OTHER_ALGORITHMS = ("rho", "gamma_penalty", "relax", "tol", "diameter")
-
 
 @dataclass(frozen=True)
 class NewtonParams:
@@ -74,18 +71,9 @@ class NewtonParams:
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> NewtonParams:
-        """From a fleet file's `params`: ADMM keys are ignored, `newton_<field>` or `<field>`
-        sets <field>; any other key is an error naming it."""
-        names = {f.name for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in params.items():
-            if key in _OTHER_ALGORITHMS:
-                continue
-            name = key.removeprefix("newton_")
-            if name not in names:
-                raise ValueError(f"unknown newton parameter {key!r}; known: {', '.join(sorted(names))}")
-            kwargs[name] = value
-        return cls(**kwargs)
+        """From a fleet file's ``params``: exactly this class's fields; any other key is an
+        error naming it."""
+        return params_from(cls, params, "newton")
 
 
 def payload_size(dim: int) -> int:

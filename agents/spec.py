@@ -29,6 +29,10 @@ from protocol.links import LinkFaults
 ALGORITHMS = ("admm", "ct-admm", "autogrid", "newton")
 #: algorithms whose grid and sigma are fixed by the launcher (autogrid's fleet chooses its own)
 FIXED_GRID_ALGORITHMS = ("admm", "ct-admm", "newton")
+#: each algorithm's typed parameters: the fleet file's ``params`` are the fields of its class
+PARAMS_CLASSES: dict[str, type] = {
+    "admm": ADMMParams, "ct-admm": CTADMMParams, "autogrid": AutoGridParams, "newton": NewtonParams,
+}
 
 
 @dataclass(frozen=True)
@@ -119,20 +123,19 @@ class FleetSpec:
 
     @cached_property
     def autogrid_params(self) -> AutoGridParams:
-        """The autogrid robots' parameters: ``params`` filtered by AutoGridParams' fields.
+        """The autogrid robots' parameters: ``params`` (AutoGridParams' fields, strictly) with
+        ``sigma`` and ``C`` from the fleet file's own fields. ValueError names a bad key or value."""
+        if "sigma" in self.params or "C" in self.params:
+            raise ValueError("autogrid parameters sigma and C are the fleet file's own fields, not params")
+        return AutoGridParams.from_params({**self.params, "sigma": self.sigma, "C": self.C})
 
-        ``sigma`` and ``C`` come from the fleet file's own fields; the ADMM keys rho, relax, tol
-        and diameter are the same names; ``max_rounds`` (the admm round cap) stands for
-        ``max_total_rounds`` (the cap over every phase) unless that is given; other keys (e.g.
-        ct-admm's) are ignored. ValueError names a bad value.
-        """
-        names = {f.name for f in dataclasses.fields(AutoGridParams)}
-        given = dict(self.params)
-        if "max_rounds" in given and "max_total_rounds" not in given:
-            given["max_total_rounds"] = given["max_rounds"]
-        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if k in names}
-        kw.update(sigma=self.sigma, C=self.C)
-        return AutoGridParams(**kw)
+    @property
+    def algorithm_params(self) -> Any:
+        """The typed parameters of this fleet's algorithm (PARAMS_CLASSES: ADMMParams,
+        CTADMMParams, AutoGridParams or NewtonParams), read strictly from ``params``."""
+        if self.algorithm == "autogrid":
+            return self.autogrid_params
+        return PARAMS_CLASSES[self.algorithm].from_params(self.params)
 
     @property
     def dim(self) -> int:
@@ -141,7 +144,7 @@ class FleetSpec:
         if not self.fixed_grid:
             return self.autogrid_params.dim
         if self.algorithm == "newton":
-            return frame_size(len(self.grid) + 1, self.graph, NewtonParams.from_params(self.params))
+            return frame_size(len(self.grid) + 1, self.graph, self.algorithm_params)
         return len(self.grid) + 1
 
     @cached_property
@@ -305,7 +308,7 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
             features,
             me.labels,
             graph=spec.graph,
-            params=NewtonParams.from_params(spec.params),
+            params=spec.algorithm_params,
             C=spec.C,
             keep_trace=keep_trace,
         )
@@ -316,7 +319,7 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
             features,
             me.labels,
             n_robots=spec.n_robots,
-            params=CTADMMParams.from_params(spec.params),
+            params=spec.algorithm_params,
             C=spec.C,
             keep_trace=keep_trace,
         )
@@ -326,7 +329,7 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
         features,
         me.labels,
         n_robots=spec.n_robots,
-        params=ADMMParams(**spec.params),
+        params=spec.algorithm_params,
         C=spec.C,
         neighbour_degrees=degrees,
         keep_trace=keep_trace,

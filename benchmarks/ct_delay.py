@@ -45,11 +45,11 @@ def main() -> None:
     for delay_ms in (0, 10, 20, 50):
         loss = 0.2 if delay_ms else 0.0
         faults = LinkFaults(delay=delay_ms / 1e3, loss=loss)
-        world, spec = build_world(Options(fleet_id="bench", preset="paper", algorithm="ct-admm", faults=faults, tol=1e-9))
+        world, spec = build_world(Options(fleet_id="bench", preset="paper", algorithm="ct-admm", faults=faults, ct_tol=1e-9))
         central = solve_central(spec.basis, world.points, world.labels)
         out = simulate_fleet(spec)
         k = first_round_below(spec, central, out.robots)
-        period = spec.params["ct_period"]
+        period = spec.algorithm_params.period
         net_t = max(r["round_times"].get(k, float("nan")) for r in out.robots) if k is not None else float("nan")
         line = (
             f"| {delay_ms} ms | {loss:.0%} | {k} | {k * period:.2f} s | {net_t:.2f} s | "

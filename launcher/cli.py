@@ -24,19 +24,10 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from agents.spec import Timing
 from launcher import scenario, topology
-from launcher.world import (
-    ALGORITHM_CHOICES,
-    DEFAULT_MAX_ROUNDS,
-    DEFAULT_MAX_TOTAL_ROUNDS,
-    PAPER_GRID,
-    PAPER_SIGMA,
-    Options,
-    World,
-    build_world,
-)
-from protocol.links import LinkFaults, parse_duration, parse_probability
+from launcher.options import PAPER_GRID, PAPER_SIGMA, Options, add_arguments, options_from_args
+from launcher.world import World, build_world
+from protocol.links import LinkFaults, parse_duration
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 1
@@ -91,198 +82,13 @@ def _join_negative_values(parser: argparse.ArgumentParser, argv: Sequence[str] |
     return out
 
 
-def _positive_int(flag: str) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-        if value < 1:
-            raise argparse.ArgumentTypeError(f"{text!r} must be at least 1")
-        return value
-
-    parse.__name__ = flag
-    return parse
-
-
-def _finite_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
-    return value
-
-
-def _max_grid_points(value: Any) -> int:
-    """--max-grid-points: an integer of at least 4 (the core's smallest budget)."""
-    try:
-        n = int(str(value).strip())
-    except ValueError:
-        raise UsageError(f"--max-grid-points: {value!r} is not an integer") from None
-    if n < 4:
-        raise UsageError(f"--max-grid-points: {value!r} must be at least 4")
-    return n
-
-
-def _add_scenario_args(p: argparse.ArgumentParser) -> None:
-    d = Options()
-    p.add_argument("--config", type=Path, metavar="TOML", help="scenario file (docs/scenario-file.md); flags given here override it")
-    world = p.add_argument_group("world and data")
-    src = world.add_mutually_exclusive_group()
-    src.add_argument("--shape", default=d.shape, help=f"built-in shape: {', '.join(scenario.shape_names())} (default {d.shape})")
-    src.add_argument("--shape-file", metavar="CSV", help="object outline from a CSV file with header x,y")
-    src.add_argument("--data", metavar="CSV", help="labelled data from a CSV file with header robot,x,y,label")
-    world.add_argument("--robots", type=_positive_int("--robots"), default=d.robots, help=f"number of robots (default {d.robots})")
-    world.add_argument("--points", type=_positive_int("--points"), default=d.points, help=f"labelled points per robot (default {d.points})")
-    world.add_argument("--seed", type=int, default=d.seed, help="seed of LiDAR noise and network faults (default 0)")
-    ref, L = scenario.REFERENCE_LENGTHS, scenario.REFERENCE_LENGTH
-    follows = (f"times the object's scale: its bounding-box diagonal/{L:g} rounded to 1, 2, 5, 10, 20...; "
-               "1 for the built-in shapes")
-    world.add_argument(
-        "--standoff", type=_finite_float,
-        help=f"robot distance from the object's hull (default {ref['standoff']:g} {follows})",
-    )
-    world.add_argument(
-        "--range", dest="lidar_range", type=_finite_float,
-        help=f"LiDAR range (default {ref['range']:g} {follows})",
-    )
-    world.add_argument(
-        "--offset", type=_finite_float,
-        help=f"distance of labelled points from a LiDAR hit (default {ref['offset']:g} {follows})",
-    )
-    world.add_argument(
-        "--noise", type=_finite_float,
-        help=f"LiDAR range noise std (default {ref['noise']:g} {follows})",
-    )
-    model = p.add_argument_group("model (default: the fleet chooses grid and sigma itself)")
-    model.add_argument(
-        "--grid", metavar="NXxNY",
-        help=f"fixed grid of NXxNY points (default: automatic; the paper's is {PAPER_GRID}). "
-        "With --algorithm autogrid: the start grid the fleet refines",
-    )
-    model.add_argument(
-        "--grid-bounds", metavar="X0,X1,Y0,Y1",
-        help="region of the --grid points (default: the data's bounding box, padded)",
-    )
-    model.add_argument(
-        "--sigma", type=_finite_float,
-        help=f"Gaussian kernel width (default: chosen by the fleet; the paper's is {PAPER_SIGMA:g}). "
-        "With --algorithm autogrid: kept fixed",
-    )
-    model.add_argument("--C", type=_finite_float, default=None, help="soft margin with this penalty (default: hard margin, the paper's)")
-    model.add_argument(
-        "--preset", metavar="NAME",
-        help=f"'paper' = --grid {PAPER_GRID} --sigma {PAPER_SIGMA:g} --algorithm admm, the paper's fixed setting "
-        "(flags given as well override it)",
-    )
-    model.add_argument(
-        "--max-grid-points", metavar="N", default=str(d.max_grid_points),
-        help=f"autogrid: budget of grid points, at least 4 (default {d.max_grid_points}); frames grow with it",
-    )
-    algo = p.add_argument_group("fleet and algorithm")
-    algo.add_argument("--topology", default=d.topology, help=f"{' | '.join(topology.TOPOLOGIES)} (default {d.topology})")
-    algo.add_argument(
-        "--comm-range", type=_finite_float,
-        help=f"link robots within this distance (geometric topology; default {ref['comm-range']:g} {follows})",
-    )
-    algo.add_argument(
-        "--algorithm", default=d.algorithm, choices=ALGORITHM_CHOICES,
-        help="auto (default): admm when --grid and --sigma are given, else autogrid; autogrid: the fleet agrees on "
-        "its data's box, chooses sigma by a held-out vote and refines its grid; admm / ct-admm / newton (a "
-        "distributed interior-point method, exact in tens of rounds): fixed grid, "
-        f"the paper's ({PAPER_GRID}, sigma {PAPER_SIGMA:g}) unless --grid/--sigma say otherwise",
-    )
-    algo.add_argument("--rho", type=_finite_float, default=d.rho, help=f"ADMM penalty (default {d.rho})")
-    algo.add_argument("--relax", type=_finite_float, default=d.relax, help=f"ADMM over-relaxation in (0, 2) (default {d.relax})")
-    algo.add_argument("--tol", type=_finite_float, default=d.tol, help=f"stop when every robot's relative residual is below (default {d.tol:g})")
-    algo.add_argument(
-        "--max-rounds", type=_positive_int("--max-rounds"), default=d.max_rounds,
-        help=f"round cap (default {DEFAULT_MAX_ROUNDS}; autogrid: the cap over all its phases, default "
-        f"{DEFAULT_MAX_TOTAL_ROUNDS})",
-    )
-    algo.add_argument("--ct-step", default=f"{d.ct_step * 1e3:g}ms", help="ct-admm: integration step of the flow (default 1ms, the paper's)")
-    algo.add_argument("--ct-period", default=f"{d.ct_period * 1e3:g}ms", help="ct-admm: communication period T_sp (default 10ms, the paper's)")
-    algo.add_argument("--ct-stop-time", default=f"{d.ct_stop_time:g}s", help="ct-admm: stop time of the flow (default 10s, the paper's)")
-    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/)")
-
-
-def _add_fault_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("network faults (netem vocabulary, injected per directed link)")
-    g.add_argument("--delay", default="0ms", help="one-way delay, e.g. 20ms or 0.5s")
-    g.add_argument("--jitter", default="0ms", help="uniform jitter around the delay")
-    g.add_argument("--loss", default="0", help="drop probability (the dropout), 0.3 or 30%%")
-    g.add_argument("--duplicate", default="0", help="duplicate probability")
-    g.add_argument("--reorder", default="0", help="probability that a frame is held back and overtaken")
-    g.add_argument("--retransmit", default="20ms", help="resend the latest frame after this long without progress")
-
-
-def _add_timing_args(g: argparse._ArgumentGroup) -> None:
-    d = Timing()
-    g.add_argument("--dead-after", metavar="DURATION", help=f"a robot gives up a neighbour silent this long, also at start (default {d.dead_after_s:g}s)")
-    g.add_argument("--max-wall", metavar="DURATION", help=f"a robot stops after this long whatever happens (default {d.max_wall_s:g}s)")
-
-
-def _faults(args: argparse.Namespace) -> LinkFaults:
-    return LinkFaults(
-        delay=parse_duration(args.delay, flag="--delay"),
-        jitter=parse_duration(args.jitter, flag="--jitter"),
-        loss=parse_probability(args.loss, flag="--loss"),
-        duplicate=parse_probability(args.duplicate, flag="--duplicate"),
-        reorder=parse_probability(args.reorder, flag="--reorder"),
-    )
-
-
 def _options(args: argparse.Namespace, **extra: Any) -> Options:
-    timing_flags = {"retransmit": "retransmit_s", "dead_after": "dead_after_s", "max_wall": "max_wall_s"}
+    """The Options of a parsed command line (launcher/options.py: each flag's value went through
+    the table's parse and check already; build_world checks the combinations)."""
     try:
-        faults = _faults(args) if hasattr(args, "delay") else LinkFaults.none()
-        timing = Timing(**{
-            field: parse_duration(getattr(args, dest), flag="--" + dest.replace("_", "-"))
-            for dest, field in timing_flags.items()
-            if getattr(args, dest, None) is not None
-        })
-        ct = {
-            name: parse_duration(getattr(args, f"ct_{name}"), flag=f"--ct-{name.replace('_', '-')}")
-            for name in ("step", "period", "stop_time")
-        }
-    except ValueError as exc:  # the parsers name their flag
+        return options_from_args(args, **extra)
+    except ValueError as exc:
         raise UsageError(str(exc)) from None
-    for dest, field in timing_flags.items():
-        if getattr(timing, field) <= 0:
-            raise UsageError(f"--{dest.replace('_', '-')}: must be a positive duration")
-    return Options(
-        shape=args.shape,
-        shape_file=args.shape_file,
-        data=args.data,
-        robots=args.robots,
-        points=args.points,
-        seed=args.seed,
-        standoff=args.standoff,
-        lidar_range=args.lidar_range,
-        offset=args.offset,
-        noise=args.noise,
-        grid=args.grid,
-        grid_bounds=args.grid_bounds,
-        sigma=args.sigma,
-        C=args.C,
-        preset=args.preset,
-        max_grid_points=_max_grid_points(args.max_grid_points),
-        topology=args.topology,
-        comm_range=args.comm_range,
-        algorithm=args.algorithm,
-        rho=args.rho,
-        relax=args.relax,
-        tol=args.tol,
-        max_rounds=args.max_rounds,
-        ct_step=ct["step"],
-        ct_period=ct["period"],
-        ct_stop_time=ct["stop_time"],
-        faults=faults,
-        timing=timing,
-        **extra,
-    )
 
 
 def _robots_bound(args: argparse.Namespace) -> None:
@@ -326,7 +132,7 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
 
     bases = None
     if spec.fixed_grid:
-        tol = float(spec.params.get("tol", report.DEFAULT_AGREEMENT_TOL))
+        tol = float(getattr(spec.algorithm_params, "tol", report.DEFAULT_AGREEMENT_TOL))
         result = report.build_result(world, spec.basis, central, robots, algorithm=spec.algorithm, C=spec.C,
                                      wall_s=wall_s, extra=extra, tol=tol)
     else:
@@ -347,7 +153,7 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     if spec.algorithm == "ct-admm" and first is not None:
         from launcher.trajectory import plot_trajectory, trajectory_from_trace
 
-        period = float(spec.params["ct_period"])
+        period = float(spec.algorithm_params.period)
         reference = np.append(central.x, central.gamma) if central.solved else None
         plot_trajectory(out / "trajectory.png", *trajectory_from_trace(first["trace"], period), reference=reference)
         written.append("trajectory.png")
@@ -382,13 +188,12 @@ def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], 
 def _round_budget(spec: Any) -> int:
     """Rounds the run is planned to take: the cap, for ct-admm the stop time in periods, for
     autogrid its phases' planned rounds (AutoGridParams.planned_rounds, not the 50,000 cap)."""
+    params = spec.algorithm_params
     if spec.algorithm == "ct-admm":
-        from agents.ct_admm import CTADMMParams
-
-        return CTADMMParams.from_params(spec.params).rounds
+        return int(params.rounds)
     if spec.algorithm == "autogrid":
-        return spec.autogrid_params.planned_rounds
-    return int(spec.params["max_rounds"])
+        return int(params.planned_rounds)
+    return int(params.max_rounds)
 
 
 def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None,
@@ -490,12 +295,6 @@ def cmd_launch(args: argparse.Namespace) -> int:
         crashes = [parse_crash(text) for text in args.crash]
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    if args.restart_after < 0:
-        raise UsageError("--restart-after: must be a non-negative number of seconds")
-    if args.zenoh_port is not None and not 1 <= args.zenoh_port <= 65535:
-        raise UsageError(f"--zenoh-port: {args.zenoh_port} is not a TCP port (1-65535)")
-    if args.max_robots is not None and args.max_robots < 1:
-        raise UsageError(f"--max-robots: {args.max_robots} must be at least 1")
     _robots_bound(args)
     from launcher.fleet import _port_in_use
 
@@ -749,14 +548,11 @@ def cmd_gridstudy(args: argparse.Namespace) -> int:
     from launcher.gridstudy import run_grid_study
 
     options = _options(args)
-    if args.bad_grid is not None:
-        scenario.parse_grid(args.bad_grid)
     run_grid_study(
         _out_dir(args, "gridstudy"),
         options=options,
         good_grid=args.grid or PAPER_GRID,
         bad_grid=args.bad_grid or "4x2",
-        stop_time=options.ct_stop_time,
     )
     return 0
 
@@ -769,37 +565,17 @@ def _fault_dict(faults: LinkFaults) -> dict[str, float]:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="shapefleet", description="A robot fleet learns an object's outline together.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    p = sub.add_parser("simulate", help="all robots in this process (deterministic, fast)")
-    _add_scenario_args(p)
-    _add_fault_args(p)
-    p.set_defaults(func=cmd_simulate)
-    p = sub.add_parser("launch", help="one process per robot on Zenoh, with a fault-injecting network")
-    _add_scenario_args(p)
-    _add_fault_args(p)
-    g = p.add_argument_group("processes")
-    g.add_argument("--crash", action="append", default=[], metavar="ID@ROUND", help="SIGKILL robot ID when it reaches ROUND (repeatable)")
-    g.add_argument("--restart-after", type=_finite_float, default=1.0, help="seconds before a crashed robot restarts from its checkpoint (default 1)")
-    g.add_argument("--no-restart", action="store_true", help="leave crashed robots dead: the others finish without them")
-    g.add_argument("--fleet-id", help="fleet id on the network (default: unique per run)")
-    g.add_argument("--zenoh-port", type=int, help="the router's loopback port (default: a free one)")
-    g.add_argument("--max-robots", type=int, metavar="N",
-                   help="allow up to N robot processes (default: derived from this machine's cores and memory)")
-    _add_timing_args(g)
-    p.set_defaults(func=cmd_launch)
-    p = sub.add_parser("central", help="solve the same problem with all data in one place")
-    _add_scenario_args(p)
-    p.set_defaults(func=cmd_central)
-    p = sub.add_parser("prepare", help="write the fleet files for robots on other hosts (one per robot: its own data)")
-    _add_scenario_args(p)
-    _add_fault_args(p)
-    g = p.add_argument_group("fleet")
-    g.add_argument("--fleet-id", help="fleet id on the network (default: unique per run)")
-    _add_timing_args(g)
-    p.set_defaults(func=cmd_prepare)
-    p = sub.add_parser("gridstudy", help="the paper's Fig. 5: a coarse, shifted grid leaves the hard margin infeasible")
-    _add_scenario_args(p)
-    p.add_argument("--bad-grid", metavar="NXxNY", help="the coarse grid, shifted by half a cell (default 4x2)")
-    p.set_defaults(func=cmd_gridstudy)
+    commands = (
+        ("simulate", "all robots in this process (deterministic, fast)", cmd_simulate),
+        ("launch", "one process per robot on Zenoh, with a fault-injecting network", cmd_launch),
+        ("central", "solve the same problem with all data in one place", cmd_central),
+        ("prepare", "write the fleet files for robots on other hosts (one per robot: its own data)", cmd_prepare),
+        ("gridstudy", "the paper's Fig. 5: a coarse, shifted grid leaves the hard margin infeasible", cmd_gridstudy),
+    )
+    for name, help_text, func in commands:  # their flags: launcher/options.py
+        p = sub.add_parser(name, help=help_text)
+        add_arguments(p, name)
+        p.set_defaults(func=func)
     p = sub.add_parser("robot", help="run one robot process from a fleet file")
     p.add_argument("--fleet-file", type=Path, required=True, help="the fleet file written by launch or prepare")
     p.add_argument("--id", type=int, help=f"this robot's id (default: ${ROBOT_ID_ENV}, else the robot a per-robot fleet file is for)")

@@ -2,8 +2,9 @@
 
     shapefleet simulate --config scenario.toml --loss 0.1      # flags given override the file
 
-Every key is a command-line flag without its leading dashes, in the section listed in
-:data:`SECTIONS` (docs/scenario-file.md has the whole format and docker/scenario.toml an example)::
+Every key is a command-line flag without its leading dashes, in the section the options table
+(launcher/options.py, the one place each option, its type, default and check are declared) gives it,
+listed in :data:`SECTIONS` (docs/scenario-file.md has the whole format and docker/scenario.toml an example)::
 
     [world]
     shape = "blob"
@@ -28,36 +29,18 @@ from __future__ import annotations
 
 import argparse
 import difflib
-import math
 import tomllib
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from launcher.options import BY_NAME, OPTIONS, PATH, SECTION_OF, SECTIONS, toml_value
+
 __all__ = ["SECTIONS", "ConfigError", "Scenario", "load_scenario", "defaults_for"]
 
-SECTIONS: dict[str, tuple[str, ...]] = {
-    "world": ("shape", "shape-file", "data", "robots", "points", "seed", "standoff", "range", "offset", "noise"),
-    "model": ("grid", "grid-bounds", "sigma", "C", "preset", "max-grid-points"),
-    "algorithm": (
-        "topology", "comm-range", "algorithm", "rho", "relax", "tol", "max-rounds", "ct-step", "ct-period", "ct-stop-time",
-    ),
-    "faults": ("delay", "jitter", "loss", "duplicate", "reorder", "retransmit"),
-    "fleet": ("fleet-id", "dead-after", "max-wall"),
-    "launch": ("crash", "restart-after", "no-restart", "zenoh-port", "max-robots"),
-}
-SECTION_OF = {key: section for section, keys in SECTIONS.items() for key in keys}
-
-# TOML types each key accepts (besides what the flag's own parser then checks)
-_INT = ("robots", "points", "seed", "max-rounds", "zenoh-port", "max-grid-points", "max-robots")
-_FLOAT = ("standoff", "range", "offset", "noise", "sigma", "C", "comm-range", "rho", "relax", "tol", "restart-after")
-_DURATION = ("delay", "jitter", "retransmit", "dead-after", "max-wall", "ct-step", "ct-period", "ct-stop-time")
-_PROBABILITY = ("loss", "duplicate", "reorder")
-_BOOL = ("no-restart",)
-_LIST = ("crash",)
-_PATHS = ("shape-file", "data")
-SOURCES = ("shape", "shape-file", "data")  # one data source: a flag given for one drops the file's others
+#: data sources: a flag given for one drops the file's others; two in one file conflict
+SOURCES = tuple(o.name for o in OPTIONS if o.exclusive == "source")
 
 
 class ConfigError(ValueError):
@@ -66,89 +49,13 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class Scenario:
-    """A validated scenario file: ``values`` maps flag names (``"max-rounds"``) to TOML values."""
+    """A validated scenario file: ``values`` maps flag names (``"max-rounds"``) to checked values."""
 
     path: Path
     values: dict[str, Any]
 
     def where(self, key: str) -> str:
         return f"{self.path}: [{SECTION_OF[key]}] {key}"
-
-
-def _type_name(value: Any) -> str:
-    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array",
-            dict: "a table"}.get(type(value), type(value).__name__)
-
-
-def _check_type(where: str, key: str, value: Any) -> Any:
-    """The value in the form argparse would see it, or ConfigError."""
-
-    def wrong(expected: str) -> ConfigError:
-        return ConfigError(f"{where}: expected {expected}, got {_type_name(value)} {value!r}")
-
-    if key in _BOOL:
-        if not isinstance(value, bool):
-            raise wrong("true or false")
-        return value
-    if key in _INT:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise wrong("an integer")
-        return value
-    if key in _FLOAT:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise wrong("a number")
-        if not math.isfinite(value):
-            raise ConfigError(f"{where}: {value!r} is not a finite number")
-        return float(value)
-    if key in _PROBABILITY:
-        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-            raise wrong("a probability such as 0.3 or \"30%\"")
-        return value if isinstance(value, str) else repr(float(value))
-    if key in _LIST:
-        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-            raise wrong('an array of strings such as ["1@40"]')
-        return list(value)
-    if not isinstance(value, str):
-        raise wrong('a duration such as "20ms"' if key in _DURATION else "a string")
-    return value
-
-
-def _check_value(where: str, key: str, value: Any) -> None:
-    """Checks a flag's own parser does only later (and then names the flag, not the file)."""
-    from launcher import scenario, topology
-    from protocol.keys import validate_fleet_id
-    from protocol.links import parse_duration, parse_probability
-
-    try:
-        if key in _DURATION:
-            parse_duration(value, flag=key)
-        elif key in _PROBABILITY:
-            parse_probability(value, flag=key)
-        elif key == "crash":
-            from launcher.fleet import parse_crash
-
-            for text in value:
-                parse_crash(text)
-        elif key == "grid":
-            scenario.parse_grid(value)
-        elif key == "grid-bounds":
-            scenario.parse_bounds(value)
-        elif key == "preset":
-            from launcher.world import PRESETS
-
-            if value not in PRESETS:
-                raise ValueError(f"{value!r} is not a preset (choose from {', '.join(PRESETS)})")
-        elif key == "max-grid-points" and value < 4:
-            raise ValueError(f"{value!r} must be at least 4")
-        elif key == "topology" and value not in topology.TOPOLOGIES:
-            raise ValueError(f"{value!r} is not one of {', '.join(topology.TOPOLOGIES)}")
-        elif key == "fleet-id":
-            validate_fleet_id(value)
-    except ValueError as exc:  # ScenarioError and TopologyError are ValueErrors too
-        message = str(exc)
-        for prefix in (f"--{key}: ", f"{key}: "):
-            message = message.removeprefix(prefix)
-        raise ConfigError(f"{where}: {message}") from None
 
 
 def _unknown(path: Path, key: str, section: str | None) -> ConfigError:
@@ -184,15 +91,17 @@ def load_scenario(path: str | Path) -> Scenario:
         for key, value in table.items():
             if key not in SECTIONS[section]:
                 raise _unknown(path, key, section)
-            where = f"{path}: [{section}] {key}"
-            value = _check_type(where, key, value)
-            _check_value(where, key, value)
-            values[key] = value
-    sources = [k for k in SOURCES if k in values]
-    if len(sources) > 1:
-        raise ConfigError(f"{path}: [world] {sources[1]}: give one data source, not both {sources[0]} and {sources[1]}")
+            try:  # the option's TOML types, parse and check: the table's (launcher/options.py)
+                values[key] = toml_value(BY_NAME[key], value)
+            except ValueError as exc:
+                raise ConfigError(f"{path}: [{section}] {key}: {exc}") from None
+    for group in {o.exclusive for o in OPTIONS if o.exclusive}:
+        both = [o.name for o in OPTIONS if o.exclusive == group and o.name in values]
+        if len(both) > 1:
+            raise ConfigError(f"{path}: [{SECTION_OF[both[1]]}] {both[1]}: give one data source, not both "
+                              f"{both[0]} and {both[1]}")
     base = path.resolve().parent
-    for key in (*_PATHS, "shape"):
+    for key in (*(o.name for o in OPTIONS if o.kind == PATH and o.section), "shape"):
         value = values.get(key)
         if value is None or (key == "shape" and not value.lower().endswith(".csv")):
             continue
@@ -218,15 +127,7 @@ def defaults_for(parser: argparse.ArgumentParser, scenario: Scenario, given: Ite
         action = actions.get(key)
         if action is None or action.dest in given or (key in SOURCES and source_given):
             continue
-        if callable(action.type) and not isinstance(value, (list, bool)):
-            try:
-                value = action.type(str(value))
-            except (argparse.ArgumentTypeError, ValueError, TypeError) as exc:
-                raise ConfigError(f"{scenario.where(key)}: {exc}") from None
-        if action.choices is not None and value not in action.choices:
-            choices = ", ".join(map(str, action.choices))
-            raise ConfigError(f"{scenario.where(key)}: {value!r} is not one of {choices}")
-        out[action.dest] = value
+        out[action.dest] = value  # parsed and checked by load_scenario, as the flag would be
     return out
 
 

@@ -72,8 +72,11 @@ def _consensus_gap(robots: list[dict[str, Any]]) -> float:
 def _run_case(label: str, world: World, spec: FleetSpec, central: CentralSolution, stop_time: float) -> GridCase:
     """Run the fleet to half and to the full stop time: the dual norms show growth or not."""
     basis = spec.basis
+    # params are CTADMMParams' own fields (launcher/options.py feeds --ct-stop-time to "stop_time"):
+    # replacing the one key sets the stop time, whatever the dict held before
     half = dataclasses.replace(spec, params={**spec.params, "stop_time": stop_time / 2})
     full = dataclasses.replace(spec, params={**spec.params, "stop_time": stop_time})
+    assert spec.algorithm == "ct-admm" and full.algorithm_params.stop_time == stop_time
     dual_half = max(r["dual_norm"] for r in simulate_fleet(half).robots)
     robots = simulate_fleet(full).robots
     pts, labels = world.points, world.labels
@@ -142,7 +145,7 @@ def run_grid_study(
     good_grid: str = "5x3",
     bad_grid: str = "4x2",
     shift: tuple[float, float] = (0.5, 0.0),
-    stop_time: float = 10.0,
+    stop_time: float | None = None,
     quiet: bool = False,
 ) -> GridStudy:
     """Solve the same data on `good_grid` and on `bad_grid` shifted by `shift` cells; draw both.
@@ -153,6 +156,7 @@ def run_grid_study(
     out.mkdir(parents=True, exist_ok=True)
     base = options or Options()
     base = dataclasses.replace(base, algorithm="ct-admm", fleet_id=base.fleet_id or "gridstudy")
+    stop_time = base.ct_stop_time if stop_time is None else stop_time  # default: --ct-stop-time's
     good_world, good_spec = build_world(dataclasses.replace(base, grid=good_grid))
     bad_opts = dataclasses.replace(
         base, grid=bad_grid, grid_bounds=_shifted_bounds(good_world.bounds, bad_grid, shift)

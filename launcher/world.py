@@ -21,70 +21,35 @@ from __future__ import annotations
 
 import dataclasses
 import secrets
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import networkx as nx
 import numpy as np
 from shapely import Polygon
 
+from agents.admm import ADMMParams
 from agents.autogrid import AutoGridParams
 from agents.ct_admm import CTADMMParams
-from agents.spec import ALGORITHMS, FleetSpec, RobotSpec, Timing
+from agents.spec import ALGORITHMS, FleetSpec, RobotSpec
 from launcher import scenario, topology
+from launcher.options import (  # noqa: F401  (re-exported: Options and the presets are the table's)
+    ALGORITHM_CHOICES,
+    PAPER_GRID,
+    PAPER_SIGMA,
+    PRESETS,
+    Options,
+    algorithm_params,
+    validate_options,
+)
 from protocol.frames import MAX_DIM
-from protocol.keys import validate_fleet_id
-from protocol.links import LinkFaults
 
 
-#: the paper's fixed grid and kernel width (``--preset paper``; admm/ct-admm without --grid/--sigma)
-PAPER_GRID = "5x3"
-PAPER_SIGMA = 1.0
-PRESETS: dict[str, dict[str, Any]] = {"paper": {"grid": PAPER_GRID, "sigma": PAPER_SIGMA}}
-#: --algorithm choices: "auto" resolves to admm (grid and sigma given) or autogrid
-ALGORITHM_CHOICES = ("auto", *ALGORITHMS)
 #: the autogrid fleet's budget of grid points (AutoGridParams.max_points)
 DEFAULT_MAX_GRID_POINTS = AutoGridParams().max_points
 #: autogrid's round cap over all its phases when --max-rounds is not given
 DEFAULT_MAX_TOTAL_ROUNDS = AutoGridParams().max_total_rounds
 #: the admm / ct-admm round cap when --max-rounds is not given (autogrid: its own cap over all phases)
-DEFAULT_MAX_ROUNDS = 5000
-
-
-@dataclass
-class Options:
-    """Everything `simulate`, `launch` and `central` accept (their flags, with their defaults)."""
-
-    shape: str = scenario.DEFAULT_SHAPE
-    shape_file: str | None = None
-    data: str | None = None
-    robots: int = 3
-    points: int = 20
-    seed: int = 0
-    # world lengths, in the outline's unit; None: follow the object's size (module doc)
-    standoff: float | None = None
-    lidar_range: float | None = None
-    offset: float | None = None
-    noise: float | None = None
-    grid: str | None = None  # None: automatic (autogrid), or the paper's 5x3 for admm / ct-admm
-    grid_bounds: str | None = None  # None: the data's padded bounding box
-    sigma: float | None = None  # None: chosen by the fleet (autogrid), or the paper's 1 for admm / ct-admm
-    C: float | None = None
-    preset: str | None = None  # "paper": grid 5x3 and sigma 1 where not given
-    max_grid_points: int = DEFAULT_MAX_GRID_POINTS  # autogrid: budget of grid points
-    topology: str = "complete"
-    comm_range: float | None = None  # geometric topology; None: follows the object's size
-    algorithm: str = "auto"
-    rho: float = 15.0
-    relax: float = 1.95
-    tol: float = 1e-3
-    max_rounds: int | None = None  # None: 5000 for admm, autogrid's own cap (all phases) for autogrid
-    ct_step: float = 1e-3  # ct-admm: Euler step of the flow (s), the paper's sampling period
-    ct_period: float = 1e-2  # ct-admm: communication period T_sp (s)
-    ct_stop_time: float = 10.0  # ct-admm: stop time (s)
-    faults: LinkFaults = field(default_factory=LinkFaults.none)
-    timing: Timing = field(default_factory=Timing)
-    fleet_id: str | None = None
+DEFAULT_MAX_ROUNDS = ADMMParams().max_rounds
 
 
 @dataclass
@@ -105,11 +70,6 @@ class World:
     @property
     def labels(self) -> np.ndarray:
         return np.concatenate([r.labels for r in self.robots])
-
-
-def _check_positive(value: float, flag: str) -> None:
-    if not (np.isfinite(value) and value > 0):
-        raise scenario.ScenarioError(f"{flag}: {value!r} must be a positive number")
 
 
 def resolve_options(opts: Options) -> Options:
@@ -140,20 +100,10 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
     """The scenario and the fleet file of one run; errors are ScenarioError / TopologyError."""
     opts = resolve_options(opts)
     autogrid = opts.algorithm == "autogrid"
-    if opts.sigma is not None:
-        _check_positive(opts.sigma, "--sigma")
-    if opts.C is not None:
-        _check_positive(opts.C, "--C")
-    _check_positive(opts.rho, "--rho")
-    _check_positive(opts.tol, "--tol")
-    if not 0 < opts.relax < 2:
-        raise scenario.ScenarioError(f"--relax: {opts.relax!r} must be in (0, 2)")
-    if opts.max_rounds is not None and opts.max_rounds < 1:
-        raise scenario.ScenarioError(f"--max-rounds: {opts.max_rounds!r} must be at least 1")
-    if isinstance(opts.max_grid_points, bool) or not isinstance(opts.max_grid_points, (int, np.integer)) or opts.max_grid_points < 4:
-        raise scenario.ScenarioError(f"--max-grid-points: {opts.max_grid_points!r} must be an integer of at least 4")
-    if opts.max_grid_points + 2 > MAX_DIM:
-        raise scenario.ScenarioError(f"--max-grid-points: {opts.max_grid_points} does not fit a frame (at most {MAX_DIM - 2})")
+    try:
+        validate_options(opts)  # each value's check, from the options table (launcher/options.py)
+    except ValueError as exc:
+        raise scenario.ScenarioError(str(exc)) from None
     grid_shape = None if opts.grid is None else scenario.parse_grid(opts.grid)
     given_bounds = scenario.parse_bounds(opts.grid_bounds) if opts.grid_bounds else None
     if given_bounds is not None and grid_shape is None:
@@ -161,11 +111,6 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             "--grid-bounds: places the grid of --grid, and none is given (the automatic grid covers the data "
             "by itself); give --grid too, or --preset paper"
         )
-    if opts.fleet_id is not None:
-        try:
-            validate_fleet_id(opts.fleet_id)
-        except ValueError as exc:
-            raise scenario.ScenarioError(f"--fleet-id: {exc}") from None
 
     radio = opts.topology == "geometric"
     if opts.data is not None:
@@ -211,24 +156,11 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
     graph = topology.build_topology(opts.topology, ids, positions=positions, comm_range=lengths.comm_range)
     neighbours = topology.neighbours(graph)
 
-    params: dict[str, Any] = {
-        "rho": opts.rho,
-        "relax": opts.relax,
-        "tol": opts.tol,
-        "diameter": max(1, topology.diameter(graph)) if len(ids) > 1 else 0,
-    }
-    if autogrid:  # the round cap covers every phase (max_total_rounds); unset: autogrid's own
-        params["max_points"] = int(opts.max_grid_points)
-        if opts.max_rounds is not None:
-            params["max_total_rounds"] = opts.max_rounds
-    else:
-        params["max_rounds"] = DEFAULT_MAX_ROUNDS if opts.max_rounds is None else opts.max_rounds
+    diameter = max(1, topology.diameter(graph)) if len(ids) > 1 else 0
+    params = algorithm_params(opts, opts.algorithm, diameter=diameter)
     if opts.algorithm == "ct-admm":
-        for flag, value in (("--ct-step", opts.ct_step), ("--ct-period", opts.ct_period), ("--ct-stop-time", opts.ct_stop_time)):
-            _check_positive(value, flag)
-        params.update(ct_step=opts.ct_step, ct_period=opts.ct_period, ct_stop_time=opts.ct_stop_time)
         try:
-            CTADMMParams.from_params(params)
+            CTADMMParams(**params)
         except ValueError as exc:  # e.g. a period that is not a whole number of steps
             raise scenario.ScenarioError(f"--ct-period/--ct-step: {exc}") from None
     spec = FleetSpec(

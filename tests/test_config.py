@@ -106,7 +106,7 @@ def test_the_file_gives_the_same_options_as_the_flags(tmp_path):
 def test_flags_override_the_file(tmp_path):
     path = write(tmp_path, FILE)
     args = parse_args(["launch", "--robots", "2", "--config", str(path), "--crash", "0@3", "--loss", "0", "--tol", "1e-2"])
-    assert (args.robots, args.crash, args.loss, args.tol) == (2, ["0@3"], "0", 1e-2)
+    assert (args.robots, args.crash, args.loss, args.tol) == (2, ["0@3"], 0.0, 1e-2)
     assert (args.points, args.shape, args.no_restart) == (12, "bean", True)  # the rest from the file
 
 
@@ -167,7 +167,7 @@ BAD = [
     ('[faults]\ndelay = "20 parsecs"\n', "[faults] delay: '20 parsecs' is not a duration"),
     ('[model]\ngrid = "5by3"\n', "[model] grid: "),
     ('[model]\npreset = "fast"\n', "[model] preset: 'fast' is not a preset (choose from paper)"),
-    ("[model]\nmax-grid-points = 3\n", "[model] max-grid-points: 3 must be at least 4"),
+    ("[model]\nmax-grid-points = 3\n", "[model] max-grid-points: '3' must be at least 4"),
     ('[model]\nmax-grid-points = "60"\n', "[model] max-grid-points: expected an integer"),
     ("[algorithm]\npreset = \"paper\"\n", "[algorithm] preset: this key belongs in the [model] section"),
     ('[algorithm]\ntopology = "star"\n', "[algorithm] topology: 'star' is not one of complete, ring, line, geometric"),

@@ -101,16 +101,14 @@ def test_params_validation_names_the_problem(bad, words):
 
 
 def test_params_from_fleet_file():
-    """The fleet file's ADMM-only keys are ignored; ct_ prefixes map to CT names; typos fail."""
-    p = CTADMMParams.from_params(
-        {"rho": 15.0, "relax": 1.95, "tol": 1e-3, "max_rounds": 5000, "diameter": 2, "ct_step": 5e-4, "period": 0.02}
-    )
+    """The fleet file holds exactly CTADMMParams' fields (launcher/options.py); other keys fail by name."""
+    p = CTADMMParams.from_params({"tol": 1e-3, "max_rounds": 5000, "diameter": 2, "step": 5e-4, "period": 0.02})
     assert (p.step, p.period, p.tol, p.diameter, p.rounds) == (5e-4, 0.02, 1e-3, 2, 500)
-    assert p.rho == CTADMMParams().rho  # the discrete ADMM's rho is not the flow's
-    assert CTADMMParams.from_params({"ct_rho": 3.0}).rho == 3.0
+    assert CTADMMParams.from_params({"rho": 3.0}).rho == 3.0  # the flow's own gain
     assert CTADMMParams.from_params({"max_rounds": 40}).rounds == 40
-    with pytest.raises(ValueError, match="unknown ct-admm parameter 'stoptime'"):
-        CTADMMParams.from_params({"stoptime": 3.0})
+    for key in ("stoptime", "relax", "ct_step"):  # a typo, a discrete-ADMM key, an old prefix
+        with pytest.raises(ValueError, match=f"unknown ct-admm parameter '{key}'"):
+            CTADMMParams.from_params({key: 3.0})
 
 
 def test_registered_and_exchanges_x_gamma():

@@ -189,10 +189,13 @@ def test_bad_parameters_are_refused_by_name():
     with pytest.raises(ValueError, match="unknown newton parameter 'sigma0'"):
         NewtonParams.from_params({"sigma0": 1})
     with pytest.raises(ValueError, match="centering"):
-        NewtonParams.from_params({"newton_centering": 1.5})
+        NewtonParams.from_params({"centering": 1.5})
     with pytest.raises(ValueError, match="allreduce"):
         NewtonParams(allreduce="ring")
-    assert NewtonParams.from_params({"rho": 3.0, "tol": 1e-3, "max_rounds": 7}).max_rounds == 7
+    for key in ("rho", "newton_centering"):  # an ADMM key, an old prefix: the fleet file holds newton's own
+        with pytest.raises(ValueError, match=f"unknown newton parameter '{key}'"):
+            NewtonParams.from_params({key: 0.5})
+    assert NewtonParams.from_params({"max_rounds": 7}).max_rounds == 7
 
 
 def test_grid_too_large_for_a_frame_names_the_flag():

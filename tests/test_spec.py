@@ -51,15 +51,15 @@ def test_build_core_gives_each_robot_its_raw_points_and_the_shared_params(auto):
     assert core.params.rho == spec.params["rho"] and core.params.diameter == spec.params["diameter"]
 
 
-def test_params_are_filtered_and_max_rounds_is_the_total_cap(auto):
+def test_params_are_autogrids_own_and_max_rounds_is_the_total_cap(auto):
     _, spec, _ = auto
-    other = dataclasses.replace(
-        spec, sigma=0.7, C=5.0, params={**spec.params, "max_rounds": 1234, "ct_step": 0.001, "gamma_penalty": 3.0}
-    )
+    other = dataclasses.replace(spec, sigma=0.7, C=5.0, params={**spec.params, "max_total_rounds": 1234})
     p = other.autogrid_params
     assert (p.max_total_rounds, p.sigma, p.C) == (1234, 0.7, 5.0)
-    both = dataclasses.replace(spec, params={**spec.params, "max_rounds": 1, "max_total_rounds": 999})
-    assert both.autogrid_params.max_total_rounds == 999
+    for key in ("max_rounds", "ct_step", "gamma_penalty_x"):  # keys of other algorithms or typos: refused by name
+        bad = dataclasses.replace(spec, params={**spec.params, key: 1})
+        with pytest.raises(ValueError, match=f"unknown autogrid parameter '{key}'"):
+            bad.autogrid_params  # noqa: B018
     # the CLI's --max-rounds reaches autogrid as its total cap
     _, capped, _ = make_run(algorithm="autogrid", max_grid_points=60, max_rounds=4321)
     assert capped.autogrid_params.max_total_rounds == 4321
