@@ -36,7 +36,7 @@ TABLE_COMMANDS = sorted({c for o in OPTIONS for c in o.commands} - {"collect"})
 
 #: a valid non-default value of each option, as a command-line word and as a TOML value
 _TEXT = {"shape": "bean", "grid": "4x4", "grid-bounds": "0,1,0,1", "preset": "paper", "topology": "ring",
-         "fleet-id": "opt-test", "bad-grid": "3x2", "algorithm": "admm", "crash": "1@4"}
+         "fleet-id": "opt-test", "bad-grid": "3x2", "algorithm": "admm", "crash": "1@4", "robots-per-process": "4"}
 _BY_KIND = {INT: ("7", 7), FLOAT: ("0.5", 0.5), DURATION: ("30ms", "30ms"), PROBABILITY: ("0.25", 0.25)}
 
 
