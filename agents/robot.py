@@ -747,6 +747,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--connect", action="append", required=True)
     ap.add_argument("--workdir", type=Path, required=True, help="robot-I.ckpt / robot-I.json go here")
     ap.add_argument("--status-interval", type=float, default=0.0, help="seconds between status lines (0: every round)")
+    ap.add_argument("--allow-remote", action="store_true", help="a router beyond loopback (multi-host)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
     from agents.spec import FleetSpec
@@ -757,7 +758,7 @@ def main(argv: list[str] | None = None) -> int:
         bad = [i for i in ids if i not in spec.robots]
         if bad or not ids:
             raise ValueError(f"--ids: robot {bad[0] if bad else args.ids!r} is not in {args.fleet_file}")
-        config = robot_config_dict_for(args.connect)
+        config = robot_config_dict_for(args.connect, loopback_only=not args.allow_remote)
     except ValueError as exc:
         print(f"shapefleet robot: {exc}", file=sys.stderr)
         return 2
@@ -776,11 +777,11 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if ok else 1
 
 
-def robot_config_dict_for(connect: list[str]) -> dict[str, Any]:
-    """The loopback client configuration of ``connect`` (ValueError naming a bad endpoint)."""
+def robot_config_dict_for(connect: list[str], *, loopback_only: bool = True) -> dict[str, Any]:
+    """The client configuration of ``connect`` (ValueError naming a bad endpoint)."""
     from protocol.zenoh_config import robot_config_dict
 
-    return robot_config_dict(connect)
+    return robot_config_dict(connect, loopback_only=loopback_only)
 
 
 if __name__ == "__main__":

@@ -238,16 +238,29 @@ def router_config_dict(
     loopback_only: bool = True,
     tls: TLSFiles | None = None,
     access_control: Mapping[str, Any] | None = None,
+    peers: Iterable[str] = (),
 ) -> dict[str, Any]:
     """Router listening on ``tcp/host:port`` (``tls/host:port`` with ``tls``) only, no scouting,
-    connecting to nobody. ``access_control``: e.g. :func:`robot_access_control` (needs mutual TLS)."""
+    connecting to nobody -- or to the routers in ``peers`` (endpoints, validated like the listen
+    one): linked routers route the fleet's keys between their clients, so robots can be split
+    between hosts, each host with its own router (docs/scaling.md). A peer that is not up yet is
+    retried (it may start later); a router never exits for want of one.
+    ``access_control``: e.g. :func:`robot_access_control` (needs mutual TLS)."""
     if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
         raise ValueError(f"router port must be an int in 1..65535, got {port!r}")
     endpoint = validate_endpoint(router_endpoint(port, host, "tls" if tls else "tcp"), loopback_only=loopback_only)
+    if isinstance(peers, str):
+        raise ValueError(f"peers must be a list of router endpoints, got the string {peers!r}")
+    peer_eps = [validate_endpoint(e, loopback_only=loopback_only) for e in peers]
+    if endpoint in peer_eps:
+        raise ValueError(f"a router cannot connect to its own endpoint {endpoint}")
+    connect: dict[str, Any] = {"endpoints": peer_eps}
+    if peer_eps:
+        connect.update(timeout_ms=-1, exit_on_failure=False, retry=dict(CONNECT_RETRY))
     extra: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": [endpoint]},
-        "connect": {"endpoints": []},
+        "connect": connect,
     }
     if tls is not None:
         if tls.cert is None:
@@ -330,9 +343,10 @@ def to_zenoh_config(d: Mapping[str, Any]):
     return conf
 
 
-def router_config(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True, tls: TLSFiles | None = None):
+def router_config(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True, tls: TLSFiles | None = None,
+                  peers: Iterable[str] = ()):
     """``zenoh.Config`` of :func:`router_config_dict`."""
-    return to_zenoh_config(router_config_dict(port, host, loopback_only=loopback_only, tls=tls))
+    return to_zenoh_config(router_config_dict(port, host, loopback_only=loopback_only, tls=tls, peers=peers))
 
 
 def robot_config(connect: Iterable[str], *, loopback_only: bool = True, tls: TLSFiles | None = None):
