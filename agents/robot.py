@@ -83,7 +83,11 @@ _STARTED = {"process": _process_start(), "imported": time.monotonic()}
 CHECKPOINT_VERSION = 1
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
+# wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the
+# preemption a loaded machine adds to wall times)
+PROFILE_KEYS = (*PROFILE_PHASES, *(f"{p}:cpu" for p in PROFILE_PHASES if p != "wait"))
 _pc = time.perf_counter
+_tt = time.thread_time
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -256,7 +260,7 @@ class RobotShell:
         self._pub: Any = None
         # Where the time goes (perf_counter seconds by phase) and when things happened (monotonic
         # clock, comparable across processes): benchmarks/round_cost.py reads it (profile_path).
-        self.profile: dict[str, float] = dict.fromkeys(PROFILE_PHASES, 0.0)
+        self.profile: dict[str, float] = dict.fromkeys(PROFILE_KEYS, 0.0)
         self._prof_first = self._prof_last = self.profile
         self._rounds_done = 0
         self.marks: dict[str, float] = {**{k: v for k, v in _STARTED.items() if v is not None},
@@ -327,7 +331,7 @@ class RobotShell:
     def _on_raw(self, j: int, data: bytes) -> None:
         if self._closing:
             return
-        t = _pc()
+        t, c = _pc(), _tt()
         self.received += 1
         now = self.clock()
         self.links.send(j, self.me, data, now)
@@ -336,6 +340,7 @@ class RobotShell:
         # it re-reads links.next_due().
         self._wake()
         self.profile["receive"] += _pc() - t
+        self.profile["receive:cpu"] += _tt() - c
 
     def _pump(self, now: float) -> None:
         """Hand every frame the fault links deliver by ``now`` to the session."""
@@ -434,10 +439,13 @@ class RobotShell:
     def _mark_round(self) -> None:
         """Profile snapshots at the first and the latest round (steady state = their difference)."""
         now = time.monotonic()
+        cpu = os.times()
         if "first_round" not in self.marks:
             self.marks["first_round"] = now
+            self.marks["process_cpu_first"] = cpu.user + cpu.system
             self._prof_first = dict(self.profile)
         self.marks["last_round"] = now
+        self.marks["process_cpu_last"] = cpu.user + cpu.system
         self._prof_last = dict(self.profile)
         self._rounds_done += 1
 
@@ -471,19 +479,23 @@ class RobotShell:
             self._pump(now)
             if s.ready():  # false once finished or stopped
                 prof = self.profile
-                t0 = _pc()
+                t0, c0 = _pc(), _tt()
                 self._checkpoint()
-                t1 = _pc()
+                t1, c1 = _pc(), _tt()
                 advanced = s.advance(now)
-                t2 = _pc()
+                t2, c2 = _pc(), _tt()
                 prof["checkpoint"] += t1 - t0
                 prof["advance"] += t2 - t1
+                prof["checkpoint:cpu"] += c1 - c0
+                prof["advance:cpu"] += c2 - c1
                 if advanced:
                     self._send(self.clock())
-                    t3 = _pc()
+                    t3, c3 = _pc(), _tt()
                     self._status_line()
                     prof["send"] += t3 - t2
                     prof["status"] += _pc() - t3
+                    prof["send:cpu"] += c3 - c2
+                    prof["status:cpu"] += _tt() - c3
                     self._mark_round()
                 if s.ready():
                     # Still ready (no neighbours left, or their next values already here): let
@@ -580,7 +592,7 @@ class RobotShell:
         with the phase times and marks (not part of the result row, which both shells share)."""
         if self.result_path is None or not os.environ.get("SHAPEFLEET_PROFILE"):
             return
-        steady = {k: self._prof_last[k] - self._prof_first[k] for k in PROFILE_PHASES}
+        steady = {k: self._prof_last[k] - self._prof_first[k] for k in PROFILE_KEYS}
         body = {"robot": self.me, "rounds": self._rounds_done, "phases_s": steady, "marks": self.marks}
         _write_atomic(self.result_path.with_name(self.result_path.name + ".profile.json"),
                       json.dumps(body).encode())
@@ -751,6 +763,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
     from agents.spec import FleetSpec
+
+    _STARTED["algorithms_imported"] = time.monotonic()
 
     try:
         spec = FleetSpec.load(args.fleet_file)

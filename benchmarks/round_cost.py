@@ -68,27 +68,39 @@ def profile_run(robots: int, rounds: int, *, topology: str | None = None, per_pr
     if len(out.robots) != robots or len(profs) != robots:
         raise RuntimeError(f"{robots} robots: {len(out.robots)} results, {len(profs)} profiles ({out.states})")
     medians = [r["round_ms"]["median"] for r in out.robots]
-    phase_ms = {}
+    n = [max(p["rounds"] - 1, 1) for p in profs]
+    phase_ms, cpu_ms = {}, {}
     for ph in PHASES:
-        phase_ms[ph] = statistics.fmean(1e3 * p["phases_s"][ph] / max(p["rounds"] - 1, 1) for p in profs)
-    run_ms = statistics.fmean(1e3 * (p["marks"]["last_round"] - p["marks"]["first_round"]) / max(p["rounds"] - 1, 1)
-                              for p in profs)
+        phase_ms[ph] = statistics.fmean(1e3 * p["phases_s"][ph] / k for p, k in zip(profs, n))
+        if ph != "wait":
+            cpu_ms[ph] = statistics.fmean(1e3 * p["phases_s"][ph + ":cpu"] / k for p, k in zip(profs, n))
+    run_ms = statistics.fmean(1e3 * (p["marks"]["last_round"] - p["marks"]["first_round"]) / k
+                              for p, k in zip(profs, n))
     phase_ms["wait"] -= phase_ms["receive"]  # frames are received by callbacks run while we wait
     phase_ms["other"] = run_ms - sum(phase_ms.values())
+    # CPU of whole processes per round (every thread: Zenoh's too), summed over processes, and the
+    # router's over the whole run divided by the rounds
+    seen: dict[float, float] = {}
+    for p, k in zip(profs, n):
+        m = p["marks"]
+        seen[m["process"]] = 1e3 * (m["process_cpu_last"] - m["process_cpu_first"]) / k
+    fleet_cpu_ms = sum(seen.values())
+    rounds_run = max(r["rounds"] for r in out.robots)
+    router_cpu_ms = 1e3 * out.timeline.get("router_cpu_s", float("nan")) / max(rounds_run, 1)
     tl = out.timeline
     marks = [p["marks"] for p in profs]
 
-    def span(a: str, b: str, pick=max) -> float:
-        return pick(m[b] - m[a] for m in marks)
+    def span(a: str, b: str) -> float:
+        return max(m[b] - m[a] for m in marks)
 
     timeline = {
+        "launch -> robot processes spawned": tl["robots_started"] - tl["launch"],
         "launch -> router ready": tl["router_ready"] - tl["launch"],
-        "router ready -> robots spawned": tl["robots_started"] - tl["router_ready"],
-        "spawn -> robot module imported (interpreter + imports, slowest)":
-            max(m["imported"] for m in marks) - tl["router_ready"],
-        "imported -> core built (shell)": span("imported", "shell"),
-        "core built -> Zenoh session open": span("shell", "session_open"),
-        "session open -> first round (declare, wait for neighbours)": span("session_open", "first_round"),
+        "robot: interpreter start -> robot shell imported": span("process", "imported"),
+        "robot: -> algorithms imported (agents.spec)": span("imported", "algorithms_imported"),
+        "robot: -> core built (first local solve)": span("algorithms_imported", "shell"),
+        "robot: -> Zenoh session open": span("shell", "session_open"),
+        "robot: -> first round (declare, wait for the neighbours)": span("session_open", "first_round"),
         "launch -> first round (slowest robot)": max(m["first_round"] for m in marks) - tl["launch"],
         "rounds (first -> last, slowest robot)": span("first_round", "last_round"),
         "last round -> drive done (linger)": span("last_round", "done"),
@@ -96,9 +108,10 @@ def profile_run(robots: int, rounds: int, *, topology: str | None = None, per_pr
         "every robot exited -> every process stopped (router)": tl["stopped"] - tl["robots_exited"],
         "launch -> every process stopped": tl["stopped"] - tl["launch"],
     }
-    return {"robots": robots, "rounds": max(r["rounds"] for r in out.robots), "round_ms_median": statistics.median(medians),
-            "phase_ms": phase_ms, "run_ms": run_ms, "timeline": timeline, "wall_s": out.wall_s,
-            "per_process": per_process}
+    return {"robots": robots, "rounds": rounds_run, "round_ms_median": statistics.median(medians),
+            "phase_ms": phase_ms, "cpu_ms": cpu_ms, "run_ms": run_ms, "timeline": timeline, "wall_s": out.wall_s,
+            "per_process": per_process, "fleet_cpu_ms": fleet_cpu_ms, "router_cpu_ms": router_cpu_ms,
+            "processes": len(seen)}
 
 
 def bare_exchange(robots: int, rounds: int = 500) -> float | None:
@@ -114,14 +127,17 @@ def bare_exchange(robots: int, rounds: int = 500) -> float | None:
 
 def render(res: dict, bare: float | None, label: str) -> str:
     lines = [f"### {label}", "",
-             f"{res['robots']} robots, {res['rounds']} rounds; robots' round time, median of medians: "
-             f"**{res['round_ms_median']:.3f} ms**" + (f"; bare exchange p50 {bare:.3f} ms, ratio "
-                                                      f"**{res['round_ms_median'] / bare:.2f}**" if bare else ""),
-             "", "| phase | ms/round (mean over robots) | share |", "|---|---:|---:|"]
+             f"{res['robots']} robots in {res['processes']} process(es), {res['rounds']} rounds; robots' round time, "
+             f"median of medians: **{res['round_ms_median']:.3f} ms**"
+             + (f"; bare exchange p50 {bare:.3f} ms, ratio **{res['round_ms_median'] / bare:.2f}**" if bare else ""),
+             f"CPU per round: robot processes {res['fleet_cpu_ms']:.3f} ms (all threads, summed), router "
+             f"{res['router_cpu_ms']:.3f} ms (whole run / rounds)",
+             "", "| phase | wall ms/round (mean over robots) | share | main-thread CPU ms/round |", "|---|---:|---:|---:|"]
     total = res["run_ms"]
     for ph, ms in res["phase_ms"].items():
-        lines.append(f"| {ph} | {ms:.3f} | {100 * ms / total:.0f} % |")
-    lines.append(f"| **round (first -> last / rounds)** | **{total:.3f}** | |")
+        cpu = res["cpu_ms"].get(ph)
+        lines.append(f"| {ph} | {ms:.3f} | {100 * ms / total:.0f} % | {'' if cpu is None else f'{cpu:.3f}'} |")
+    lines.append(f"| **round (first -> last / rounds)** | **{total:.3f}** | | **{sum(res['cpu_ms'].values()):.3f}** |")
     lines += ["", "| start-up / shut-down | s |", "|---|---:|"]
     lines += [f"| {k} | {v:.3f} |" for k, v in res["timeline"].items()]
     return "\n".join(lines)

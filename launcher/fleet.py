@@ -279,6 +279,16 @@ def _stop_all(procs: list[subprocess.Popen], grace_s: float = STOP_GRACE_S) -> l
     return [p.returncode for p in procs]
 
 
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds a running process has used so far (/proc; None elsewhere)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            fields = fh.read().rsplit(b")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def _port_in_use(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a listener would
@@ -822,6 +832,9 @@ def launch_fleet(
         finally:
             try:
                 if own_router is not None:
+                    cpu = _cpu_seconds(own_router.proc.pid)
+                    if cpu is not None:  # the router's CPU over the run: fan-out cost (docs/scaling.md)
+                        timeline["router_cpu_s"] = cpu
                     own_router.stop()
             finally:
                 if live_display is not None:
