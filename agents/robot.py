@@ -26,6 +26,7 @@ SIGTERM/SIGINT (``run_robot(handle_signals=True)``) stop cleanly with ``stopped 
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import logging
 import os
@@ -34,6 +35,7 @@ import struct
 import sys
 import threading
 import time
+import weakref
 import zlib
 from collections.abc import Callable
 from pathlib import Path
@@ -205,6 +207,55 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
     return max(found, key=lambda env: int(env.get("n", 0)))
 
 
+# --------------------------------------------------------------------------- Zenoh -> loop
+
+
+class _Inbox:
+    """Calls from Zenoh's threads to the event loop, one wake-up per burst.
+
+    ``loop.call_soon_threadsafe`` per frame costs a self-pipe write and a loop wake-up each; a
+    process with several robots gets a burst of frames per round (8 robots on a complete graph of
+    16: 120). Here the first call of a burst schedules one drain, the others only queue (FIFO:
+    the order the frames came in is kept).
+    """
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._items: collections.deque = collections.deque()
+        self._lock = threading.Lock()
+        self._armed = False
+
+    def put(self, fn: Callable[..., None], *args: Any) -> None:
+        """Queue ``fn(*args)`` for the loop (any thread); RuntimeError once the loop is closed."""
+        with self._lock:
+            self._items.append((fn, args))
+            if self._armed:
+                return
+            self._armed = True
+        self._loop.call_soon_threadsafe(self._drain)
+
+    def _drain(self) -> None:
+        with self._lock:
+            items, self._items = self._items, collections.deque()
+            self._armed = False
+        for fn, args in items:
+            try:
+                fn(*args)
+            except Exception:  # noqa: BLE001 - one bad call must not lose the others (as call_soon)
+                log.exception("callback %r failed", fn)
+
+
+_INBOXES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _inbox_for(loop: asyncio.AbstractEventLoop) -> _Inbox:
+    """The one inbox of ``loop`` (every robot of the process shares it)."""
+    box = _INBOXES.get(loop)
+    if box is None:
+        box = _INBOXES[loop] = _Inbox(loop)
+    return box
+
+
 # --------------------------------------------------------------------------- the shell
 
 
@@ -296,9 +347,8 @@ class RobotShell:
         """Zenoh callback thread: copy the payload out and hand it to the loop."""
         if self._closing:
             return
-        data = sample.payload.to_bytes()
         try:
-            self._loop.call_soon_threadsafe(self._on_raw, j, data)
+            self._inbox.put(self._on_raw, j, sample.payload.to_bytes())
         except RuntimeError:  # loop closed while shutting down
             pass
 
@@ -312,7 +362,7 @@ class RobotShell:
             return
         appeared = sample.kind == self._zenoh.SampleKind.PUT
         try:
-            self._loop.call_soon_threadsafe(self._on_alive, j, appeared)
+            self._inbox.put(self._on_alive, j, appeared)
         except RuntimeError:
             pass
 
@@ -533,22 +583,22 @@ class RobotShell:
             self.session.interrupt(now)
         return row_to_file(self.session.row(now, self._transport()))
 
-    async def run(self) -> dict[str, Any]:
+    def config(self) -> Any:
+        """This robot's ``zenoh.Config``."""
+        if self.zenoh_config is not None:  # e.g. TLS, remote endpoints: built by the caller
+            return to_zenoh_config(self.zenoh_config)
+        return robot_config(self.connect)
+
+    async def run(self, shared: Any | None = None) -> dict[str, Any]:
+        """Run to the end. ``shared``: an open Zenoh session several robots of this process use
+        (each still with its own publisher, key, subscriptions and liveliness token); it is left
+        open. Without it the robot opens (and closes) its own session."""
         import zenoh
 
         self._zenoh = zenoh
         self._loop = asyncio.get_running_loop()
-        if self.zenoh_config is not None:  # e.g. TLS, remote endpoints: built by the caller
-            config = to_zenoh_config(self.zenoh_config)
-        else:
-            config = robot_config(self.connect)
-        # open/close block (TCP connect, up to the connect timeout): keep them off the event loop.
-        opening = self._loop.run_in_executor(None, zenoh.open, config)
-        try:
-            session = await asyncio.shield(opening)
-        except asyncio.CancelledError:  # do not leak a session opened after we were cancelled
-            opening.add_done_callback(lambda f: f.cancelled() or f.exception() or f.result().close())
-            raise
+        self._inbox = _inbox_for(self._loop)
+        session = shared if shared is not None else await _open_session(self._loop, self.config())
         self._session = session
         self.marks["session_open"] = time.monotonic()
         self._router_ids = self._routers() or set()
@@ -572,7 +622,7 @@ class RobotShell:
             result = self.result()
         finally:
             self._closing = True
-            for ent in (token, alive_sub, *self._subs.values()):
+            for ent in (token, alive_sub, *self._subs.values(), self._pub):
                 if ent is not None:
                     try:
                         ent.undeclare()
@@ -580,7 +630,8 @@ class RobotShell:
                         pass
             if self._writer is not None:
                 self._writer.close()
-            await asyncio.to_thread(session.close)
+            if shared is None:
+                await asyncio.to_thread(session.close)
             self.marks["closed"] = time.monotonic()
         if self.result_path is not None:
             _write_atomic(self.result_path, json.dumps(result, indent=1, default=float).encode())
@@ -596,6 +647,18 @@ class RobotShell:
         body = {"robot": self.me, "rounds": self._rounds_done, "phases_s": steady, "marks": self.marks}
         _write_atomic(self.result_path.with_name(self.result_path.name + ".profile.json"),
                       json.dumps(body).encode())
+
+
+async def _open_session(loop: asyncio.AbstractEventLoop, config: Any) -> Any:
+    """``zenoh.open`` off the event loop (it blocks: TCP connect, up to the connect timeout)."""
+    import zenoh
+
+    opening = loop.run_in_executor(None, zenoh.open, config)
+    try:
+        return await asyncio.shield(opening)
+    except asyncio.CancelledError:  # do not leak a session opened after we were cancelled
+        opening.add_done_callback(lambda f: f.cancelled() or f.exception() or f.result().close())
+        raise
 
 
 def _default_build(spec: Any, robot_id: int) -> Any:
@@ -671,10 +734,16 @@ async def run_robots(
     handle_signals: bool = False,
     zenoh_config: Any | None = None,
     status_interval_s: float = 0.0,
+    shared_session: bool = False,
 ) -> dict[int, dict[str, Any] | BaseException]:
     """Several robots as tasks of this process's event loop, each with its own Zenoh session, key,
     liveliness token, checkpoint and result -- frames between them still cross Zenoh (and the
     router), exactly as between processes. ``workdir``: ``robot-I.ckpt`` / ``robot-I.json`` there.
+
+    ``shared_session``: one Zenoh session for every robot here (each keeps its own publisher,
+    key, subscriptions and token): a frame between two robots of this process is delivered by
+    Zenoh inside the process, and the router sends each frame once per process instead of once
+    per subscribing robot (docs/scaling.md).
 
     A robot whose core cannot be built (first local solve failed) or whose task fails is reported
     as that exception in the returned dict; the others run on. Everything else as
@@ -694,14 +763,21 @@ async def run_robots(
         except Exception as exc:  # noqa: BLE001 - this robot only; its neighbours will drop it
             log.error("robot %d: cannot start: %s", rid, exc)
             failed[rid] = exc
-    out = await _run_shells(shells, handle_signals) if shells else []
+    session = None
+    if shared_session and shells:
+        session = await _open_session(asyncio.get_running_loop(), shells[0].config())
+    try:
+        out = await _run_shells(shells, handle_signals, session) if shells else []
+    finally:
+        if session is not None:
+            await asyncio.to_thread(session.close)
     return {**failed, **{sh.me: res for sh, res in zip(shells, out)}}
 
 
-async def _run_shells(shells: list[RobotShell], handle_signals: bool) -> list[Any]:
+async def _run_shells(shells: list[RobotShell], handle_signals: bool, session: Any | None = None) -> list[Any]:
     """Run every shell to its end (results or exceptions, in order); with ``handle_signals``
     SIGTERM/SIGINT stop them all cleanly, each writing a result saying ``stopped = "signal"``."""
-    tasks = [asyncio.ensure_future(sh.run()) for sh in shells]
+    tasks = [asyncio.ensure_future(sh.run(session)) for sh in shells]
     signals = handle_signals and threading.current_thread() is threading.main_thread()
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
@@ -760,6 +836,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workdir", type=Path, required=True, help="robot-I.ckpt / robot-I.json go here")
     ap.add_argument("--status-interval", type=float, default=0.0, help="seconds between status lines (0: every round)")
     ap.add_argument("--allow-remote", action="store_true", help="a router beyond loopback (multi-host)")
+    ap.add_argument("--shared-session", action="store_true", help="one Zenoh session for the robots here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
     from agents.spec import FleetSpec
@@ -777,7 +854,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"shapefleet robot: {exc}", file=sys.stderr)
         return 2
     results = asyncio.run(run_robots(spec, ids, connect=args.connect, workdir=args.workdir, handle_signals=True,
-                                     zenoh_config=config, status_interval_s=args.status_interval))
+                                     zenoh_config=config, status_interval_s=args.status_interval,
+                                     shared_session=args.shared_session))
     ok = True
     for rid in ids:
         res = results[rid]

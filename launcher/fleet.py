@@ -92,6 +92,8 @@ ROBOT_MEMORY_MB = 50.0
 # core, else one process per core; status lines from a robot without a crash plan at most this often
 AUTO_SOLO_PER_CORE = 2
 STATUS_INTERVAL_S = 0.05
+# robots sharing a process share one Zenoh session (own publisher, key, subscriptions, token each)
+SHARED_SESSION = os.environ.get("SHAPEFLEET_SESSION_PER_ROBOT", "") == ""
 SHARED_ROBOT_MEMORY_MB = 10.0  # a robot as a task of a shared process: its session, core, buffers
 SHARED_ROBOTS_PER_CORE = 32  # 32 robots on 2 cores converge in well under a minute (docs/scaling.md)
 STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
@@ -488,6 +490,8 @@ class _Fleet:
                     "--id" if len(ids) == 1 else "--ids", ",".join(map(str, ids)), "--connect", endpoint,
                     "--workdir", str(workdir),
                     "--status-interval", f"{interval:g}"]
+            if len(ids) > 1 and SHARED_SESSION:
+                argv.append("--shared-session")
             name = f"robot-{ids[0]}" if len(ids) == 1 else f"robots-{ids[0]}-{ids[-1]}"
             proc = _Proc(ids, argv, workdir / f"{name}.log")
             self.procs.append(proc)
