@@ -26,6 +26,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import statistics
 import sys
 import tempfile
@@ -95,7 +96,7 @@ def run(scenario: str, robots: int, faults: LinkFaults, *, tol: float, max_round
     timing = Timing(retransmit_s=retransmit_s, dead_after_s=10.0, max_wall_s=max_wall_s, linger_s=1.0)
     _world, spec = build_world(Options(robots=robots, preset="paper", tol=tol, max_rounds=max_rounds, faults=faults, timing=timing,
                                        topology=topology,
-                                       fleet_id=f"bench-{scenario.replace(' ', '-')}-{robots}-{int(time.time() * 1e3) % 100000}"))
+                                       fleet_id=f"bench-{re.sub(r'[^A-Za-z0-9_-]+', '-', scenario)}-{robots}-{int(time.time() * 1e3) % 100000}"))
     sim = simulate_fleet(spec)
     want = {r["id"]: r for r in sim.robots}
     os.environ["SHAPEFLEET_PROFILE"] = "1"  # the robots' own CPU and marks (benchmarks/round_cost.py)
