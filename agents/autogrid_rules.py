@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from agents.kernel import GridBasis
 from agents.params import params_from
@@ -345,6 +344,8 @@ def is_solid(inside: np.ndarray) -> bool:
     """True when a raster's inside cells form one 4-connected piece with no enclosed hole."""
     if not inside.any():
         return False
+    from scipy import ndimage  # here, not at the top: ~0.5 s of every robot process's start-up
+
     _, pieces = ndimage.label(inside)
     outside, n_out = ndimage.label(~inside)
     rim = np.concatenate([outside[0], outside[-1], outside[:, 0], outside[:, -1]])

@@ -26,13 +26,17 @@ SIGTERM/SIGINT (``run_robot(handle_signals=True)``) stop cleanly with ``stopped 
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import logging
 import os
 import signal
+import struct
 import sys
 import threading
 import time
+import weakref
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
@@ -54,6 +58,8 @@ __all__ = [
     "read_checkpoint",
     "write_checkpoint",
     "checkpoint_exists",
+    "CheckpointWriter",
+    "run_robots",
     "CHECKPOINT_VERSION",
     "check_iterate",
     "DIVERGED_ABS",
@@ -62,8 +68,28 @@ __all__ = [
 
 log = logging.getLogger("shapefleet.robot")
 
+
+def _process_start() -> float | None:
+    """When this process started, on the monotonic clock (from /proc; None elsewhere)."""
+    try:
+        with open("/proc/self/stat", "rb") as fh:
+            ticks = int(fh.read().rsplit(b")", 1)[1].split()[19])
+        since_boot = ticks / os.sysconf("SC_CLK_TCK")
+        return time.monotonic() - (time.clock_gettime(time.CLOCK_BOOTTIME) - since_boot)
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+_STARTED = {"process": _process_start(), "imported": time.monotonic()}
+
 CHECKPOINT_VERSION = 1
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
+PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
+# wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the
+# preemption a loaded machine adds to wall times)
+PROFILE_KEYS = (*PROFILE_PHASES, *(f"{p}:cpu" for p in PROFILE_PHASES if p != "wait"))
+_pc = time.perf_counter
+_tt = time.thread_time
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -107,7 +133,13 @@ def write_checkpoint(path: Path, envelope: dict[str, Any]) -> None:
 def _load_envelope(path: Path) -> dict[str, Any] | None:
     try:
         with open(path, "rb") as fh:
-            env = msgpack.unpackb(fh.read(), raw=False, strict_map_key=False)
+            data = fh.read()
+        if data[:4] == _SLOT_MAGIC:  # a CheckpointWriter slot: length and CRC say if it is whole
+            _magic, size, crc = _SLOT_HEADER.unpack_from(data)
+            data = data[_SLOT_HEADER.size:_SLOT_HEADER.size + size]
+            if len(data) != size or zlib.crc32(data) != crc:
+                return None
+        env = msgpack.unpackb(data, raw=False, strict_map_key=False)
     except FileNotFoundError:
         return None
     except Exception:  # noqa: BLE001 - truncated / corrupt: not a usable checkpoint
@@ -115,6 +147,49 @@ def _load_envelope(path: Path) -> dict[str, Any] | None:
     if not isinstance(env, dict) or env.get("v") != CHECKPOINT_VERSION or "core" not in env:
         return None
     return env
+
+
+_SLOT_MAGIC = b"SFck"
+_SLOT_HEADER = struct.Struct("<4sII")  # magic, payload length, CRC-32 of the payload
+
+
+class CheckpointWriter:
+    """The per-round checkpoint at the cost of one ``pwrite``: two slots written in turn in place.
+
+    The slots are ``<path>`` and ``<path>.tmp`` (the very files :func:`read_checkpoint` looks at),
+    each kept open; a checkpoint is one ``os.pwrite`` of a header (magic, length, CRC-32) and the
+    msgpack envelope at offset 0 of the slot that does *not* hold the newest checkpoint. A crash in
+    the middle of a write leaves that slot failing its CRC and the other slot holding the previous
+    checkpoint -- exactly what the tmp-file-and-rename scheme of :func:`write_checkpoint` leaves
+    (its tmp file truncated, the previous checkpoint in place): the robot resumes from the round
+    before, as it does today, and recomputes the same frames. What it saves is the file-system
+    metadata per round (create, unlink, rename: ~0.3 ms on a loaded 2-core machine, against
+    ~0.01 ms for the ``pwrite``). No fsync: we model process crashes, not machine crashes.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.paths = (Path(path), _checkpoint_tmp(Path(path)))
+        found = [_load_envelope(p) for p in self.paths]
+        newest = max((i for i in (0, 1) if found[i] is not None), key=lambda i: int(found[i].get("n", 0)),
+                     default=1)
+        self._next = 1 - newest  # never overwrite the newest complete checkpoint
+        self._fds: list[int | None] = [None, None]
+
+    def write(self, envelope: dict[str, Any]) -> None:
+        """Write ``envelope`` into the older slot (crash-safe, see the class doc)."""
+        data = msgpack.packb(envelope, use_bin_type=True)
+        i = self._next
+        fd = self._fds[i]
+        if fd is None:
+            fd = self._fds[i] = os.open(self.paths[i], os.O_RDWR | os.O_CREAT, 0o644)
+        os.pwrite(fd, _SLOT_HEADER.pack(_SLOT_MAGIC, len(data), zlib.crc32(data)) + data, 0)
+        self._next = 1 - i
+
+    def close(self) -> None:
+        for i, fd in enumerate(self._fds):
+            if fd is not None:
+                os.close(fd)
+                self._fds[i] = None
 
 
 def checkpoint_exists(path: Path) -> bool:
@@ -130,6 +205,55 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
     if not found:
         raise ValueError(f"{path}: no complete shapefleet robot checkpoint (version {CHECKPOINT_VERSION})")
     return max(found, key=lambda env: int(env.get("n", 0)))
+
+
+# --------------------------------------------------------------------------- Zenoh -> loop
+
+
+class _Inbox:
+    """Calls from Zenoh's threads to the event loop, one wake-up per burst.
+
+    ``loop.call_soon_threadsafe`` per frame costs a self-pipe write and a loop wake-up each; a
+    process with several robots gets a burst of frames per round (8 robots on a complete graph of
+    16: 120). Here the first call of a burst schedules one drain, the others only queue (FIFO:
+    the order the frames came in is kept).
+    """
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._items: collections.deque = collections.deque()
+        self._lock = threading.Lock()
+        self._armed = False
+
+    def put(self, fn: Callable[..., None], *args: Any) -> None:
+        """Queue ``fn(*args)`` for the loop (any thread); RuntimeError once the loop is closed."""
+        with self._lock:
+            self._items.append((fn, args))
+            if self._armed:
+                return
+            self._armed = True
+        self._loop.call_soon_threadsafe(self._drain)
+
+    def _drain(self) -> None:
+        with self._lock:
+            items, self._items = self._items, collections.deque()
+            self._armed = False
+        for fn, args in items:
+            try:
+                fn(*args)
+            except Exception:  # noqa: BLE001 - one bad call must not lose the others (as call_soon)
+                log.exception("callback %r failed", fn)
+
+
+_INBOXES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _inbox_for(loop: asyncio.AbstractEventLoop) -> _Inbox:
+    """The one inbox of ``loop`` (every robot of the process shares it)."""
+    box = _INBOXES.get(loop)
+    if box is None:
+        box = _INBOXES[loop] = _Inbox(loop)
+    return box
 
 
 # --------------------------------------------------------------------------- the shell
@@ -152,6 +276,7 @@ class RobotShell:
         restore: Callable[[Any, int, dict], Any],
         clock: Callable[[], float] = time.monotonic,
         zenoh_config: Any | None = None,
+        status_interval_s: float = 0.0,
     ) -> None:
         self.spec = spec
         self.me = int(robot_id)
@@ -160,8 +285,11 @@ class RobotShell:
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.result_path = None if result_path is None else Path(result_path)
         self.status_stream = status_stream
+        self.status_interval_s = float(status_interval_s)
+        self._status_at = float("-inf")
         self.clock = clock
         env = self._read_own_checkpoint()
+        self._writer = None if self.checkpoint_path is None else CheckpointWriter(self.checkpoint_path)
         self._checkpoints = 0 if env is None else int(env.get("n", 0))
         core = build(spec, self.me) if env is None else restore(spec, self.me, env["core"])
         if core.robot_id != self.me:
@@ -181,6 +309,13 @@ class RobotShell:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closing = False
         self._pub: Any = None
+        # Where the time goes (perf_counter seconds by phase) and when things happened (monotonic
+        # clock, comparable across processes): benchmarks/round_cost.py reads it (profile_path).
+        self.profile: dict[str, float] = dict.fromkeys(PROFILE_KEYS, 0.0)
+        self._prof_first = self._prof_last = self.profile
+        self._rounds_done = 0
+        self.marks: dict[str, float] = {**{k: v for k, v in _STARTED.items() if v is not None},
+                                        "shell": time.monotonic()}
 
     def _read_own_checkpoint(self) -> dict[str, Any] | None:
         """This robot's checkpoint envelope if there is one (ValueError if it is another's)."""
@@ -212,9 +347,8 @@ class RobotShell:
         """Zenoh callback thread: copy the payload out and hand it to the loop."""
         if self._closing:
             return
-        data = sample.payload.to_bytes()
         try:
-            self._loop.call_soon_threadsafe(self._on_raw, j, data)
+            self._inbox.put(self._on_raw, j, sample.payload.to_bytes())
         except RuntimeError:  # loop closed while shutting down
             pass
 
@@ -228,7 +362,7 @@ class RobotShell:
             return
         appeared = sample.kind == self._zenoh.SampleKind.PUT
         try:
-            self._loop.call_soon_threadsafe(self._on_alive, j, appeared)
+            self._inbox.put(self._on_alive, j, appeared)
         except RuntimeError:
             pass
 
@@ -247,6 +381,7 @@ class RobotShell:
     def _on_raw(self, j: int, data: bytes) -> None:
         if self._closing:
             return
+        t, c = _pc(), _tt()
         self.received += 1
         now = self.clock()
         self.links.send(j, self.me, data, now)
@@ -254,6 +389,8 @@ class RobotShell:
         # A delayed copy may now be due before the main loop's current deadline: wake it so that
         # it re-reads links.next_due().
         self._wake()
+        self.profile["receive"] += _pc() - t
+        self.profile["receive:cpu"] += _tt() - c
 
     def _pump(self, now: float) -> None:
         """Hand every frame the fault links deliver by ``now`` to the session."""
@@ -272,15 +409,22 @@ class RobotShell:
         if self.checkpoint_path is None:
             return
         self._checkpoints += 1
-        write_checkpoint(
-            self.checkpoint_path,
+        self._writer.write(
             {"v": CHECKPOINT_VERSION, "n": self._checkpoints, "fleet": self.spec.fleet, "robot": self.me,
              "cfg": self.spec.config_tag, **self.session.checkpoint(self._transport())},
         )
 
     def _status_line(self, stopped: str | None = None) -> None:
+        """One JSON line for the launcher: every round, or at most one per ``status_interval_s``
+        (the first round's and the last line always) -- a line costs a pipe write and wakes the
+        launcher, about as much as the round itself on a loaded machine."""
         if self.status_stream is None:
             return
+        if stopped is None and self.status_interval_s > 0 and not self.core.finished:
+            now = time.monotonic()
+            if now - self._status_at < self.status_interval_s:
+                return
+            self._status_at = now
         st = self.core.status()
         residual = st.get("residual")
         residual = float(residual) if residual is not None else None
@@ -342,6 +486,19 @@ class RobotShell:
 
     # ---------------------------------------------------------------- main loop
 
+    def _mark_round(self) -> None:
+        """Profile snapshots at the first and the latest round (steady state = their difference)."""
+        now = time.monotonic()
+        cpu = os.times()
+        if "first_round" not in self.marks:
+            self.marks["first_round"] = now
+            self.marks["process_cpu_first"] = cpu.user + cpu.system
+            self._prof_first = dict(self.profile)
+        self.marks["last_round"] = now
+        self.marks["process_cpu_last"] = cpu.user + cpu.system
+        self._prof_last = dict(self.profile)
+        self._rounds_done += 1
+
     def _wake(self, *_: Any) -> None:
         w = self._waiter
         if w is not None and not w.done():
@@ -371,10 +528,25 @@ class RobotShell:
             now = self.clock()
             self._pump(now)
             if s.ready():  # false once finished or stopped
+                prof = self.profile
+                t0, c0 = _pc(), _tt()
                 self._checkpoint()
-                if s.advance(now):
+                t1, c1 = _pc(), _tt()
+                advanced = s.advance(now)
+                t2, c2 = _pc(), _tt()
+                prof["checkpoint"] += t1 - t0
+                prof["advance"] += t2 - t1
+                prof["checkpoint:cpu"] += c1 - c0
+                prof["advance:cpu"] += c2 - c1
+                if advanced:
                     self._send(self.clock())
+                    t3, c3 = _pc(), _tt()
                     self._status_line()
+                    prof["send"] += t3 - t2
+                    prof["status"] += _pc() - t3
+                    prof["send:cpu"] += c3 - c2
+                    prof["status:cpu"] += _tt() - c3
+                    self._mark_round()
                 if s.ready():
                     # Still ready (no neighbours left, or their next values already here): let
                     # other tasks and callbacks run before the next round (costs one loop pass).
@@ -397,7 +569,9 @@ class RobotShell:
             due = self.links.next_due()
             if due is not None:
                 deadline = min(deadline, due)
+            t = _pc()
             await self._wait(deadline)
+            self.profile["wait"] += _pc() - t
 
     def result(self, stopped: str | None = None) -> dict[str, Any]:
         """The session's result row as this robot's result file (``row_to_file``, JSON-safe).
@@ -409,25 +583,27 @@ class RobotShell:
             self.session.interrupt(now)
         return row_to_file(self.session.row(now, self._transport()))
 
-    async def run(self) -> dict[str, Any]:
+    def config(self) -> Any:
+        """This robot's ``zenoh.Config``."""
+        if self.zenoh_config is not None:  # e.g. TLS, remote endpoints: built by the caller
+            return to_zenoh_config(self.zenoh_config)
+        return robot_config(self.connect)
+
+    async def run(self, shared: Any | None = None) -> dict[str, Any]:
+        """Run to the end. ``shared``: an open Zenoh session several robots of this process use
+        (each still with its own publisher, key, subscriptions and liveliness token); it is left
+        open. Without it the robot opens (and closes) its own session."""
         import zenoh
 
         self._zenoh = zenoh
         self._loop = asyncio.get_running_loop()
-        if self.zenoh_config is not None:  # e.g. TLS, remote endpoints: built by the caller
-            config = to_zenoh_config(self.zenoh_config)
-        else:
-            config = robot_config(self.connect)
-        # open/close block (TCP connect, up to the connect timeout): keep them off the event loop.
-        opening = self._loop.run_in_executor(None, zenoh.open, config)
-        try:
-            session = await asyncio.shield(opening)
-        except asyncio.CancelledError:  # do not leak a session opened after we were cancelled
-            opening.add_done_callback(lambda f: f.cancelled() or f.exception() or f.result().close())
-            raise
+        self._inbox = _inbox_for(self._loop)
+        session = shared if shared is not None else await _open_session(self._loop, self.config())
         self._session = session
+        self.marks["session_open"] = time.monotonic()
         self._router_ids = self._routers() or set()
-        token = alive_sub = None
+        token = None
+        alive_subs: list[Any] = []
         try:
             fleet = self.spec.fleet
             for j in self.session.peers:
@@ -437,24 +613,55 @@ class RobotShell:
             self._pub = session.declare_publisher(
                 state_key(fleet, self.me), express=PUBLISH_EXPRESS, congestion_control=zenoh.CongestionControl.DROP
             )
-            alive_sub = session.liveliness().declare_subscriber(
-                alive_wildcard(fleet), self._on_alive_thread, history=True)
+            # the neighbours' tokens only (not the fleet's wildcard): N x degree deliveries at start
+            # instead of N x N (1000 robots: 6000 instead of a million, docs/scaling.md)
+            alive_subs = [session.liveliness().declare_subscriber(alive_key(fleet, j), self._on_alive_thread,
+                                                                  history=True) for j in self.session.peers]
             token = session.liveliness().declare_token(alive_key(fleet, self.me))
+            self.marks["declared"] = time.monotonic()
             stopped = await self._drive()
+            self.marks["done"] = time.monotonic()
             self._status_line(stopped)
             result = self.result()
         finally:
             self._closing = True
-            for ent in (token, alive_sub, *self._subs.values()):
+            for ent in (token, *alive_subs, *self._subs.values(), self._pub):
                 if ent is not None:
                     try:
                         ent.undeclare()
                     except Exception:  # noqa: BLE001 - best effort on the way out
                         pass
-            await asyncio.to_thread(session.close)
+            if self._writer is not None:
+                self._writer.close()
+            if shared is None:
+                await asyncio.to_thread(session.close)
+            self.marks["closed"] = time.monotonic()
         if self.result_path is not None:
             _write_atomic(self.result_path, json.dumps(result, indent=1, default=float).encode())
+        self._write_profile()
         return result
+
+    def _write_profile(self) -> None:
+        """With ``SHAPEFLEET_PROFILE`` set (any value) and a result file: ``<result>.profile.json``
+        with the phase times and marks (not part of the result row, which both shells share)."""
+        if self.result_path is None or not os.environ.get("SHAPEFLEET_PROFILE"):
+            return
+        steady = {k: self._prof_last[k] - self._prof_first[k] for k in PROFILE_KEYS}
+        body = {"robot": self.me, "rounds": self._rounds_done, "phases_s": steady, "marks": self.marks}
+        _write_atomic(self.result_path.with_name(self.result_path.name + ".profile.json"),
+                      json.dumps(body).encode())
+
+
+async def _open_session(loop: asyncio.AbstractEventLoop, config: Any) -> Any:
+    """``zenoh.open`` off the event loop (it blocks: TCP connect, up to the connect timeout)."""
+    import zenoh
+
+    opening = loop.run_in_executor(None, zenoh.open, config)
+    try:
+        return await asyncio.shield(opening)
+    except asyncio.CancelledError:  # do not leak a session opened after we were cancelled
+        opening.add_done_callback(lambda f: f.cancelled() or f.exception() or f.result().close())
+        raise
 
 
 def _default_build(spec: Any, robot_id: int) -> Any:
@@ -481,19 +688,22 @@ async def run_robot(
     restore: Callable[[Any, int, dict], Any] | None = None,
     handle_signals: bool = False,
     zenoh_config: Any | None = None,
+    status_interval_s: float = 0.0,
 ) -> dict[str, Any]:
     """Run robot ``robot_id`` of ``spec`` until its core finishes or ``spec.timing.max_wall_s``.
 
     ``connect``: router endpoint(s), e.g. ``["tcp/127.0.0.1:7447"]`` (validated, loopback only).
     ``zenoh_config``: the session configuration as a dict (``protocol.zenoh_config.robot_config_dict``
     with TLS files or ``loopback_only=False``); default ``robot_config(connect)``.
-    ``checkpoint_path``: written (crash-safe) before every ``core.advance()``; if a checkpoint is
-    there at start the robot resumes from it exactly (``restarts`` += 1); it must belong to the
-    same fleet, robot and config tag (else ValueError). ``result_path``: JSON result written atomically at the end.
-    ``status_stream``: one JSON line per round (None: silent).
+    ``checkpoint_path``: written (crash-safe, :class:`CheckpointWriter`) before every
+    ``core.advance()``; if a checkpoint is there at start the robot resumes from it exactly
+    (``restarts`` += 1); it must belong to the same fleet, robot and config tag (else ValueError).
+    ``result_path``: JSON result written atomically at the end.
+    ``status_stream``: one JSON line per round (None: silent; ``status_interval_s`` > 0: at most
+    one per that many seconds, plus the first and the last).
     ``build`` / ``restore``: core factories, default ``agents.spec.build_core`` / ``restore_core``.
     ``handle_signals``: on SIGTERM/SIGINT stop cleanly (session closed, result written with
-    ``stopped = "signal"``); only for a process that runs one robot in its main thread.
+    ``stopped = "signal"``); only for a process that runs its robots in its main thread.
 
     Returns the result dict (also written to ``result_path``).
     """
@@ -507,30 +717,167 @@ async def run_robot(
         build=build or _default_build,
         restore=restore or _default_restore,
         zenoh_config=zenoh_config,
+        status_interval_s=status_interval_s,
     )
     if not handle_signals or threading.current_thread() is not threading.main_thread():
         return await shell.run()
+    out = await _run_shells([shell], handle_signals)
+    if isinstance(out[0], BaseException):
+        raise out[0]
+    return out[0]
 
-    loop = asyncio.get_running_loop()
-    task = asyncio.ensure_future(shell.run())
-    stop = asyncio.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
-    try:
-        stopper = asyncio.ensure_future(stop.wait())
-        await asyncio.wait({task, stopper}, return_when=asyncio.FIRST_COMPLETED)
-        stopper.cancel()
-        if task.done():
-            return task.result()
-        task.cancel()
+
+async def run_robots(
+    spec: Any,
+    robot_ids: list[int],
+    *,
+    connect: list[str],
+    workdir: Path | None = None,
+    status_stream: TextIO | None = sys.stdout,
+    handle_signals: bool = False,
+    zenoh_config: Any | None = None,
+    status_interval_s: float = 0.0,
+    shared_session: bool = False,
+) -> dict[int, dict[str, Any] | BaseException]:
+    """Several robots as tasks of this process's event loop, each with its own Zenoh session, key,
+    liveliness token, checkpoint and result -- frames between them still cross Zenoh (and the
+    router), exactly as between processes. ``workdir``: ``robot-I.ckpt`` / ``robot-I.json`` there.
+
+    ``shared_session``: one Zenoh session for every robot here (each keeps its own publisher,
+    key, subscriptions and token): a frame between two robots of this process is delivered by
+    Zenoh inside the process, and the router sends each frame once per process instead of once
+    per subscribing robot (docs/scaling.md).
+
+    A robot whose core cannot be built (first local solve failed) or whose task fails is reported
+    as that exception in the returned dict; the others run on. Everything else as
+    :func:`run_robot`, whose signal handling covers every robot here.
+    """
+    shells: list[RobotShell] = []
+    failed: dict[int, BaseException] = {}
+    for rid in robot_ids:
+        wd = None if workdir is None else Path(workdir)
         try:
-            await task
-        except asyncio.CancelledError:
-            pass
-        result = shell.result("signal")
-        if shell.result_path is not None:
-            _write_atomic(shell.result_path, json.dumps(result, indent=1, default=float).encode())
-        return result
+            shells.append(RobotShell(
+                spec, rid, connect=connect,
+                checkpoint_path=None if wd is None else wd / f"robot-{rid}.ckpt",
+                result_path=None if wd is None else wd / f"robot-{rid}.json",
+                status_stream=status_stream, build=_default_build, restore=_default_restore,
+                zenoh_config=zenoh_config, status_interval_s=status_interval_s))
+        except Exception as exc:  # noqa: BLE001 - this robot only; its neighbours will drop it
+            log.error("robot %d: cannot start: %s", rid, exc)
+            failed[rid] = exc
+    session = None
+    if shared_session and shells:
+        session = await _open_session(asyncio.get_running_loop(), shells[0].config())
+    try:
+        out = await _run_shells(shells, handle_signals, session) if shells else []
     finally:
+        if session is not None:
+            await asyncio.to_thread(session.close)
+    return {**failed, **{sh.me: res for sh, res in zip(shells, out)}}
+
+
+async def _run_shells(shells: list[RobotShell], handle_signals: bool, session: Any | None = None) -> list[Any]:
+    """Run every shell to its end (results or exceptions, in order); with ``handle_signals``
+    SIGTERM/SIGINT stop them all cleanly, each writing a result saying ``stopped = "signal"``."""
+    tasks = [asyncio.ensure_future(sh.run(session)) for sh in shells]
+    signals = handle_signals and threading.current_thread() is threading.main_thread()
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    if signals:
         for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.remove_signal_handler(sig)
+            loop.add_signal_handler(sig, stop.set)
+    stopper = asyncio.ensure_future(stop.wait())
+    try:
+        pending = set(tasks)
+        while pending and not stop.is_set():
+            _done, pending = await asyncio.wait(pending | {stopper}, return_when=asyncio.FIRST_COMPLETED)
+            pending.discard(stopper)
+        return [await _outcome(sh, task) for sh, task in zip(shells, tasks)]
+    except asyncio.CancelledError:  # we were cancelled: so are the robots (sessions closed)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        raise
+    finally:
+        stopper.cancel()
+        if signals:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
+
+
+async def _outcome(sh: RobotShell, task: asyncio.Future) -> Any:
+    """A finished robot's result or exception; a running one is stopped ("signal" result)."""
+    if task.done():
+        if task.cancelled():
+            return asyncio.CancelledError()
+        return task.exception() or task.result()
+    task.cancel()
+    try:
+        await task
+    except asyncio.CancelledError:
+        pass
+    res = sh.result("signal")
+    if sh.result_path is not None:
+        _write_atomic(sh.result_path, json.dumps(res, indent=1, default=float).encode())
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m agents.robot --fleet-file F --ids 0,1 --connect EP --workdir W``: the robot
+    process ``shapefleet launch`` starts (one or several robots). Only what a robot needs is
+    imported (not the launcher's scenario, topology and plotting modules). Exit 0 when every robot
+    here finished converged, 1 otherwise, 2 on bad arguments."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m agents.robot", description=main.__doc__.splitlines()[0])
+    ap.add_argument("--fleet-file", type=Path, required=True)
+    who = ap.add_mutually_exclusive_group(required=True)
+    who.add_argument("--id", dest="ids", help="one robot id")
+    who.add_argument("--ids", help="comma-separated robot ids, e.g. 0,1,2")
+    ap.add_argument("--connect", action="append", required=True)
+    ap.add_argument("--workdir", type=Path, required=True, help="robot-I.ckpt / robot-I.json go here")
+    ap.add_argument("--status-interval", type=float, default=0.0, help="seconds between status lines (0: every round)")
+    ap.add_argument("--allow-remote", action="store_true", help="a router beyond loopback (multi-host)")
+    ap.add_argument("--shared-session", action="store_true", help="one Zenoh session for the robots here")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
+    from agents.spec import FleetSpec
+
+    _STARTED["algorithms_imported"] = time.monotonic()
+
+    try:
+        spec = FleetSpec.load(args.fleet_file)
+        ids = [int(x) for x in args.ids.split(",") if x.strip()]
+        bad = [i for i in ids if i not in spec.robots]
+        if bad or not ids:
+            raise ValueError(f"--ids: robot {bad[0] if bad else args.ids!r} is not in {args.fleet_file}")
+        config = robot_config_dict_for(args.connect, loopback_only=not args.allow_remote)
+    except ValueError as exc:
+        print(f"shapefleet robot: {exc}", file=sys.stderr)
+        return 2
+    results = asyncio.run(run_robots(spec, ids, connect=args.connect, workdir=args.workdir, handle_signals=True,
+                                     zenoh_config=config, status_interval_s=args.status_interval,
+                                     shared_session=args.shared_session))
+    ok = True
+    for rid in ids:
+        res = results[rid]
+        if isinstance(res, BaseException):
+            print(f"shapefleet: robot {rid}: {res}", file=sys.stderr)
+            ok = False
+            continue
+        if res.get("error"):
+            print(f"shapefleet: {res['error']}", file=sys.stderr)
+        ok = ok and res.get("stopped") == "finished" and res.get("converged", True) is not False
+    return 0 if ok else 1
+
+
+def robot_config_dict_for(connect: list[str], *, loopback_only: bool = True) -> dict[str, Any]:
+    """The client configuration of ``connect`` (ValueError naming a bad endpoint)."""
+    from protocol.zenoh_config import robot_config_dict
+
+    return robot_config_dict(connect, loopback_only=loopback_only)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -102,11 +102,11 @@ def _robots_bound(args: argparse.Namespace) -> None:
     """--robots within what this machine runs as processes (launch), unless --max-robots says more."""
     from launcher.fleet import max_robots
 
-    bound, why = max_robots()
+    bound, why = max_robots(args.robots_per_process)
     if args.max_robots is not None:
         bound, why = args.max_robots, "--max-robots"
     if args.robots > bound:
-        raise UsageError(f"--robots: {args.robots} robot processes is more than this machine runs at once "
+        raise UsageError(f"--robots: {args.robots} robots is more than this machine runs at once "
                          f"({bound}: {why}); use fewer, or --max-robots {args.robots} to insist")
 
 
@@ -491,7 +491,7 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
         with _algorithm_importable(spec):
             outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
                                    restart=not args.no_restart, zenoh_port=args.zenoh_port, progress=not quiet,
-                                   router=router)
+                                   router=router, robots_per_process=args.robots_per_process)
     except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag
         raise UsageError(str(exc)) from None
     except LaunchError as exc:  # the machine, not the input: say it in one line, exit 1

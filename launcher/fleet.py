@@ -68,6 +68,7 @@ __all__ = [
     "time_bound_s",
     "stop_process",
     "max_robots",
+    "choose_robots_per_process",
 ]
 
 log = logging.getLogger("shapefleet.launch")
@@ -87,6 +88,14 @@ ROUTER_RESTARTS = 5  # a router that keeps dying is a machine problem: give up a
 # 129 robots, counted double for the launcher's pipes, logs and the router's share)
 ROBOTS_PER_CORE = 8
 ROBOT_MEMORY_MB = 50.0
+# robots per process (robots_per_process "auto"): one process per robot up to this many robots per
+# core, else one process per core; status lines from a robot without a crash plan at most this often
+AUTO_SOLO_PER_CORE = 2
+STATUS_INTERVAL_S = 0.05
+# robots sharing a process share one Zenoh session (own publisher, key, subscriptions, token each)
+SHARED_SESSION = os.environ.get("SHAPEFLEET_SESSION_PER_ROBOT", "") == ""
+SHARED_ROBOT_MEMORY_MB = 10.0  # a robot as a task of a shared process: its session, core, buffers
+SHARED_ROBOTS_PER_CORE = 32  # 32 robots on 2 cores converge in well under a minute (docs/scaling.md)
 STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
 REFRESH_PER_S = 4
 
@@ -130,6 +139,9 @@ class LaunchOutcome(FleetOutcome):
     pids: list[int] = field(default_factory=list)  # every process started (router first)
     interrupted: str | None = None  # the signal that stopped the launcher (SIGTERM, SIGHUP, SIGINT)
     router_restarts: list[float] = field(default_factory=list)  # seconds since launch
+    # monotonic-clock marks of the run (launch, router_ready, robots_started, robots_exited,
+    # stopped): start-up and shut-down costs, compared with the robots' own marks by benchmarks
+    timeline: dict[str, float] = field(default_factory=dict)
 
 
 _CRASH_RE = re.compile(r"\s*(\d+)\s*@\s*(\d+)\s*")
@@ -157,20 +169,29 @@ def _available_memory_mb() -> float | None:
     return None
 
 
-def max_robots() -> tuple[int, str]:
-    """How many robot processes this machine runs at once, and why (cores, memory).
+def max_robots(per_process: int | str | None = "auto") -> tuple[int, str]:
+    """How many robots this machine runs at once, and why (cores, memory).
 
-    One process per robot: past a few per core the rounds crawl and the robots' time-outs
-    fire (measured: 129 processes on 2 cores, load 180). The caller may override it.
+    One process per robot (``per_process`` 1): past a few per core the rounds crawl and the
+    robots' time-outs fire (measured: 129 processes on 2 cores, load 180). Several robots per
+    process ("auto" or a number > 1: see :func:`robots_per_process`): bounded by memory only.
+    The caller may override it.
     """
     cores = os.cpu_count() or 1
-    by_cores = ROBOTS_PER_CORE * cores
     mem = _available_memory_mb()
-    by_memory = int(0.5 * mem / ROBOT_MEMORY_MB) if mem is not None else by_cores
-    bound = max(1, min(by_cores, by_memory))
-    why = (f"{cores} cores x {ROBOTS_PER_CORE}"
-           + ("" if mem is None else f", half of {mem:.0f} MB available memory / {ROBOT_MEMORY_MB:g} MB per robot"))
-    return bound, why
+    if per_process not in (None, "auto") and int(per_process) == 1:
+        by_cores = ROBOTS_PER_CORE * cores
+        by_memory = int(0.5 * mem / ROBOT_MEMORY_MB) if mem is not None else by_cores
+        bound = max(1, min(by_cores, by_memory))
+        why = (f"{cores} cores x {ROBOTS_PER_CORE}"
+               + ("" if mem is None else f", half of {mem:.0f} MB available memory / {ROBOT_MEMORY_MB:g} MB per robot"))
+        return bound, why
+    by_cores = SHARED_ROBOTS_PER_CORE * cores
+    by_memory = int(0.5 * mem / SHARED_ROBOT_MEMORY_MB) if mem is not None else by_cores
+    why = (f"{cores} cores x {SHARED_ROBOTS_PER_CORE} robots sharing processes"
+           + ("" if mem is None else f", half of {mem:.0f} MB available memory / {SHARED_ROBOT_MEMORY_MB:g} MB "
+                                     "per robot"))
+    return max(1, min(by_cores, by_memory)), why
 
 
 def fleet_timing(spec: FleetSpec, crashes: list[CrashPlan], *, restart: bool, restart_after: float) -> Any:
@@ -260,6 +281,16 @@ def _stop_all(procs: list[subprocess.Popen], grace_s: float = STOP_GRACE_S) -> l
     return [p.returncode for p in procs]
 
 
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds a running process has used so far (/proc; None elsewhere)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            fields = fh.read().rsplit(b")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def _port_in_use(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a listener would
@@ -320,8 +351,14 @@ class _PortInUse(LaunchError):
         self.port = port
 
 
-def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, started: list[int]) -> _Router:
-    """Start the router on ``zenoh_port`` (ValueError if taken) or on a free port (retried)."""
+def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, started: list[int],
+                  meanwhile: Callable[[str], Any] | None = None) -> tuple[_Router, Any]:
+    """Start the router on ``zenoh_port`` (ValueError if taken) or on a free port (retried).
+
+    ``meanwhile(endpoint)`` runs as soon as the router process is spawned, before it listens: the
+    robots start then, and import while the router starts (their Zenoh clients retry until it
+    listens). What it returns is handed back; if this port fails, its ``abandon()`` is called.
+    """
     attempts = 1 if zenoh_port is not None else ROUTER_PORT_ATTEMPTS
     for attempt in range(attempts):
         port = zenoh_port if zenoh_port is not None else free_loopback_port(HOST)
@@ -329,16 +366,24 @@ def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, star
             raise ValueError(f"--zenoh-port {port} is in use")
         router = _Router(port, workdir, lifetime_s)
         started.append(router.proc.pid)
+        extra = None
         try:
+            extra = None if meanwhile is None else meanwhile(router.endpoint)
             router.wait_ready(ROUTER_START_TIMEOUT_S)
-            return router
+            return router, extra
         except _PortInUse:
+            if extra is not None:
+                extra.abandon()
             router.stop()
             if zenoh_port is not None:
                 raise ValueError(f"--zenoh-port {port} is in use") from None
             log.info("port %d was taken before the router bound it (attempt %d)", port, attempt + 1)
         except BaseException:
-            router.stop()
+            try:
+                if extra is not None:
+                    extra.abandon()
+            finally:
+                router.stop()
             raise
     raise LaunchError(f"no free loopback port for the Zenoh router after {attempts} attempts")
 
@@ -347,31 +392,70 @@ def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, star
 
 
 @dataclass
-class _Robot:
-    id: int
+class _Proc:
+    """One robot process: it runs the robots ``ids`` (one, or several as asyncio tasks)."""
+
+    ids: tuple[int, ...]
     argv: list[str]
     log_path: Path
-    result_path: Path
-    crashes: list[CrashPlan]  # still to carry out, by round
     proc: subprocess.Popen | None = None
     log_fh: IO[bytes] | None = None
     reader: threading.Thread | None = None
     generation: int = -1
-    state: str = "starting"
-    status: dict[str, Any] = field(default_factory=dict)
-    restarts: int = 0
     restart_at: float | None = None
     killed: bool = False  # the current process was SIGKILLed by us
     exit_code: int | None = None
 
 
-def _read_lines(stream: IO[bytes], rid: int, gen: int, events: queue.SimpleQueue) -> None:
+@dataclass
+class _Robot:
+    id: int
+    p: _Proc  # the process it runs in
+    result_path: Path
+    crashes: list[CrashPlan]  # still to carry out, by round
+    state: str = "starting"
+    status: dict[str, Any] = field(default_factory=dict)
+    restarts: int = 0
+
+    @property
+    def log_path(self) -> Path:
+        return self.p.log_path
+
+
+def _read_lines(stream: IO[bytes], key: int, gen: int, events: queue.SimpleQueue) -> None:
     try:
         for line in iter(stream.readline, b""):
-            events.put((rid, gen, line))
+            events.put((key, gen, line))
     except (OSError, ValueError):  # stream closed under us while shutting down
         pass
-    events.put((rid, gen, None))
+    events.put((key, gen, None))
+
+
+def choose_robots_per_process(n_robots: int, setting: int | str | None = "auto", cores: int | None = None) -> int:
+    """How many robots share one process: ``setting`` if a number, else chosen from the cores.
+
+    One process per robot while the fleet is at most ``AUTO_SOLO_PER_CORE`` robots per core
+    (process isolation; the rounds are fastest so); beyond, the robots are spread over one process
+    per core -- an interpreter per robot costs ~25 MB and a scheduler slot, and past a few
+    processes per core the rounds crawl (measured: 16 processes on 2 cores 115 ms/round).
+    """
+    if setting not in (None, "auto"):
+        k = int(setting)
+        if k < 1:
+            raise ValueError(f"--robots-per-process: {setting!r} must be at least 1 or 'auto'")
+        return k
+    cores = cores or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    if n_robots <= AUTO_SOLO_PER_CORE * cores:
+        return 1
+    return -(-n_robots // cores)
+
+
+def _groups(ids: list[int], per_process: int, solo: set[int]) -> list[tuple[int, ...]]:
+    """Robots in processes of ``per_process`` (consecutive ids); robots in ``solo`` (a crash is
+    planned for them: a SIGKILL takes their process) each in a process of their own."""
+    shared = [i for i in ids if i not in solo]
+    out = [tuple(shared[k:k + per_process]) for k in range(0, len(shared), per_process)]
+    return sorted(out + [(i,) for i in ids if i in solo])
 
 
 class _Fleet:
@@ -379,7 +463,7 @@ class _Fleet:
 
     def __init__(self, spec: FleetSpec, workdir: Path, fleet_file: Path, endpoint: str,
                  crashes: list[CrashPlan], restart: bool, restart_after: float,
-                 started: list[int], console: Any | None) -> None:
+                 started: list[int], console: Any | None, per_process: int = 1) -> None:
         self.spec = spec
         self.restart = restart
         self.restart_after = restart_after
@@ -389,6 +473,7 @@ class _Fleet:
         self.t0 = time.monotonic()
         self.crash_events: list[CrashEvent] = []
         self.robots: dict[int, _Robot] = {}
+        self.procs: list[_Proc] = []
         for i in spec.robot_ids:
             ck, res = workdir / f"robot-{i}.ckpt", workdir / f"robot-{i}.json"
             for stale in (ck, ck.with_name(ck.name + ".tmp"), res):  # never resume a previous run
@@ -396,40 +481,61 @@ class _Fleet:
                     stale.unlink()
                 except FileNotFoundError:
                     pass
-            argv = [sys.executable, "-m", "launcher.cli", "robot", "--fleet-file", str(fleet_file),
-                    "--id", str(i), "--connect", endpoint, "--checkpoint", str(ck), "--result", str(res)]
-            plans = sorted((c for c in crashes if c.robot == i), key=lambda c: c.round)
-            self.robots[i] = _Robot(i, argv, workdir / f"robot-{i}.log", res, plans)
+        solo = {c.robot for c in crashes}
+        for ids in _groups(list(spec.robot_ids), per_process, solo):
+            # every status line (one per robot per round, or fewer: STATUS_INTERVAL_S) says which
+            # robot it is for; a robot with a crash plan reports every round so it dies on time
+            interval = 0.0 if solo & set(ids) else STATUS_INTERVAL_S
+            argv = [sys.executable, "-m", "agents.robot", "--fleet-file", str(fleet_file),
+                    "--id" if len(ids) == 1 else "--ids", ",".join(map(str, ids)), "--connect", endpoint,
+                    "--workdir", str(workdir),
+                    "--status-interval", f"{interval:g}"]
+            if len(ids) > 1 and SHARED_SESSION:
+                argv.append("--shared-session")
+            name = f"robot-{ids[0]}" if len(ids) == 1 else f"robots-{ids[0]}-{ids[-1]}"
+            proc = _Proc(ids, argv, workdir / f"{name}.log")
+            self.procs.append(proc)
+            for i in ids:
+                plans = sorted((c for c in crashes if c.robot == i), key=lambda c: c.round)
+                self.robots[i] = _Robot(i, proc, workdir / f"robot-{i}.json", plans)
+                if len(ids) > 1:  # robot-I.log names every robot's log, as with one per process
+                    link = workdir / f"robot-{i}.log"
+                    try:
+                        link.unlink()
+                    except FileNotFoundError:
+                        pass
+                    link.symlink_to(proc.log_path.name)
 
     # -- process life ------------------------------------------------------------------------
-    def start(self, r: _Robot) -> None:
-        if r.log_fh is None:
-            r.log_fh = open(r.log_path, "ab")
-        if r.proc is not None:  # a restart: the killed process's pipe has reached its end
-            if r.reader is not None:
-                r.reader.join(2)
-            if r.proc.stdout is not None:
-                r.proc.stdout.close()
-        r.generation += 1
-        r.proc = _spawn(r.argv, stdout=subprocess.PIPE, stderr=r.log_fh)
-        self.started.append(r.proc.pid)
-        r.killed = False
-        r.exit_code = None
-        r.restart_at = None
-        r.reader = threading.Thread(target=_read_lines, args=(r.proc.stdout, r.id, r.generation, self.events),
-                                    name=f"robot-{r.id}-stdout", daemon=True)
-        r.reader.start()
+    def start(self, p: _Proc) -> None:
+        if p.log_fh is None:
+            p.log_fh = open(p.log_path, "ab")
+        if p.proc is not None:  # a restart: the killed process's pipe has reached its end
+            if p.reader is not None:
+                p.reader.join(2)
+            if p.proc.stdout is not None:
+                p.proc.stdout.close()
+        p.generation += 1
+        p.proc = _spawn(p.argv, stdout=subprocess.PIPE, stderr=p.log_fh)
+        self.started.append(p.proc.pid)
+        p.killed = False
+        p.exit_code = None
+        p.restart_at = None
+        key = self.procs.index(p)
+        p.reader = threading.Thread(target=_read_lines, args=(p.proc.stdout, key, p.generation, self.events),
+                                    name=f"robots-{p.ids[0]}-stdout", daemon=True)
+        p.reader.start()
 
     def start_all(self) -> None:
-        for r in self.robots.values():
-            self.start(r)
+        for p in self.procs:
+            self.start(p)
 
     def live(self) -> list[subprocess.Popen]:
-        return [r.proc for r in self.robots.values() if r.proc is not None and r.proc.poll() is None]
+        return [p.proc for p in self.procs if p.proc is not None and p.proc.poll() is None]
 
     def busy(self) -> bool:
         """Some robot process runs, or one is due to be restarted."""
-        return bool(self.live()) or any(r.restart_at is not None for r in self.robots.values())
+        return bool(self.live()) or any(p.restart_at is not None for p in self.procs)
 
     def _say(self, text: str) -> None:
         log.info("%s", text)
@@ -437,16 +543,17 @@ class _Fleet:
             self.console.log(text)
 
     def crash(self, r: _Robot, plan: CrashPlan, reported: int) -> None:
-        assert r.proc is not None
-        os.kill(r.proc.pid, signal.SIGKILL)
-        r.proc.wait(10)
-        r.killed = True
-        r.exit_code = r.proc.returncode
+        p = r.p  # a robot with a crash plan runs alone in its process (see _groups)
+        assert p.proc is not None and p.ids == (r.id,)
+        os.kill(p.proc.pid, signal.SIGKILL)
+        p.proc.wait(10)
+        p.killed = True
+        p.exit_code = p.proc.returncode
         now = time.monotonic() - self.t0
-        self.crash_events.append(CrashEvent(r.id, plan.round, reported, r.proc.pid, now))
+        self.crash_events.append(CrashEvent(r.id, plan.round, reported, p.proc.pid, now))
         if self.restart:
             r.state = "crashed"
-            r.restart_at = time.monotonic() + self.restart_after
+            p.restart_at = time.monotonic() + self.restart_after
             self._say(f"robot {r.id} SIGKILLed at round {reported} (plan {r.id}@{plan.round}); "
                       f"restart in {self.restart_after:g}s")
         else:
@@ -454,66 +561,82 @@ class _Fleet:
             self._say(f"robot {r.id} SIGKILLed at round {reported} (plan {r.id}@{plan.round}); stays dead")
 
     def restart_due(self, now: float) -> None:
-        for r in self.robots.values():
-            if r.restart_at is not None and now >= r.restart_at:
-                r.restarts += 1
-                self.start(r)
-                r.state = "restarted"
-                ev = next(e for e in reversed(self.crash_events) if e.robot == r.id)
-                self.crash_events[self.crash_events.index(ev)] = dataclasses.replace(
-                    ev, restarted_at_s=now - self.t0)
-                self._say(f"robot {r.id} restarted (pid {r.proc.pid}), resuming from its checkpoint")
+        for p in self.procs:
+            if p.restart_at is not None and now >= p.restart_at:
+                self.start(p)
+                for rid in p.ids:
+                    r = self.robots[rid]
+                    r.restarts += 1
+                    r.state = "restarted"
+                    ev = next(e for e in reversed(self.crash_events) if e.robot == r.id)
+                    self.crash_events[self.crash_events.index(ev)] = dataclasses.replace(
+                        ev, restarted_at_s=now - self.t0)
+                    self._say(f"robot {r.id} restarted (pid {p.proc.pid}), resuming from its checkpoint")
 
     def next_restart(self) -> float | None:
-        due = [r.restart_at for r in self.robots.values() if r.restart_at is not None]
+        due = [p.restart_at for p in self.procs if p.restart_at is not None]
         return min(due) if due else None
 
     # -- status lines ------------------------------------------------------------------------
-    def on_line(self, rid: int, gen: int, line: bytes | None) -> None:
-        r = self.robots[rid]
-        if line is None or gen != r.generation:
+    def on_line(self, key: int, gen: int, line: bytes | None) -> None:
+        p = self.procs[key]
+        if line is None or gen != p.generation:
             return  # end of a stream, or a line a killed process had written before it died
         try:
             st = json.loads(line)
         except ValueError:
-            log.debug("robot %d: not a status line: %r", rid, line[:200])
+            log.debug("robots %s: not a status line: %r", p.ids, line[:200])
             return
         if not isinstance(st, dict) or "round" not in st:
             return
+        rid = st.get("robot", p.ids[0]) if len(p.ids) > 1 else p.ids[0]
+        if rid not in p.ids:
+            return
+        r = self.robots[rid]
         r.status = st
         if r.state == "starting":
             r.state = "running"
         if r.crashes and not st.get("finished") and "stopped" not in st:
             plan = r.crashes[0]
-            if int(st["round"]) >= plan.round and r.proc is not None and r.proc.poll() is None:
+            if int(st["round"]) >= plan.round and p.proc is not None and p.proc.poll() is None:
                 r.crashes.pop(0)
                 self.crash(r, plan, int(st["round"]))
 
     def reap(self) -> None:
         """Notice processes that exited on their own."""
-        for r in self.robots.values():
-            if r.proc is None or r.killed or r.exit_code is not None:
+        for p in self.procs:
+            if p.proc is None or p.killed or p.exit_code is not None:
                 continue
-            rc = r.proc.poll()
+            rc = p.proc.poll()
             if rc is None:
                 continue
-            r.exit_code = rc
-            if rc == 0:
-                r.state = "finished"
-            elif r.status.get("stopped") is not None or r.result_path.exists():
-                r.state = "stopped"  # max_wall / signal: a result, not converged
-            else:
-                r.state = "dead"
-                self._say(f"robot {r.id} exited with code {rc} (see {r.log_path})")
+            p.exit_code = rc
+            for rid in p.ids:
+                r = self.robots[rid]
+                stopped = r.status.get("stopped")
+                if rc == 0 or (len(p.ids) > 1 and stopped == "finished"):
+                    r.state = "finished"
+                elif stopped is not None or r.result_path.exists():
+                    r.state = "stopped"  # max_wall / signal: a result, not converged
+                else:
+                    r.state = "dead"
+                    self._say(f"robot {r.id} exited with code {rc} (see {p.log_path})")
+
+    def abandon(self) -> None:
+        """Stop every robot process started so far (the router they were given failed)."""
+        try:
+            _stop_all(self.live())
+        finally:
+            self.close()
 
     def close(self) -> None:
-        for r in self.robots.values():
-            if r.reader is not None:
-                r.reader.join(5)
-            if r.proc is not None and r.proc.stdout is not None:
-                r.proc.stdout.close()
-            if r.log_fh is not None:
-                r.log_fh.close()
+        for p in self.procs:
+            if p.reader is not None:
+                p.reader.join(5)
+            if p.proc is not None and p.proc.stdout is not None:
+                p.proc.stdout.close()
+            if p.log_fh is not None:
+                p.log_fh.close()
 
     # -- display -----------------------------------------------------------------------------
     def table(self, title: str) -> Any:
@@ -571,6 +694,7 @@ def launch_fleet(
     progress: bool = True,
     router: str | None = None,
     on_running: Callable[[str], None] | None = None,
+    robots_per_process: int | str | None = "auto",
 ) -> LaunchOutcome:
     """Run ``spec`` as one process per robot plus a router on 127.0.0.1; see the module doc.
 
@@ -581,6 +705,9 @@ def launch_fleet(
     ``router``: the endpoint of a router that already runs (loopback): connect the robots to it
     instead of starting one (several fleets can share a router; ``zenoh_port`` must be None).
     ``on_running(endpoint)``: called once the router is up and the robots were started.
+    ``robots_per_process``: robots run as asyncio tasks of one process (each with its own Zenoh
+    session, key and files), a number or "auto" (:func:`choose_robots_per_process`); a robot with a
+    crash plan always runs alone, so that its SIGKILL takes only it.
 
     Returns a :class:`LaunchOutcome` (a ``FleetOutcome``): ``robots`` holds the result of every
     robot that wrote one, sorted by id; a robot dead for good is absent.
@@ -590,6 +717,7 @@ def launch_fleet(
         raise ValueError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
     if restart_after < 0:
         raise ValueError("--restart-after: must be a non-negative number of seconds")
+    per_process = choose_robots_per_process(spec.n_robots, robots_per_process)
     if router is not None:
         if zenoh_port is not None:
             raise ValueError("launch_fleet: give zenoh_port or router, not both")
@@ -623,18 +751,30 @@ def launch_fleet(
             sig = getattr(signal, name)
             previous_handlers[sig] = signal.signal(sig, on_signal)
     router_restarts: list[float] = []
+    timeline = {"launch": t0}
+
+    def start_robots(endpoint: str) -> _Fleet:
+        robots = _Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
+                        started, console, per_process)
+        try:
+            robots.start_all()
+        except BaseException:
+            robots.abandon()
+            raise
+        timeline["robots_started"] = time.monotonic()
+        return robots
+
     if router is None:
-        own_router: _Router | None = _start_router(zenoh_port, workdir, bound_s + 2 * WALL_MARGIN_S, started)
+        own_router, fleet = _start_router(zenoh_port, workdir, bound_s + 2 * WALL_MARGIN_S, started,
+                                          meanwhile=start_robots)
         endpoint, port = own_router.endpoint, own_router.port
     else:
         own_router, endpoint, port = None, router, parse_endpoint(router)[2]
-    fleet: _Fleet | None = None
+        fleet = start_robots(endpoint)
+    timeline["router_ready"] = time.monotonic()
     timed_out = False
     live_display = None
     try:
-        fleet = _Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
-                       started, console)
-        fleet.start_all()
         if on_running is not None:
             on_running(endpoint)
         title = f"fleet {spec.fleet}: {spec.n_robots} robots on {endpoint}"
@@ -689,12 +829,16 @@ def launch_fleet(
                 live_display.update(fleet.table(title))
                 next_draw = now + 1.0 / REFRESH_PER_S
     finally:
+        timeline["robots_exited"] = time.monotonic()
         try:
             if fleet is not None:
                 _stop_all(fleet.live())  # SIGTERM: a robot still running writes its result
         finally:
             try:
                 if own_router is not None:
+                    cpu = _cpu_seconds(own_router.proc.pid)
+                    if cpu is not None:  # the router's CPU over the run: fan-out cost (docs/scaling.md)
+                        timeline["router_cpu_s"] = cpu
                     own_router.stop()
             finally:
                 if live_display is not None:
@@ -721,6 +865,7 @@ def launch_fleet(
         k: sum(int(r.get(f"frames_{k}", 0) or 0) for r in robots)
         for k in ("sent", "received", "lost", "duplicated", "accepted", "rejected")
     }
+    timeline["stopped"] = time.monotonic()
     wall = time.monotonic() - t0
     if console is not None:
         console.print(fleet.table(f"fleet {spec.fleet}: {len(robots)}/{spec.n_robots} results, {wall:.1f}s"))
@@ -738,4 +883,5 @@ def launch_fleet(
         pids=list(started),
         interrupted=interrupted[0] if interrupted else None,
         router_restarts=router_restarts,
+        timeline=timeline,
     )

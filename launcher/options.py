@@ -211,6 +211,16 @@ def _port(value: int) -> None:
         raise ValueError(f"{value} is not a TCP port (1-65535)")
 
 
+def _robots_per_process(value: str) -> None:
+    if str(value).strip() != "auto":
+        try:
+            n = int(str(value).strip())
+        except ValueError:
+            raise ValueError(f"{value!r} is not a number of robots or 'auto'") from None
+        if n < 1:
+            raise ValueError(f"{value!r} must be at least 1 or 'auto'")
+
+
 def _non_negative(value: float) -> None:
     if not value >= 0:
         raise ValueError(f"{value!r} must be a non-negative number")
@@ -446,9 +456,13 @@ OPTIONS: tuple[Option, ...] = (
            group=PROCESSES, commands=CRASH_COMMANDS, section="launch", target=None, show_default=False),
     Option("zenoh-port", INT, None, "the router's loopback port (default: a free one)", group=PROCESSES,
            commands=("launch",), section="launch", check=_port, target=None),
-    Option("max-robots", INT, None, "allow up to N robot processes (default: derived from this machine's "
+    Option("max-robots", INT, None, "allow up to N robots (default: derived from this machine's "
            "cores and memory)", group=PROCESSES, commands=("launch",), section="launch", metavar="N",
            check=at_least(1), target=None),
+    Option("robots-per-process", STR, "auto", "robots run as asyncio tasks of one process, each with its own "
+           "Zenoh session and key; auto: one process per robot up to 2 per core, else one process per core "
+           "(a robot with a --crash plan always runs alone)", group=PROCESSES, commands=("launch",),
+           section="launch", metavar="N|auto", check=_robots_per_process, target=None),
     # -- gridstudy ----------------------------------------------------------------------
     Option("bad-grid", STR, None, "the coarse grid, shifted by half a cell (default 4x2)", commands=("gridstudy",),
            metavar="NXxNY", check=parse_grid, target=None),

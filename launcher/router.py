@@ -44,17 +44,20 @@ def run_router(
     stream=sys.stdout,
     loopback_only: bool = True,
     tls: TLSFiles | None = None,
+    peers: list[str] | None = None,
 ) -> None:
     """Open a Zenoh router listening on ``tcp/host:port``; run until SIGTERM/SIGINT; close.
 
     ``max_wall_s`` (optional) bounds the lifetime, for tests and benchmarks. Must be called from
     the main thread (it installs signal handlers; previous handlers are restored on return).
     ``loopback_only=False`` lets ``host`` be a LAN address (multi-host deployments); ``tls``
-    listens on ``tls/host:port`` instead (see protocol.zenoh_config.TLSFiles).
+    listens on ``tls/host:port`` instead (see protocol.zenoh_config.TLSFiles). ``peers``: other
+    routers to link to (``tcp/host:port``), e.g. one router per host with the robots split between
+    them (docs/scaling.md, "Beyond one host").
     """
     import zenoh
 
-    config = router_config(port, host, loopback_only=loopback_only, tls=tls)  # validates port/host
+    config = router_config(port, host, loopback_only=loopback_only, tls=tls, peers=peers or ())  # validates
     stop = threading.Event()
 
     def on_signal(signum, _frame):
@@ -98,9 +101,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--ready-file", type=Path, default=None)
     ap.add_argument("--max-wall-s", type=float, default=None)
+    ap.add_argument("--connect", action="append", default=[], help="another router to link to (repeatable)")
+    ap.add_argument("--allow-remote", action="store_true", help="listen / connect beyond loopback")
     args = ap.parse_args(argv)
     try:
-        run_router(args.port, host=args.host, ready_file=args.ready_file, max_wall_s=args.max_wall_s)
+        run_router(args.port, host=args.host, ready_file=args.ready_file, max_wall_s=args.max_wall_s,
+                   loopback_only=not args.allow_remote, peers=args.connect)
     except ValueError as exc:
         print(f"router: {exc}", file=sys.stderr)
         return 2

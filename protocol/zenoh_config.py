@@ -66,7 +66,10 @@ _COMMON: dict[str, Any] = {
 # Robots wait this long for the router at start-up (the launcher may start them a little before the
 # router is listening) and retry with this back-off.
 CONNECT_TIMEOUT_MS = 10_000
-CONNECT_RETRY = {"period_init_ms": 50, "period_max_ms": 500, "period_increase_factor": 2}
+# The launcher starts robots together with the router (they import while it starts), so a robot
+# usually finds it listening or within a few retries: keep the back-off short (a refused
+# connection on loopback costs microseconds).
+CONNECT_RETRY = {"period_init_ms": 20, "period_max_ms": 100, "period_increase_factor": 1.5}
 
 _ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<addr>[^?#]+)$")
 _SUPPORTED_PROTOCOLS = ("tcp", "tls")
@@ -235,16 +238,29 @@ def router_config_dict(
     loopback_only: bool = True,
     tls: TLSFiles | None = None,
     access_control: Mapping[str, Any] | None = None,
+    peers: Iterable[str] = (),
 ) -> dict[str, Any]:
     """Router listening on ``tcp/host:port`` (``tls/host:port`` with ``tls``) only, no scouting,
-    connecting to nobody. ``access_control``: e.g. :func:`robot_access_control` (needs mutual TLS)."""
+    connecting to nobody -- or to the routers in ``peers`` (endpoints, validated like the listen
+    one): linked routers route the fleet's keys between their clients, so robots can be split
+    between hosts, each host with its own router (docs/scaling.md). A peer that is not up yet is
+    retried (it may start later); a router never exits for want of one.
+    ``access_control``: e.g. :func:`robot_access_control` (needs mutual TLS)."""
     if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
         raise ValueError(f"router port must be an int in 1..65535, got {port!r}")
     endpoint = validate_endpoint(router_endpoint(port, host, "tls" if tls else "tcp"), loopback_only=loopback_only)
+    if isinstance(peers, str):
+        raise ValueError(f"peers must be a list of router endpoints, got the string {peers!r}")
+    peer_eps = [validate_endpoint(e, loopback_only=loopback_only) for e in peers]
+    if endpoint in peer_eps:
+        raise ValueError(f"a router cannot connect to its own endpoint {endpoint}")
+    connect: dict[str, Any] = {"endpoints": peer_eps}
+    if peer_eps:
+        connect.update(timeout_ms=-1, exit_on_failure=False, retry=dict(CONNECT_RETRY))
     extra: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": [endpoint]},
-        "connect": {"endpoints": []},
+        "connect": connect,
     }
     if tls is not None:
         if tls.cert is None:
@@ -327,9 +343,10 @@ def to_zenoh_config(d: Mapping[str, Any]):
     return conf
 
 
-def router_config(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True, tls: TLSFiles | None = None):
+def router_config(port: int, host: str = "127.0.0.1", *, loopback_only: bool = True, tls: TLSFiles | None = None,
+                  peers: Iterable[str] = ()):
     """``zenoh.Config`` of :func:`router_config_dict`."""
-    return to_zenoh_config(router_config_dict(port, host, loopback_only=loopback_only, tls=tls))
+    return to_zenoh_config(router_config_dict(port, host, loopback_only=loopback_only, tls=tls, peers=peers))
 
 
 def robot_config(connect: Iterable[str], *, loopback_only: bool = True, tls: TLSFiles | None = None):

@@ -18,6 +18,7 @@ import secrets
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -195,3 +196,59 @@ def test_every_marked_block_of_the_doc_is_run_by_these_tests():
     for name, text in doc.blocks().items():
         if name.startswith(("router", "robot")):  # started in the background: one command, exec'ed
             assert text.lstrip().startswith("shapefleet ") and "\n" not in text.replace("\\\n", ""), name
+
+
+# ----------------------------------------------------------------------------- two linked routers
+
+SITES = ("siteA", "siteB")  # two hosts, each with its own router and half of the robots
+ROUTER_PORT = 7447
+
+
+def test_two_linked_routers_robots_split_between_hosts(tmp_path, machines_ok):
+    """Issue 14, beyond one host: a router on each of two hosts, the second linked to the first
+    (``--connect``); robots 0-1 on host A (client of router A), 2-3 on host B (client of router B),
+    each pair as tasks of one process. Frames between the sites cross both routers; the run is the
+    in-process simulator's, bit for bit."""
+    from launcher.simulate import simulate_fleet
+    from launcher.world import Options, build_world
+
+    _world, spec = build_world(Options(robots=4, preset="paper", max_rounds=80, fleet_id="two-routers"))
+    want = {r["id"]: r for r in simulate_fleet(spec).robots}
+    spec.save(tmp_path / "fleet.json")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    py = sys.executable
+    started: list[subprocess.Popen] = []
+    with Machines(SITES) as machines:
+        addr = machines.addr
+        try:
+            for site, peer in zip(SITES, (None, addr[SITES[0]])):
+                argv = [py, "-m", "launcher.router", "--port", str(ROUTER_PORT), "--host", addr[site],
+                        "--allow-remote", "--ready-file", str(tmp_path / f"{site}.ready"), "--max-wall-s", "120"]
+                if peer is not None:
+                    argv += ["--connect", f"tcp/{peer}:{ROUTER_PORT}"]
+                started.append(doc.spawn(argv, tmp_path, env, netns=machines.ns[site], log=tmp_path / f"{site}-router.log"))
+            for site in SITES:
+                end = time.monotonic() + ROUTER_READY_S
+                while not (tmp_path / f"{site}.ready").exists():
+                    assert time.monotonic() < end, (tmp_path / f"{site}-router.log").read_text()
+                    time.sleep(0.05)
+            robots = []
+            for site, ids in zip(SITES, ("0,1", "2,3")):
+                (tmp_path / site).mkdir()
+                argv = [py, "-m", "agents.robot", "--fleet-file", str(tmp_path / "fleet.json"), "--ids", ids,
+                        "--connect", f"tcp/{addr[site]}:{ROUTER_PORT}", "--allow-remote",
+                        "--workdir", str(tmp_path / site), "--status-interval", "1"]
+                robots.append(doc.spawn(argv, tmp_path, env, netns=machines.ns[site], log=tmp_path / f"{site}-robots.log"))
+            started += robots
+            codes = doc.wait_all(robots, FLEET_S)
+            assert None not in codes, "robots still running at the bound"
+        finally:
+            for proc in reversed(started):
+                doc.stop(proc)
+    for site, ids in zip(SITES, ((0, 1), (2, 3))):
+        for i in ids:
+            got = json.loads((tmp_path / site / f"robot-{i}.json").read_text())
+            assert got["stopped"] == "finished" and got["rounds"] == want[i]["rounds"], (tmp_path / f"{site}-robots.log").read_text()
+            assert got["neighbours_dropped"] == [] and got["frames_rejected"]["total"] == 0
+            assert {int(r): v for r, v in got["trace"].items()} == {r: list(v) for r, v in want[i]["trace"].items()}
+            assert got["x"] == list(want[i]["x"]) and got["gamma"] == want[i]["gamma"]

@@ -201,6 +201,25 @@ def test_eight_robots_lossy_same_iterates(tmp_path):
 
 
 @bound(60)
+def test_robots_sharing_processes_same_iterates_and_a_crash_takes_only_its_robot(tmp_path):
+    """Issue 14: 7 robots as asyncio tasks of 3 processes (3 + 3 sharing, the crash-planned one
+    alone): frames still cross Zenoh, every iterate equals simulate's bit for bit; SIGKILLing the
+    crash-planned robot's process takes only it, and it resumes from its checkpoint."""
+    _world, spec, _central = _run(robots=7, max_rounds=80, fleet_id="launch-shared")
+    want = _simulate(spec)
+    out = _launch(spec, tmp_path, robots_per_process=3, crashes=[CrashPlan(4, 30)], restart=True,
+                  restart_after=0.5)
+    assert len(out.pids) == 1 + 3 + 1  # router, 3 processes, the crashed one's restart
+    assert [(c.robot, c.planned_round) for c in out.crashes] == [(4, 30)]
+    _assert_same_iterates(out.robots, want, restarted=(4,))
+    assert [r["restarts"] for r in out.robots] == [0, 0, 0, 0, 1, 0, 0]
+    assert all(r["neighbours_dropped"] == [] and r["frames_received"] > 0 for r in out.robots)
+    fleet = tmp_path / "fleet"
+    assert (fleet / "robots-0-2.log").exists() and (fleet / "robots-3-6.log").exists()
+    assert (fleet / "robot-5.log").resolve() == (fleet / "robots-3-6.log").resolve()
+
+
+@bound(60)
 def test_ct_admm_over_zenoh_with_delay_and_loss(tmp_path):
     """Issue 4: the continuous-time ADMM over the Zenoh fleet with 20 ms delay and 20 % loss
     samples exactly the neighbour values the in-process flow does, round for round."""

@@ -39,7 +39,7 @@ TABLE_COMMANDS = sorted({c for o in OPTIONS for c in o.commands})
 #: a valid non-default value of each option, as a command-line word and as a TOML value
 _TEXT = {"shape": "bean", "grid": "4x4", "grid-bounds": "0,1,0,1", "preset": "paper", "topology": "ring",
          "fleet-id": "opt-test", "bad-grid": "3x2", "algorithm": "admm", "crash": "1@4",
-         "connect": "tcp/127.0.0.1:7447",
+         "connect": "tcp/127.0.0.1:7447", "robots-per-process": "4",
          # issue 13 (free sync, fault models)
          "sync": "free", "delay-dist": "pareto", "link-loss": "0-1:0.5", "robot-loss": "2:0.3",
          "partition": "0,1/2,3@2s-5s", "delays": "0ms,5ms", "losses": "0,0.2", "syncs": "free"}

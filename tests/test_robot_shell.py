@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from agents.robot import alive_key, run_robot  # noqa: E402
+from agents.robot import alive_key, read_checkpoint, run_robot  # noqa: E402
 from agents.rounds import RoundCore, check_iterate  # noqa: E402
 from protocol.frames import StateUpdate, config_tag, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
@@ -211,6 +211,42 @@ def test_checkpoint_survives_a_crash_at_any_step(tmp_path):
     assert read_checkpoint(path)["n"] == 3 and not (tmp_path / "ck.tmp").exists()
 
 
+def test_checkpoint_writer_slots_survive_a_crash_at_any_step(tmp_path):
+    """The shell's per-round writer (two slots overwritten in turn): a write cut anywhere leaves
+    the previous checkpoint readable; a whole write is the newest; a restart never overwrites it."""
+    from agents.robot import CheckpointWriter, _load_envelope, read_checkpoint
+
+    path = tmp_path / "ck"
+    env = lambda n: {"v": 1, "n": n, "core": {"round": n, "pad": bytes([n]) * (40 - n)}}  # noqa: E731
+    w = CheckpointWriter(path)
+    for n in (1, 2, 3):
+        w.write(env(n))
+        assert read_checkpoint(path)["n"] == n
+    w.close()
+    slots = [path, tmp_path / "ck.tmp"]
+    newest = max(slots, key=lambda p: _load_envelope(p)["n"])
+    older = next(p for p in slots if p != newest)
+    whole = older.read_bytes()
+    for frac in (0.05, 0.15, 0.3, 0.99):  # crash in the middle of writing round 4 over round 2
+        blob = bytearray(whole)
+        older.write_bytes(whole)
+        w4 = CheckpointWriter(path)
+        w4.write(env(4))
+        w4.close()
+        four = older.read_bytes()[:12 + len(msgpack.packb(env(4)))]
+        assert read_checkpoint(path)["n"] == 4
+        cut = int(frac * len(four))
+        blob[:cut] = four[:cut]  # the first bytes of round 4 landed over round 2, then SIGKILL
+        older.write_bytes(bytes(blob))
+        assert read_checkpoint(path)["n"] == 3, cut
+    # a restarted robot writes into the slot that does not hold the newest checkpoint
+    w5 = CheckpointWriter(path)
+    w5.write(env(5))
+    w5.close()
+    assert read_checkpoint(path)["n"] == 5
+    assert _load_envelope(newest)["n"] == 3  # round 3 kept until 5 is whole
+
+
 def test_checkpoint_of_another_robot_is_refused(tmp_path):
     from agents.robot import RobotShell, write_checkpoint
 
@@ -286,7 +322,7 @@ async def test_three_robots_exact_iterates(router, tmp_path):
             lines = [json.loads(x) for x in streams[i].getvalue().splitlines()]
             assert [x["round"] for x in lines[:60]] == list(range(1, 61))
             assert set(lines[0]) >= {"robot", "round", "residual", "sent", "received", "lost", "rejected"}
-            ck = msgpack.unpackb((tmp_path / f"ck-{i}.msgpack").read_bytes(), strict_map_key=False)
+            ck = read_checkpoint(tmp_path / f"ck-{i}.msgpack")  # the newest of the writer's two slots
             assert ck["core"]["round"] == 59  # written before the last advance
 
 

@@ -1,0 +1,165 @@
+"""Where a robot process's time goes: per-round phases and the start-up / shut-down timeline.
+
+Runs ``launcher.fleet.launch_fleet`` on the paper preset (3 robots, complete graph, 5x3 grid) for
+a fixed number of rounds (``tol`` tiny) with ``SHAPEFLEET_PROFILE=1``: every robot shell then writes
+``robot-I.json.profile.json`` beside its result (agents/robot.py ``RobotShell.profile`` and
+``marks``). It prints, per round and averaged over the robots:
+
+* receive    -- Zenoh sample -> fault link -> frame decode/auth/dedup -> core.receive (loop side);
+* checkpoint -- the crash-safe checkpoint written before each advance;
+* advance    -- core.advance(): the local QP solve and the ADMM updates, plus the frame encode;
+* send       -- publisher.put of the new frame;
+* status     -- the JSON status line to the launcher;
+* wait       -- awaiting the neighbours' frames (idle, or other callbacks of the loop);
+* other      -- the rest of the loop (timers, deadlines, asyncio bookkeeping),
+
+and the timeline from ``launch`` to the first round and to every process stopped, split into the
+launcher's part (router, spawning, stopping) and the robot's (interpreter + imports, core build,
+session open, first round, linger, close). Then it runs the bare exchange among the same number of
+processes (benchmarks/zenoh_exchange.py, ``asyncio`` variant) and prints the ratio.
+
+    .venv/bin/python benchmarks/round_cost.py                 # 3 robots, 300 rounds
+    .venv/bin/python benchmarks/round_cost.py --robots 8 --robots-per-process 4
+    .venv/bin/python benchmarks/round_cost.py --write         # also benchmarks/results/round_cost.md
+
+Bounded: every run has ``max_wall_s`` and the launcher's own time bound.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from agents.spec import Timing  # noqa: E402
+from launcher.fleet import launch_fleet  # noqa: E402
+from launcher.world import Options, build_world  # noqa: E402
+
+PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
+RESULTS = ROOT / "benchmarks" / "results" / "round_cost.md"
+
+
+def profile_run(robots: int, rounds: int, *, topology: str | None = None, per_process: int | None = None,
+                max_wall_s: float = 120.0, preset: str = "paper") -> dict:
+    """One profiled launch: phase ms per round (mean over robots), timeline, round ms median."""
+    timing = Timing(retransmit_s=0.02, dead_after_s=10.0, max_wall_s=max_wall_s, linger_s=1.0)
+    extra = {} if topology is None else {"topology": topology}
+    _world, spec = build_world(Options(robots=robots, preset=preset, tol=1e-12, max_rounds=rounds, timing=timing,
+                                       fleet_id=f"cost-{robots}-{int(time.time() * 1e3) % 100000}", **extra))
+    os.environ["SHAPEFLEET_PROFILE"] = "1"
+    kw = {} if per_process is None else {"robots_per_process": per_process}
+    try:
+        with tempfile.TemporaryDirectory(prefix="shapefleet-cost-") as tmp:
+            out = launch_fleet(spec, workdir=Path(tmp), crashes=[], restart_after=1.0, restart=True,
+                               zenoh_port=None, progress=False, **kw)
+            profs = [json.loads(p.read_text()) for p in sorted(Path(tmp).glob("robot-*.json.profile.json"))]
+    finally:
+        os.environ.pop("SHAPEFLEET_PROFILE", None)
+    if len(out.robots) != robots or len(profs) != robots:
+        raise RuntimeError(f"{robots} robots: {len(out.robots)} results, {len(profs)} profiles ({out.states})")
+    medians = [r["round_ms"]["median"] for r in out.robots]
+    n = [max(p["rounds"] - 1, 1) for p in profs]
+    phase_ms, cpu_ms = {}, {}
+    for ph in PHASES:
+        phase_ms[ph] = statistics.fmean(1e3 * p["phases_s"][ph] / k for p, k in zip(profs, n))
+        if ph != "wait":
+            cpu_ms[ph] = statistics.fmean(1e3 * p["phases_s"][ph + ":cpu"] / k for p, k in zip(profs, n))
+    run_ms = statistics.fmean(1e3 * (p["marks"]["last_round"] - p["marks"]["first_round"]) / k
+                              for p, k in zip(profs, n))
+    phase_ms["wait"] -= phase_ms["receive"]  # frames are received by callbacks run while we wait
+    phase_ms["other"] = run_ms - sum(phase_ms.values())
+    # CPU of whole processes per round (every thread: Zenoh's too), summed over processes, and the
+    # router's over the whole run divided by the rounds
+    seen: dict[float, float] = {}
+    for p, k in zip(profs, n):
+        m = p["marks"]
+        seen[m["process"]] = 1e3 * (m["process_cpu_last"] - m["process_cpu_first"]) / k
+    fleet_cpu_ms = sum(seen.values())
+    rounds_run = max(r["rounds"] for r in out.robots)
+    router_cpu_ms = 1e3 * out.timeline.get("router_cpu_s", float("nan")) / max(rounds_run, 1)
+    tl = out.timeline
+    marks = [p["marks"] for p in profs]
+
+    def span(a: str, b: str) -> float:
+        return max(m[b] - m[a] for m in marks)
+
+    timeline = {
+        "launch -> robot processes spawned": tl["robots_started"] - tl["launch"],
+        "launch -> router ready": tl["router_ready"] - tl["launch"],
+        "robot: interpreter start -> robot shell imported": span("process", "imported"),
+        "robot: -> algorithms imported (agents.spec)": span("imported", "algorithms_imported"),
+        "robot: -> core built (first local solve)": span("algorithms_imported", "shell"),
+        "robot: -> Zenoh session open": span("shell", "session_open"),
+        "robot: -> first round (declare, wait for the neighbours)": span("session_open", "first_round"),
+        "launch -> first round (slowest robot)": max(m["first_round"] for m in marks) - tl["launch"],
+        "rounds (first -> last, slowest robot)": span("first_round", "last_round"),
+        "last round -> drive done (linger)": span("last_round", "done"),
+        "drive done -> session closed": span("done", "closed"),
+        "every robot exited -> every process stopped (router)": tl["stopped"] - tl["robots_exited"],
+        "launch -> every process stopped": tl["stopped"] - tl["launch"],
+    }
+    return {"robots": robots, "rounds": rounds_run, "round_ms_median": statistics.median(medians),
+            "phase_ms": phase_ms, "cpu_ms": cpu_ms, "run_ms": run_ms, "timeline": timeline, "wall_s": out.wall_s,
+            "per_process": per_process, "fleet_cpu_ms": fleet_cpu_ms, "router_cpu_ms": router_cpu_ms,
+            "processes": len(seen)}
+
+
+def bare_exchange(robots: int, rounds: int = 500) -> float | None:
+    """p50 ms/round of the bare Zenoh exchange among ``robots`` processes (None if it failed)."""
+    try:
+        out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "zenoh_exchange.py"), "--robots", str(robots),
+                              "--rounds", str(rounds), "--variants", "asyncio", "--json", "--timeout", "60"],
+                             capture_output=True, text=True, timeout=150, cwd=ROOT)
+        return float(json.loads(out.stdout.strip().splitlines()[-1])["p50_ms"])
+    except (subprocess.SubprocessError, ValueError, IndexError, KeyError):
+        return None
+
+
+def render(res: dict, bare: float | None, label: str) -> str:
+    lines = [f"### {label}", "",
+             f"{res['robots']} robots in {res['processes']} process(es), {res['rounds']} rounds; robots' round time, "
+             f"median of medians: **{res['round_ms_median']:.3f} ms**"
+             + (f"; bare exchange p50 {bare:.3f} ms, ratio **{res['round_ms_median'] / bare:.2f}**" if bare else ""),
+             f"CPU per round: robot processes {res['fleet_cpu_ms']:.3f} ms (all threads, summed), router "
+             f"{res['router_cpu_ms']:.3f} ms (whole run / rounds)",
+             "", "| phase | wall ms/round (mean over robots) | share | main-thread CPU ms/round |", "|---|---:|---:|---:|"]
+    total = res["run_ms"]
+    for ph, ms in res["phase_ms"].items():
+        cpu = res["cpu_ms"].get(ph)
+        lines.append(f"| {ph} | {ms:.3f} | {100 * ms / total:.0f} % | {'' if cpu is None else f'{cpu:.3f}'} |")
+    lines.append(f"| **round (first -> last / rounds)** | **{total:.3f}** | | **{sum(res['cpu_ms'].values()):.3f}** |")
+    lines += ["", "| start-up / shut-down | s |", "|---|---:|"]
+    lines += [f"| {k} | {v:.3f} |" for k, v in res["timeline"].items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robots", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=300)
+    ap.add_argument("--topology", default=None, help="complete (preset default), ring, geometric, ...")
+    ap.add_argument("--robots-per-process", type=int, default=None)
+    ap.add_argument("--label", default=None)
+    ap.add_argument("--no-bare", action="store_true")
+    args = ap.parse_args(argv)
+    load = os.getloadavg()[0]
+    res = profile_run(args.robots, args.rounds, topology=args.topology, per_process=args.robots_per_process)
+    bare = None if args.no_bare else bare_exchange(args.robots)
+    label = args.label or (f"{args.robots} robots, paper preset"
+                           + (f", {args.robots_per_process} per process" if args.robots_per_process else ""))
+    print(render(res, bare, f"{label} (load average {load:.1f} at start, {os.cpu_count()} cores)"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
