@@ -67,6 +67,7 @@ class AutoGridParams:
     solid_raster: int = 64  # the solid-region check rasterizes the lattice box at this resolution
     validate_tol: float = 1e-2
     validate_rounds: int = 300  # a capped candidate is judged on its iterate (rounds = the slowest task)
+    early_drop: bool = True  # end the sweep once a perfect candidate decides it (autogrid_sweep.py)
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
@@ -105,10 +106,10 @@ class AutoGridParams:
         return min(self.max_points, max_lattice_nodes(divisor, self.spacing_ratio))
 
     def sweep_blocks(self) -> list[int]:
-        """Frame length of each sweep task (candidate-major, then fold): x, gamma, flags."""
+        """Frame length of each sweep task (candidate-major, then fold): x, gamma, flags, verdict."""
         if not self.validates:
             return []
-        return [self.sweep_slot(d) + 2 for d in self.validate_divisors for _ in range(self.validate_folds)]
+        return [self.sweep_slot(d) + 3 for d in self.validate_divisors for _ in range(self.validate_folds)]
 
     @property
     def planned_rounds(self) -> int:

@@ -630,3 +630,39 @@ def test_sigma_sweep_tallies_match_independent_central_solves(sweep_runs):
                 errors += int(np.sum(yf <= 0))
                 ambiguous += int(np.sum(np.abs(yf) < 0.05))
         assert abs(record["errors"] - errors) <= ambiguous, (record, errors, ambiguous)
+
+
+# -- the sweep ends once its outcome is decided (issue 10) ----------------------------------------
+
+
+def test_sweep_drops_wider_candidates_once_a_narrower_one_is_perfect():
+    """On the notch (3 robots x 20 points) diag/16 stops with no held-out error and a solid
+    region on every robot: no wider candidate can win any more (ties go to the smaller sigma), so
+    the wider ones still running are dropped. The choice, the seed and the final function are
+    those of the full sweep, bit for bit; only the sweep's rounds change."""
+    notch = Path(__file__).resolve().parent / "data/notch.csv"
+    world, spec = build_world(Options(fleet_id="t", shape_file=str(notch), robots=3, points=20))
+    robots = robots_of(spec)
+    runs = {}
+    for drop in (False, True):
+        params = _sweep_params(spec, early_drop=drop)
+        runs[drop] = run_fleet(make_cores(robots, params))
+    full, early = runs[False][0], runs[True][0]
+    assert early.sigma == full.sigma and early.sigma_reason == full.sigma_reason
+    assert np.array_equal(early.grid, full.grid) and np.array_equal(early.function()[1], full.function()[1])
+    assert all(np.array_equal(c.function()[1], early.function()[1]) and c.converged for c in runs[True])
+    perfect = [r for r in full.sigma_validation if r["errors"] == 0 and r["solid"]]
+    narrowest = max(perfect, key=lambda r: r["divisor"])
+    assert all(r["converged"] for r in full.sigma_validation if r["divisor"] >= narrowest["divisor"])
+    dropped = [r for r in early.sigma_validation if r["dropped"]]
+    assert dropped and all(r["divisor"] < narrowest["divisor"] and not r["converged"] for r in dropped)
+    for a, b in zip(full.sigma_validation, early.sigma_validation):
+        if not b["dropped"]:
+            assert a == {**b, "dropped": False}  # the tasks that ran to their stop: the same record
+    # the sweep ends D rounds after the narrowest perfect candidate stopped (and every narrower
+    # one), before the slowest task
+    start, end = _phase_rounds(early, "validate")
+    narrower = [r["rounds"] for r in early.sigma_validation if r["divisor"] > narrowest["divisor"]]
+    assert end - start == max([narrowest["rounds"] + early.params.diameter, *narrower])
+    assert end - start < _phase_rounds(full, "validate")[1] - start
+    assert early.round < full.round
