@@ -144,6 +144,25 @@ def test_robots_placed_by_default_see_the_object_at_any_size(tmp_path: Path, kin
             assert world.graph.number_of_edges() == robots * (robots - 1) // 2, (outline, robots)
 
 
+COMPLEX = sorted((ROOT / "benchmarks/outlines").glob("*.csv"))
+
+
+@pytest.mark.parametrize("source", COMPLEX, ids=lambda p: p.name)
+def test_complex_outlines_placed_by_default_see_the_object(tmp_path: Path, source: Path) -> None:
+    """Issue 15's outlines (notches, thin parts, metres and millimetres) as a new user runs them:
+    every robot placed by default sees the object and gets its points, in the file's unit and x1000
+    or /1000, and the geometric topology links every pair. A robot may keep fewer points than asked
+    where pairs straddling a part thinner than 2 offsets are dropped (the wrench's 30 mm handle
+    with its 15 mm offset, 8 robots: 38), never none; 5 robots (issue 15's runs) get all 40."""
+    assert len(COMPLEX) >= 5
+    factor = 1e-3 if source.stem.endswith("_mm") else 1e3
+    for outline in (str(source), str(scaled_csv(source, factor, tmp_path))):
+        for robots in (1, 3, 5, 8):
+            world, _ = world_of(shape_file=outline, robots=robots, points=40, topology="geometric")
+            assert all(len(r.points) >= (40 if robots <= 5 else 30) for r in world.robots), (outline, robots)
+            assert world.graph.number_of_edges() == robots * (robots - 1) // 2, (outline, robots)
+
+
 def test_preferred_scale_is_the_1_2_5_series_and_exact_across_decades() -> None:
     assert [sc.preferred_scale(r) for r in (0.7, 0.72, 1.0, 1.41, 1.42, 3.16, 3.17, 7.07, 7.08)] == [
         0.5, 1.0, 1.0, 1.0, 2.0, 2.0, 5.0, 5.0, 10.0,
