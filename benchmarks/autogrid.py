@@ -23,6 +23,7 @@ Frames go through the real codec in lock-step (no faults). Writes benchmarks/res
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -157,11 +158,13 @@ def measure(name, kwargs, robots, points, params_kw):
 OUTLINE_SWEEP = (2, 3, 4, 6, 8, 12, 16, 24, 32)  # SVC's sigma candidates for the outlines: diag / k
 
 
-def measure_outline(path: str, robots: int = 5, points: int = 40) -> dict:
+def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tuple[float, ...] | None = None) -> dict:
     """One complex outline with the defaults of `simulate --shape-file path --robots 5 --points 40`
     (the spec's own autogrid parameters), against SVC with sigma by 5-fold CV and the oracle."""
     world, spec = build_world(Options(fleet_id="bench", shape_file=path, robots=robots, points=points))
     params = spec.autogrid_params
+    if divisors is not None:  # an experiment: other sigma candidates, everything else simulate's defaults
+        params = dataclasses.replace(params, validate_divisors=divisors)
     started = time.perf_counter()
     cores = run_fleet(world, spec, params)
     wall = time.perf_counter() - started
@@ -194,7 +197,7 @@ def measure_outline(path: str, robots: int = 5, points: int = 40) -> dict:
 
 def outline_table(rows: list[dict]) -> list[str]:
     lines = [
-        "| outline | points | fleet sigma (diag/k) | held-out errors diag/4,6,8,12,16 | grid | margin | rounds | error vs central "
+        "| outline | points | fleet sigma (diag/k) | held-out errors per candidate (d: dropped) | grid | margin | rounds | error vs central "
         "| converged | IoU fleet | IoU SVC same sigma | IoU SVC 5-fold CV (diag/k) | IoU SVC best of sweep (diag/k) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -218,10 +221,12 @@ def main() -> None:
     ap.add_argument("--out", default=str(ROOT / "benchmarks/results/autogrid.md"))
     ap.add_argument("--shapes", default="", help="comma-separated subset of shape names (default: all)")
     ap.add_argument("--outlines", nargs="*", default=None, help="issue 15: these outline CSVs (simulate defaults)")
+    ap.add_argument("--divisors", default="", help="with --outlines: sigma candidates diag/d, e.g. 4,6,8,12,16,24")
     args = ap.parse_args()
     if args.outlines is not None:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            futures = [pool.submit(measure_outline, path) for path in args.outlines]
+            divisors = tuple(float(d) for d in args.divisors.split(",")) if args.divisors else None
+            futures = [pool.submit(measure_outline, path, 5, 40, divisors) for path in args.outlines]
             rows = []
             for future in futures:
                 rows.append(future.result())
