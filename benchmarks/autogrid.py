@@ -254,7 +254,7 @@ def main() -> None:
         "",
         "Fleet: `agents/autogrid.py` defaults: sigma chosen by the fleet's held-out sweep over diag/{4, 6, 8, 12, 16} "
         "(2 folds, every robot holds out every 5th of its (inside, nearest outside) pairs per fold; all 10 candidate/fold "
-        "soft-margin ADMMs solved in one pass from stacked frames, each on its coarse lattice, tol 1e-2, <= 300 rounds; "
+        "soft-margin ADMMs solved in one pass from stacked frames, each on its coarse lattice, tol 1e-2, <= 300 rounds, wider candidates dropped once a narrower one stopped perfect; "
         "held-out errors and 'inside region not solid' flags tallied exactly by max-consensus; among the solid candidates "
         "the fewest errors, ties -> the smaller sigma; `*` marks a candidate that was not solid), then the chosen "
         "candidate's fold-0 solution (flooded) seeds one refinement of its 1.5 sigma lattice near the zero level set and "
