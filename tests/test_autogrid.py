@@ -666,3 +666,24 @@ def test_sweep_drops_wider_candidates_once_a_narrower_one_is_perfect():
     assert end - start == max([narrowest["rounds"] + early.params.diameter, *narrower])
     assert end - start < _phase_rounds(full, "validate")[1] - start
     assert early.round < full.round
+
+
+def test_near_data_cell_is_decided_on_lattice_indices_with_ties_allowed_both_ways():
+    """Issue 19: a fine node is allowed when any of its nearest level-0 nodes is marked, decided
+    on indices (exact), the same set as exact distances give, in any unit."""
+    from agents.autogrid_rules import allowed_by_index
+
+    rng = np.random.default_rng(5)
+    for scale in (1.0, 1000.0, 1e-3):
+        box = (-1.3 * scale, 2.9 * scale, -0.7 * scale, 1.6 * scale)
+        h0 = 0.61 * scale
+        coarse, shape0 = lattice(box, h0, 0, with_shape=True)
+        marks = rng.random(len(coarse)) < 0.4
+        for level in (1, 2):
+            fine, shape = lattice(box, h0, level, with_shape=True)
+            got = allowed_by_index(marks.reshape(shape0), level).ravel()
+            d = np.sqrt(((fine[:, None] - coarse[None]) ** 2).sum(-1))
+            nearest = d <= d.min(axis=1, keepdims=True) * (1 + 1e-9) + 1e-12 * scale
+            want = (nearest & marks[None]).any(axis=1)
+            assert got.shape == (len(fine),) and np.array_equal(got, want), (scale, level)
+            assert (nearest.sum(axis=1) > 1).any()  # ties exist: halfway nodes and cell centres
