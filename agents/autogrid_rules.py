@@ -71,6 +71,7 @@ class AutoGridParams:
     # a complete graph (set by the fleet file): the ADMM sub-machines run the hub form, whose
     # frames carry w beside v (agents/admm.py), so every ADMM slot has room for both
     hub_frames: bool = False
+    early_drop: bool = True  # end the sweep once a perfect candidate decides it (autogrid_sweep.py)
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
@@ -117,12 +118,13 @@ class AutoGridParams:
         return min(self.max_points, max_lattice_nodes(divisor, self.spacing_ratio))
 
     def sweep_blocks(self) -> list[int]:
-        """Frame length of each sweep task (candidate-major, then fold): x, gamma, flags (and
-        with `hub_frames` the hub's w: its x and gamma)."""
+        """Frame length of each sweep task (candidate-major, then fold): x, gamma, flags, verdict
+        (and with `hub_frames` the hub's w: its x and gamma)."""
         if not self.validates:
             return []
         extra = 1 if self.hub_frames else 0
-        return [(1 + extra) * (self.sweep_slot(d) + 1) + 1 for d in self.validate_divisors for _ in range(self.validate_folds)]
+        return [self.sweep_slot(d) + 3 + extra * (self.sweep_slot(d) + 1)
+                for d in self.validate_divisors for _ in range(self.validate_folds)]
 
     @property
     def planned_rounds(self) -> int:
@@ -264,12 +266,12 @@ def refine_grid(
     room = params.max_points - len(grid)
     if room <= 0:
         return grid, level
-    coarse = lattice(box, h0, 0)
+    coarse, coarse_shape = lattice(box, h0, 0, with_shape=True)
     for lv in range(max(level, 1), finest_level(h0, basis.sigma, params) + 1):
         nodes, shape = lattice(box, h0, lv, with_shape=True)
         near = min_distance(nodes, grid) < 0.25 * h0 / 2**lv
         if allowed is not None and len(allowed) == len(coarse):
-            near |= ~allowed[np.argmin(_sq_distances(nodes, coarse), axis=1)]
+            near |= ~allowed_by_index(allowed.reshape(coarse_shape), lv).ravel()
         f = basis.decision(nodes, c, gamma)
         pick = np.flatnonzero(~near & ((np.abs(f) < params.band) | _crossing(f.reshape(shape)).ravel()))
         if len(pick) < min_new:
@@ -280,6 +282,34 @@ def refine_grid(
             return grid, level
         return new, lv
     return grid, level
+
+
+def allowed_by_index(allowed: np.ndarray, level: int) -> np.ndarray:
+    """Per node of lattice level `level`: is one of its nearest level-0 nodes marked?
+
+    Computed on lattice indices, not float distances: a level-1 node halfway between two level-0
+    nodes is at the same distance from both, and a float argmin broke that tie by round-off, so
+    data in other units (x1000) could pick the other neighbour and another grid (issue 19). A
+    node whose nearest level-0 nodes tie is allowed when any of them is marked.
+    """
+    step = 2**level
+    out = np.zeros(((allowed.shape[0] - 1) * step + 1, (allowed.shape[1] - 1) * step + 1), dtype=bool)
+    for axis_lo in (0, 1):
+        rows = _nearest_coarse(out.shape[0], step, axis_lo)
+        for other_lo in (0, 1):
+            cols = _nearest_coarse(out.shape[1], step, other_lo)
+            out |= allowed[np.ix_(rows, cols)]
+    return out
+
+
+def _nearest_coarse(n: int, step: int, low: int) -> np.ndarray:
+    """Index of a nearest level-0 node for each of n fine indices: the lower one on a tie when
+    `low` is 1, the upper one when 0 (the two calls cover both ends of every tie)."""
+    i = np.arange(n)
+    base, rest = np.divmod(i, step)
+    half = step / 2.0
+    up = (rest > half) | ((rest == half) & (low == 0))
+    return np.minimum(base + up, (n - 1) // step)
 
 
 def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridParams) -> tuple[float, str]:

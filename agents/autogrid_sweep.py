@@ -2,12 +2,20 @@
 sub-machine on its own coarse lattice, all advanced in the same rounds from one stacked frame.
 
 Frame layout (params.sweep_blocks(), candidate-major then fold): for each task a block of
-slot + 2 floats -- x on its lattice (zero-padded to the slot), gamma, and the sub-machine's stop
-flags as an exact integer -- so a frame carries function-space vectors only. With
-params.hub_frames (a complete graph) the block is followed by the hub's w (slot + 1 floats:
-x zero-padded, gamma), which the sub-machine sends beside v (agents/admm.py). Every robot's
-sub-machine of a task stops in the same round (its own flags protocol); a stopped sub-machine
-keeps sending its last value, so the sweep costs the slowest task, not the sum of all.
+slot + 3 floats -- x on its lattice (zero-padded to the slot), gamma, the sub-machine's stop
+flags as an exact integer, and the task's verdict (below) -- so a frame carries function-space
+vectors only. With params.hub_frames (a complete graph) the block is followed by the hub's w
+(slot + 1 floats: x zero-padded, gamma), which the sub-machine sends beside v (agents/admm.py).
+Every robot's sub-machine of a task stops in the same round (its own flags protocol); a stopped
+sub-machine keeps sending its last value, so the sweep costs the slowest task, not the sum of all.
+
+Early drop (issue 10): when a task stops, each robot sets its verdict to 1 if the task's iterate
+misclassifies one of its held-out points or its inside region is not one solid piece, else 0;
+a max over D rounds makes it fleet-wide. A candidate whose folds all stopped with verdict 0 is
+*perfect* (no held-out error anywhere, solid): `choose_sigma` (fewest errors, ties -> the smaller
+sigma) can then never pick a wider candidate, so once every narrower candidate has stopped too,
+the wider unfinished ones are dropped (judged on their iterate, marked `dropped`) and the sweep
+ends. The choice is the one the full sweep would make; only the rounds change.
 
 Tally (one max-consensus): per candidate, two slots per robot id: the exact integer
 errors + PACK * held_out + PACK^2 * not_solid (summed over folds by the robot) and the hinge loss.
@@ -41,6 +49,9 @@ class SweepTask:
     sub: WarmADMM
     offset: int
     slot: int
+    verdict: float = 0.0  # 1: this task has a held-out error or a region not solid (max over robots)
+    since: int = -1  # rounds since the task stopped (-1: running); verdict fleet-wide at >= diameter
+    dropped: bool = False
 
 
 def held_mask(units: np.ndarray, fold: int, params: AutoGridParams) -> np.ndarray:
@@ -89,11 +100,11 @@ class SigmaSweep:
                     hub_frames=params.hub_frames,
                 )
                 self.tasks.append(SweepTask(cand, fold, float(d), sigma, box, basis, held, sub, offset, slot))
-                offset += (2 if params.hub_frames else 1) * (slot + 1) + 1
+                offset += slot + 3 + (slot + 1 if params.hub_frames else 0)
 
     @property
     def finished(self) -> bool:
-        return all(t.sub.finished for t in self.tasks)
+        return all(t.sub.finished or t.dropped for t in self.tasks)
 
     @property
     def residual(self) -> float:
@@ -108,24 +119,49 @@ class SigmaSweep:
             v[t.offset + t.slot] = vals[-1]
             out = t.sub.outgoing()
             v[t.offset + t.slot + 1] = float(out.flags)
+            v[t.offset + t.slot + 2] = t.verdict
             if out.values.size > t.sub.dim:  # the hub's w, after the block
-                w, o = out.values[t.sub.dim :], t.offset + t.slot + 2
+                w, o = out.values[t.sub.dim :], t.offset + t.slot + 3
                 v[o : o + t.basis.size], v[o + t.slot] = w[:-1], w[-1]
         return v
 
     def advance(self, theirs: dict[int, np.ndarray]) -> None:
         """One round of every unfinished task from the neighbours' stacked round-k vectors."""
         for t in self.tasks:
-            if t.sub.finished:
+            if t.since >= 0:  # stopped: spread the verdict (max-consensus)
+                t.verdict = max([t.verdict, *(float(v[t.offset + t.slot + 2]) for v in theirs.values())])
+                t.since += 1
+                continue
+            if t.dropped:
                 continue
             m, o = t.basis.size, t.offset
             for j, v in theirs.items():
                 vec = np.append(v[o : o + m], v[o + t.slot])
                 if t.sub.frame_dim > t.sub.dim:
-                    w = o + t.slot + 2
+                    w = o + t.slot + 3
                     vec = np.concatenate([vec, v[w : w + m], v[w + t.slot : w + t.slot + 1]])
                 t.sub.receive(StateUpdate(j, t.sub.round, vec, int(v[o + t.slot + 1]), None))
             t.sub.advance()
+            if t.sub.finished:
+                errors, _, _, solid = self._outcome(t)
+                t.verdict, t.since = float(errors > 0 or not solid), 0
+        self._drop_decided()
+
+    def _drop_decided(self) -> None:
+        """Drop the unfinished candidates wider than a perfect one once every narrower candidate
+        has stopped (see the module docstring); the same round on every robot."""
+        if not self.params.early_drop:
+            return
+        cands = sorted({t.cand for t in self.tasks}, key=lambda c: self.task(c, 0).sigma)  # narrowest first
+        for cand in cands:
+            tasks = [t for t in self.tasks if t.cand == cand]
+            if not all(t.since >= 0 or t.dropped for t in tasks):
+                return  # a narrower candidate still running could win on a tie
+            if all(t.since >= self.params.diameter and t.verdict == 0.0 for t in tasks):
+                for t in self.tasks:
+                    if t.sigma > tasks[0].sigma and t.since < 0:
+                        t.dropped = True
+                return
 
     def drop_neighbour(self, j: int) -> None:
         for t in self.tasks:
@@ -174,6 +210,7 @@ class SigmaSweep:
                     "folds": len(tasks),
                     "rounds": max(t.sub.round for t in tasks),
                     "converged": all(t.sub.converged or not t.sub.neighbours for t in tasks),
+                    "dropped": any(t.dropped for t in tasks),
                 }
             )
         return out
@@ -183,8 +220,10 @@ class SigmaSweep:
 
     # -- checkpoint -----------------------------------------------------------------------------
     def checkpoint(self) -> list[dict[str, Any]]:
-        return [t.sub.checkpoint() for t in self.tasks]
+        return [{"sub": t.sub.checkpoint(), "verdict": t.verdict, "since": t.since, "dropped": t.dropped}
+                for t in self.tasks]
 
     def restore(self, states: list[dict[str, Any]]) -> None:
         for t, state in zip(self.tasks, states):
-            t.sub.restore(state)
+            t.sub.restore(state["sub"])
+            t.verdict, t.since, t.dropped = float(state["verdict"]), int(state["since"]), bool(state["dropped"])

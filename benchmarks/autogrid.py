@@ -15,11 +15,15 @@ Frames go through the real codec in lock-step (no faults). Writes benchmarks/res
 
     .venv/bin/python benchmarks/autogrid.py            # the table (several minutes)
     .venv/bin/python benchmarks/autogrid.py --quick    # 3 robots x 20 points
+    .venv/bin/python benchmarks/autogrid.py --outlines benchmarks/outlines/gear_mm.csv [...]
+        # issue 15: the complex outlines as a new user runs them (simulate --shape-file X
+        # --robots 5 --points 40, every other flag at its default) against SVC
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -151,13 +155,84 @@ def measure(name, kwargs, robots, points, params_kw):
     }
 
 
+OUTLINE_SWEEP = (2, 3, 4, 6, 8, 12, 16, 24, 32)  # SVC's sigma candidates for the outlines: diag / k
+
+
+def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tuple[float, ...] | None = None) -> dict:
+    """One complex outline with the defaults of `simulate --shape-file path --robots 5 --points 40`
+    (the spec's own autogrid parameters), against SVC with sigma by 5-fold CV and the oracle."""
+    world, spec = build_world(Options(fleet_id="bench", shape_file=path, robots=robots, points=points))
+    params = spec.autogrid_params
+    if divisors is not None:  # an experiment: other sigma candidates, everything else simulate's defaults
+        params = dataclasses.replace(params, validate_divisors=divisors)
+    started = time.perf_counter()
+    cores = run_fleet(world, spec, params)
+    wall = time.perf_counter() - started
+    core = cores[0]
+    grid, c, gamma = core.function()
+    basis = GridBasis(grid, core.sigma)
+    central = solve_central(basis, world.points, world.labels, None if core.margin == "hard" else params.soft_C)
+    err = basis.function_error(c, gamma, central.c, central.gamma) if central.solved else float("nan")
+    x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
+    pad = 0.2 * max(x1 - x0, y1 - y0)
+    bounds = (x0 - pad, x1 + pad, y0 - pad, y1 + pad)
+    diag = float(np.hypot(*np.ptp(world.points, axis=0)))
+    sweep = [(svc_iou(world, bounds, diag / k), diag / k) for k in OUTLINE_SWEEP]
+    cv = StratifiedKFold(5, shuffle=True, random_state=0)
+    scores = [
+        cross_val_score(SVC(kernel="rbf", C=1e6, gamma=1.0 / (2 * s * s)), world.points, world.labels, cv=cv).mean()
+        for _, s in sweep
+    ]
+    return {
+        "name": Path(path).name, "n": len(world.labels), "sigma": core.sigma, "divisor": diag / core.sigma,
+        "rounds": core.round, "wall": wall, "err": err, "rank_ok": basis.rank == len(grid), "grid": len(grid),
+        "converged": all(k.converged for k in cores), "margin": core.margin,
+        "val": " ".join(f"{r['errors']}{'' if r['solid'] else '*'}{'d' if r.get('dropped') else ''}"
+                        for r in core.sigma_validation),
+        "ours": scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds),
+        "svc_same": svc_iou(world, bounds, core.sigma),
+        "best": max(sweep), "cv": sweep[int(np.argmax(scores))],
+    }
+
+
+def outline_table(rows: list[dict]) -> list[str]:
+    lines = [
+        "| outline | points | fleet sigma (diag/k) | held-out errors per candidate (d: dropped) | grid | margin | rounds | error vs central "
+        "| converged | IoU fleet | IoU SVC same sigma | IoU SVC 5-fold CV (diag/k) | IoU SVC best of sweep (diag/k) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        d = r["sigma"] * r["divisor"]
+        lines.append(
+            f"| {r['name']} | {r['n']} | {r['sigma']:.4g} (/{r['divisor']:.3g}) | {r['val']} | {r['grid']} | {r['margin']} "
+            f"| {r['rounds']} | {r['err']:.1e} | {'yes' if r['converged'] else 'NO'} | {r['ours']:.3f} | {r['svc_same']:.3f} "
+            f"| {r['cv'][0]:.3f} (/{d / r['cv'][1]:.3g}) | {r['best'][0]:.3f} (/{d / r['best'][1]:.3g}) |"
+        )
+    mean = {k: np.mean([r[k] if k in ("ours", "svc_same") else r[k][0] for r in rows]) for k in ("ours", "svc_same", "cv", "best")}
+    lines += ["", f"Mean IoU: fleet {mean['ours']:.3f}, SVC same sigma {mean['svc_same']:.3f}, "
+              f"SVC 5-fold CV {mean['cv']:.3f}, SVC best of sweep {mean['best']:.3f}; rounds in all {sum(r['rounds'] for r in rows)}."]
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="3 robots x 20 points")
     ap.add_argument("--jobs", type=int, default=2, help="shapes measured in parallel (processes)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks/results/autogrid.md"))
     ap.add_argument("--shapes", default="", help="comma-separated subset of shape names (default: all)")
+    ap.add_argument("--outlines", nargs="*", default=None, help="issue 15: these outline CSVs (simulate defaults)")
+    ap.add_argument("--divisors", default="", help="with --outlines: sigma candidates diag/d, e.g. 4,6,8,12,16,24")
     args = ap.parse_args()
+    if args.outlines is not None:
+        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            divisors = tuple(float(d) for d in args.divisors.split(",")) if args.divisors else None
+            futures = [pool.submit(measure_outline, path, 5, 40, divisors) for path in args.outlines]
+            rows = []
+            for future in futures:
+                rows.append(future.result())
+                print(rows[-1], flush=True)
+        print("\n".join(outline_table(rows)))
+        return
     robots, points = (3, 20) if args.quick else (6, 40)
     params_kw = {"tol": 1e-3, "max_points": 200}
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
@@ -179,7 +254,7 @@ def main() -> None:
         "",
         "Fleet: `agents/autogrid.py` defaults: sigma chosen by the fleet's held-out sweep over diag/{4, 6, 8, 12, 16} "
         "(2 folds, every robot holds out every 5th of its (inside, nearest outside) pairs per fold; all 10 candidate/fold "
-        "soft-margin ADMMs solved in one pass from stacked frames, each on its coarse lattice, tol 1e-2, <= 300 rounds; "
+        "soft-margin ADMMs solved in one pass from stacked frames, each on its coarse lattice, tol 1e-2, <= 300 rounds, wider candidates dropped once a narrower one stopped perfect; "
         "held-out errors and 'inside region not solid' flags tallied exactly by max-consensus; among the solid candidates "
         "the fewest errors, ties -> the smaller sigma; `*` marks a candidate that was not solid), then the chosen "
         "candidate's fold-0 solution (flooded) seeds one refinement of its 1.5 sigma lattice near the zero level set and "

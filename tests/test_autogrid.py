@@ -630,3 +630,60 @@ def test_sigma_sweep_tallies_match_independent_central_solves(sweep_runs):
                 errors += int(np.sum(yf <= 0))
                 ambiguous += int(np.sum(np.abs(yf) < 0.05))
         assert abs(record["errors"] - errors) <= ambiguous, (record, errors, ambiguous)
+
+
+# -- the sweep ends once its outcome is decided (issue 10) ----------------------------------------
+
+
+def test_sweep_drops_wider_candidates_once_a_narrower_one_is_perfect():
+    """On the notch (3 robots x 20 points) diag/16 stops with no held-out error and a solid
+    region on every robot: no wider candidate can win any more (ties go to the smaller sigma), so
+    the wider ones still running are dropped. The choice, the seed and the final function are
+    those of the full sweep, bit for bit; only the sweep's rounds change."""
+    notch = Path(__file__).resolve().parent / "data/notch.csv"
+    world, spec = build_world(Options(fleet_id="t", shape_file=str(notch), robots=3, points=20))
+    robots = robots_of(spec)
+    runs = {}
+    for drop in (False, True):
+        params = _sweep_params(spec, early_drop=drop)
+        runs[drop] = run_fleet(make_cores(robots, params))
+    full, early = runs[False][0], runs[True][0]
+    assert early.sigma == full.sigma and early.sigma_reason == full.sigma_reason
+    assert np.array_equal(early.grid, full.grid) and np.array_equal(early.function()[1], full.function()[1])
+    assert all(np.array_equal(c.function()[1], early.function()[1]) and c.converged for c in runs[True])
+    perfect = [r for r in full.sigma_validation if r["errors"] == 0 and r["solid"]]
+    narrowest = max(perfect, key=lambda r: r["divisor"])
+    assert all(r["converged"] for r in full.sigma_validation if r["divisor"] >= narrowest["divisor"])
+    dropped = [r for r in early.sigma_validation if r["dropped"]]
+    assert dropped and all(r["divisor"] < narrowest["divisor"] and not r["converged"] for r in dropped)
+    for a, b in zip(full.sigma_validation, early.sigma_validation):
+        if not b["dropped"]:
+            assert a == {**b, "dropped": False}  # the tasks that ran to their stop: the same record
+    # the sweep ends D rounds after the narrowest perfect candidate stopped (and every narrower
+    # one), before the slowest task
+    start, end = _phase_rounds(early, "validate")
+    narrower = [r["rounds"] for r in early.sigma_validation if r["divisor"] > narrowest["divisor"]]
+    assert end - start == max([narrowest["rounds"] + early.params.diameter, *narrower])
+    assert end - start < _phase_rounds(full, "validate")[1] - start
+    assert early.round < full.round
+
+
+def test_near_data_cell_is_decided_on_lattice_indices_with_ties_allowed_both_ways():
+    """Issue 19: a fine node is allowed when any of its nearest level-0 nodes is marked, decided
+    on indices (exact), the same set as exact distances give, in any unit."""
+    from agents.autogrid_rules import allowed_by_index
+
+    rng = np.random.default_rng(5)
+    for scale in (1.0, 1000.0, 1e-3):
+        box = (-1.3 * scale, 2.9 * scale, -0.7 * scale, 1.6 * scale)
+        h0 = 0.61 * scale
+        coarse, shape0 = lattice(box, h0, 0, with_shape=True)
+        marks = rng.random(len(coarse)) < 0.4
+        for level in (1, 2):
+            fine, shape = lattice(box, h0, level, with_shape=True)
+            got = allowed_by_index(marks.reshape(shape0), level).ravel()
+            d = np.sqrt(((fine[:, None] - coarse[None]) ** 2).sum(-1))
+            nearest = d <= d.min(axis=1, keepdims=True) * (1 + 1e-9) + 1e-12 * scale
+            want = (nearest & marks[None]).any(axis=1)
+            assert got.shape == (len(fine),) and np.array_equal(got, want), (scale, level)
+            assert (nearest.sum(axis=1) > 1).any()  # ties exist: halfway nodes and cell centres
