@@ -55,7 +55,8 @@ class _Parser(argparse.ArgumentParser):
     """argparse with the project's rule for bad input: one line (no usage block), exit 2."""
 
     def error(self, message: str) -> NoReturn:
-        _fail(f"{message} (see {self.prog} --help)")
+        # argparse says "argument --delay: ..."; the flag alone reads like every other message
+        _fail(f"{message.removeprefix('argument ')} (see {self.prog} --help)")
 
 
 _NEGATIVE_VALUE = re.compile(r"-[0-9.]")

@@ -284,7 +284,8 @@ def test_negative_delay_is_one_line(tmp_path, form):
     proc = _run("launch", *PAPER, *form, "--out", str(tmp_path / "run"), timeout=15)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
-    assert lines[0] == "shapefleet: error: --delay: '-5ms' is negative; a duration is >= 0 (use e.g. 20ms or 0.5s)"
+    assert lines[0] == ("shapefleet: error: --delay: '-5ms' is negative; a duration is >= 0 (use e.g. 20ms or 0.5s)"
+                        " (see shapefleet launch --help)")
     assert "usage" not in proc.stderr
 
 
