@@ -277,8 +277,10 @@ class RobotShell:
         clock: Callable[[], float] = time.monotonic,
         zenoh_config: Any | None = None,
         status_interval_s: float = 0.0,
+        crash_at: int | None = None,
     ) -> None:
         self.spec = spec
+        self.crash_at = crash_at  # fault injection: SIGKILL this process on reaching that round
         self.me = int(robot_id)
         self.connect = list(connect)
         self.zenoh_config = zenoh_config
@@ -521,6 +523,14 @@ class RobotShell:
             timer.cancel()
             self._waiter = None
 
+    def _crash_now(self) -> None:
+        """The planned crash, at the planned round exactly (a SIGKILL from the launcher lands a
+        few rounds late on a fast fleet): checkpoint this round, as the in-process fleet does,
+        then die the way a killed process dies -- no result, no goodbye."""
+        self._checkpoint()
+        self._status_line()  # the launcher learns the round it died at
+        os.kill(os.getpid(), signal.SIGKILL)
+
     async def _drive(self) -> str:
         """Move frames and time between Zenoh and the session until it is done; why it stopped."""
         s = self.session
@@ -540,6 +550,8 @@ class RobotShell:
                 prof["advance:cpu"] += c2 - c1
                 if advanced:
                     self._send(self.clock())
+                    if self.crash_at is not None and self.core.round >= self.crash_at and not s.done:
+                        self._crash_now()
                     t3, c3 = _pc(), _tt()
                     self._status_line()
                     prof["send"] += t3 - t2
@@ -738,6 +750,7 @@ async def run_robots(
     zenoh_config: Any | None = None,
     status_interval_s: float = 0.0,
     shared_session: bool = False,
+    crash_at: int | None = None,
 ) -> dict[int, dict[str, Any] | BaseException]:
     """Several robots as tasks of this process's event loop, each with its own Zenoh session, key,
     liveliness token, checkpoint and result -- frames between them still cross Zenoh (and the
@@ -762,7 +775,8 @@ async def run_robots(
                 checkpoint_path=None if wd is None else wd / f"robot-{rid}.ckpt",
                 result_path=None if wd is None else wd / f"robot-{rid}.json",
                 status_stream=status_stream, build=_default_build, restore=_default_restore,
-                zenoh_config=zenoh_config, status_interval_s=status_interval_s))
+                zenoh_config=zenoh_config, status_interval_s=status_interval_s,
+                crash_at=crash_at if len(robot_ids) == 1 else None))
         except Exception as exc:  # noqa: BLE001 - this robot only; its neighbours will drop it
             log.error("robot %d: cannot start: %s", rid, exc)
             failed[rid] = exc
@@ -840,6 +854,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--status-interval", type=float, default=0.0, help="seconds between status lines (0: every round)")
     ap.add_argument("--allow-remote", action="store_true", help="a router beyond loopback (multi-host)")
     ap.add_argument("--shared-session", action="store_true", help="one Zenoh session for the robots here")
+    ap.add_argument("--crash-at", type=int, help="fault injection: SIGKILL this (one-robot) process on reaching this round")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
     from agents.spec import FleetSpec
@@ -853,12 +868,14 @@ def main(argv: list[str] | None = None) -> int:
         if bad or not ids:
             raise ValueError(f"--ids: robot {bad[0] if bad else args.ids!r} is not in {args.fleet_file}")
         config = robot_config_dict_for(args.connect, loopback_only=not args.allow_remote)
+        if args.crash_at is not None and len(ids) != 1:
+            raise ValueError("--crash-at: a planned crash takes one robot's process (give --id)")
     except ValueError as exc:
         print(f"shapefleet robot: {exc}", file=sys.stderr)
         return 2
     results = asyncio.run(run_robots(spec, ids, connect=args.connect, workdir=args.workdir, handle_signals=True,
                                      zenoh_config=config, status_interval_s=args.status_interval,
-                                     shared_session=args.shared_session))
+                                     shared_session=args.shared_session, crash_at=args.crash_at))
     ok = True
     for rid in ids:
         res = results[rid]

@@ -305,7 +305,7 @@ def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
     from launcher.simulate import FleetFailure, simulate_fleet
 
     if getattr(args, "sync", "lockstep") == "free":
-        return _simulate_free(args)
+        return _simulate_free(args, quiet=quiet)
     crashes = _crash_plan(args)
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "simulate", check=_crash_check(crashes))
@@ -366,7 +366,7 @@ def _free_check(args: argparse.Namespace) -> Callable[[Any], None]:
     return check
 
 
-def _simulate_free(args: argparse.Namespace) -> int:
+def _simulate_free(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
     """`simulate --sync free`: every robot on its own virtual clock (protocol/free.py), no waiting."""
     from rich.console import Console
 
@@ -376,18 +376,21 @@ def _simulate_free(args: argparse.Namespace) -> int:
     out, world, spec, central = _prepare(args, "simulate", check=_free_check(args))
     if not central.solved:
         _infeasible(out, world, spec, central)
-    with Console(stderr=True).status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms (relaxed ADMM)"):
+    console = Console(stderr=True, quiet=quiet)
+    with console.status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms (relaxed ADMM)"):
         try:
             outcome = simulate_free(spec, period=args.period)
         except FleetFailure as exc:
-            print(f"shapefleet: the run failed: {exc}", file=sys.stderr)
-            return EXIT_NOT_CONVERGED
+            return RunReport(EXIT_NOT_CONVERGED, out, spec, world, message=f"the run failed: {exc}")
     spec = dataclasses.replace(spec, algorithm="admm")
     extra = {"fleet": spec.fleet, "topology": args.topology, "sync": "free", "period_s": args.period,
              "free_algorithm": "radmm", "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults),
              "links": outcome.link_stats}
-    result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra)
-    return _exit_code(result)
+    report = RunReport(1, out, spec, world, robots=outcome.robots)
+    report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra,
+                            quiet=quiet)
+    report.code = _exit_code(report.result)
+    return report
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:

@@ -516,7 +516,11 @@ class _Fleet:
             if p.proc.stdout is not None:
                 p.proc.stdout.close()
         p.generation += 1
-        p.proc = _spawn(p.argv, stdout=subprocess.PIPE, stderr=p.log_fh)
+        argv = list(p.argv)
+        plans = self.robots[p.ids[0]].crashes if len(p.ids) == 1 and p.ids[0] in self.robots else []
+        if plans:  # the robot dies at the planned round itself; the launcher restarts it
+            argv += ["--crash-at", str(plans[0].round)]
+        p.proc = _spawn(argv, stdout=subprocess.PIPE, stderr=p.log_fh)
         self.started.append(p.proc.pid)
         p.killed = False
         p.exit_code = None
@@ -545,7 +549,10 @@ class _Fleet:
     def crash(self, r: _Robot, plan: CrashPlan, reported: int) -> None:
         p = r.p  # a robot with a crash plan runs alone in its process (see _groups)
         assert p.proc is not None and p.ids == (r.id,)
-        os.kill(p.proc.pid, signal.SIGKILL)
+        try:  # usually it has already killed itself at the planned round (--crash-at)
+            os.kill(p.proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
         p.proc.wait(10)
         p.killed = True
         p.exit_code = p.proc.returncode
@@ -609,6 +616,12 @@ class _Fleet:
                 continue
             rc = p.proc.poll()
             if rc is None:
+                continue
+            r0 = self.robots[p.ids[0]]
+            if rc == -signal.SIGKILL and len(p.ids) == 1 and r0.crashes:
+                # its planned crash (--crash-at), noticed before its last status line was read
+                plan = r0.crashes.pop(0)
+                self.crash(r0, plan, max(int(r0.status.get("round", 0)), plan.round))
                 continue
             p.exit_code = rc
             for rid in p.ids:

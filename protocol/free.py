@@ -78,6 +78,7 @@ class FreeSession:
         self._linger = int(linger_ticks)
         self._seq = 0
         self.sent = 0
+        self.bytes_sent = 0  # encoded frame bytes (the lockstep rows' bytes_sent)
         self.rejected: collections.Counter[str] = collections.Counter()
         self.stale = 0
         self.stopped: str | None = None
@@ -148,7 +149,9 @@ class FreeSession:
         update = StateUpdate(sender=self.me, round=min(self.core.ticks, MAX_ROUND), values=vec, flags=hops, prev_values=None)
         self._seq += 1
         self.sent += 1
-        return encode_state(update, fleet=self.fleet, seq=self._seq, config_tag=self._tag, auth=self._auth)
+        frame = encode_state(update, fleet=self.fleet, seq=self._seq, config_tag=self._tag, auth=self._auth)
+        self.bytes_sent += len(frame)
+        return frame
 
     def row(self, now: float, transport: dict[str, int]) -> dict[str, Any]:
         """The result row: the core's result plus counters (lockstep rows' main keys)."""
@@ -158,7 +161,7 @@ class FreeSession:
         gaps = np.diff(self.tick_times) if len(self.tick_times) > 1 else np.zeros(0)
         res.update(
             robot=self.me, fleet=self.fleet, stopped=self.stopped or "running", error=self.error,
-            isolated=False, sync="free", frames_sent=self.sent, frames_received=transport.get("received", 0),
+            isolated=False, sync="free", frames_sent=self.sent, bytes_sent=self.bytes_sent, frames_received=transport.get("received", 0),
             frames_lost=transport.get("lost", 0), frames_duplicated=transport.get("duplicated", 0),
             frames_accepted=self.decoder.accepted, frames_deduplicated=self.stale,
             frames_rejected=sum(self.rejected.values()), frames_rejected_by_reason=dict(self.rejected),
