@@ -185,14 +185,20 @@ class RelaxedADMM:
         """Stopped by the calm-stop rule (not by the tick cap)."""
         return self.finished and (self.hops > self.params.diameter or not self.neighbours)
 
-    def receive(self, p: Packet) -> bool:
-        """Apply neighbour p.sender's edge update if it is newer than the last one; else drop it."""
-        j = p.sender
-        if j not in self._z:
+    def _fresh(self, p: Packet) -> bool:
+        """p comes from a neighbour and is newer than its last packet (an older one is counted stale)."""
+        if p.sender not in self._z:
             return False
-        if p.seq <= self._last_seq[j]:
+        if p.seq <= self._last_seq[p.sender]:
             self.stale += 1
             return False
+        return True
+
+    def receive(self, p: Packet) -> bool:
+        """Apply neighbour p.sender's edge update if it is newer than the last one; else drop it."""
+        if not self._fresh(p):
+            return False
+        j = p.sender
         if p.edge.shape != (self.dim,) or p.values.shape != (self.dim,):
             raise ValueError(f"robot {j} sent vectors of the wrong length, expected {self.dim}")
         self._last_seq[j] = p.seq
@@ -266,12 +272,9 @@ class _NewestValues(RelaxedADMM):
 
     def receive(self, p: Packet) -> bool:
         """Keep the newest v of p.sender (by sequence number); its edge vector is not used."""
+        if not self._fresh(p):
+            return False
         j = p.sender
-        if j not in self._z:
-            return False
-        if p.seq <= self._last_seq[j]:
-            self.stale += 1
-            return False
         self._last_seq[j] = p.seq
         self._their_v[j] = p.values
         self._their_hops[j] = p.hops
