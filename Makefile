@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test bench clean docker-test
+.PHONY: install compile demo test bench clean docker-test
 
 install: $(STAMP)
 
@@ -14,10 +14,15 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-demo: install
+# Byte-compile the project once per run: every robot process and CLI subprocess a test starts then
+# skips compiling ~15k lines (0.3 s each), also where PYTHONDONTWRITEBYTECODE is set.
+compile: install
+	$(PY) -m compileall -q agents protocol launcher examples > /dev/null
+
+demo: compile
 	$(VENV)/bin/shapefleet launch
 
-test: install
+test: compile
 	$(PY) -m pytest -q
 
 bench: install
