@@ -549,10 +549,9 @@ class _Fleet:
     def crash(self, r: _Robot, plan: CrashPlan, reported: int) -> None:
         p = r.p  # a robot with a crash plan runs alone in its process (see _groups)
         assert p.proc is not None and p.ids == (r.id,)
-        try:  # usually it has already killed itself at the planned round (--crash-at)
-            os.kill(p.proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+        # usually it has already killed itself at the planned round (--crash-at); _signal never
+        # signals a process already reaped (its PID may belong to someone else by now)
+        _signal(p.proc, signal.SIGKILL)
         p.proc.wait(10)
         p.killed = True
         p.exit_code = p.proc.returncode

@@ -161,13 +161,11 @@ def test_checkpoint_in_the_desynchronised_window_resumes_bit_for_bit():
     assert twin.finished and twin.converged and twin.values.tobytes() == cores[0].values.tobytes()
 
 
-def _autogrid_crash_in_sweep(hub_frames: bool, divisors=(8.0, 12.0), folds: int = 1):
-    """A 4-robot complete autogrid fleet; robot 3 dies 10 rounds into the sigma sweep and the
-    survivors drop it in rounds r, r + 1, r + 2. Runs until robot 0 leaves the sweep; returns
-    (world, params, its sweep tasks)."""
+def _autogrid_fleet_into(phase: str, **params_kw):
+    """A 4-robot complete autogrid fleet (star, 15 points each) run in lockstep until robot 0 is 10
+    rounds into `phase`; returns (world, spec, params, cores, next round)."""
     world, spec = build_world(Options(fleet_id="t", shape="star", points=15, robots=4))
-    params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0,
-                            validate_divisors=divisors, validate_folds=folds, hub_frames=hub_frames)
+    params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0, **params_kw)
     cores = {
         i: AdaptiveGridCore(i, r.neighbours, r.points, r.labels, n_robots=4, params=params,
                             neighbour_degrees={j: len(spec.robots[j].neighbours) for j in r.neighbours})
@@ -175,9 +173,18 @@ def _autogrid_crash_in_sweep(hub_frames: bool, divisors=(8.0, 12.0), folds: int 
     }
     never = {i: 10**9 for i in (0, 1, 2)}
     k = 0
-    while not (cores[0].phase == "validate" and k >= cores[0]._phase_start + 10):
+    while not (cores[0].phase == phase and k >= cores[0]._phase_start + 10):
         lockstep_round(cores, k, 3, never)
         k += 1
+    return world, spec, params, cores, k
+
+
+def _autogrid_crash_in_sweep(hub_frames: bool, divisors=(8.0, 12.0), folds: int = 1):
+    """A 4-robot complete autogrid fleet; robot 3 dies 10 rounds into the sigma sweep and the
+    survivors drop it in rounds r, r + 1, r + 2. Runs until robot 0 leaves the sweep; returns
+    (world, params, its sweep tasks)."""
+    world, spec, params, cores, k = _autogrid_fleet_into(
+        "validate", validate_divisors=divisors, validate_folds=folds, hub_frames=hub_frames)
     drop_at = {0: k, 1: k + 1, 2: k + 2}
     for k in range(k, k + params.validate_rounds + 10):
         lockstep_round(cores, k, 3, drop_at)
@@ -220,19 +227,7 @@ def test_autogrid_crash_during_its_admm_phase_ends_on_the_survivors_answer():
     r, r + 1, r + 2 agree on the exact hard-margin answer of their data on the agreed grid."""
     from agents.kernel import GridBasis
 
-    world, spec = build_world(Options(fleet_id="t", shape="star", points=15, robots=4))
-    params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0,
-                            sigma=0.8, hub_frames=True)
-    cores = {
-        i: AdaptiveGridCore(i, r.neighbours, r.points, r.labels, n_robots=4, params=params,
-                            neighbour_degrees={j: len(spec.robots[j].neighbours) for j in r.neighbours})
-        for i, r in spec.robots.items()
-    }
-    never = {i: 10**9 for i in (0, 1, 2)}
-    k = 0
-    while not (cores[0].phase == "admm" and k >= cores[0]._phase_start + 10):
-        lockstep_round(cores, k, 3, never)
-        k += 1
+    world, spec, params, cores, k = _autogrid_fleet_into("admm", sigma=0.8, hub_frames=True)
     assert cores[0]._sub._hub is not None and cores[0]._sub.frame_dim == 2 * cores[0]._sub.dim
     survivors = staggered_crash(cores, 3, {0: k, 1: k + 1, 2: k + 2})
     first = survivors[0]
