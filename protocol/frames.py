@@ -353,7 +353,7 @@ class FrameDecoder:
             return self._update(self._parsed_frame(data, expected_sender))
         sender, body = self._open_envelope(data, expected_sender)
         fields = self._parsed_frame(body, sender)
-        self._check_equivocation(*fields[:2], fields[3], *fields[4:])
+        self._check_equivocation(*fields[:2], *fields[3:7])
         return self._update(fields)
 
     def _open_envelope(self, data: Any, expected_sender: int | None) -> tuple[int, bytes]:
@@ -364,7 +364,7 @@ class FrameDecoder:
             raise _Reject("sender", f"sender {sender} is not a known sender")
         if expected_sender is not None and sender != expected_sender:
             raise _Reject("sender", f"sender {sender} on robot {expected_sender}'s key")
-        if sender not in self.auth.peers:
+        if sender not in self.auth.keys:
             raise _Reject("auth", f"no key shared with sender {sender} (not a neighbour)")
         tag = tags.get(self.auth.me)
         if tag is None:
@@ -374,24 +374,36 @@ class FrameDecoder:
         return sender, body
 
     def _parsed_frame(self, data: Any, expected_sender: int | None) -> tuple[Any, ...]:
-        """The checked fields of a frame body (memoised: the robots of a process, and every
-        receiver of the in-process fleet, parse each distinct frame once)."""
+        """The checked fields of a frame body and a StateUpdate built from them (memoised: the
+        robots of a process, and every receiver of the in-process fleet, parse each distinct
+        frame once)."""
         return _MEMO.get_or_parse((self._profile, expected_sender, data), data,
-                                  lambda d: self._decode_fields(d, expected_sender))
+                                  lambda d: self._checked(d, expected_sender))
 
-    @staticmethod
-    def _update(fields: tuple[Any, ...]) -> Decoded:
-        """A fresh Decoded from checked fields: arrays copied, never shared between receivers."""
+    def _checked(self, data: Any, expected_sender: int | None) -> tuple[Any, ...]:
+        fields = self._decode_fields(data, expected_sender)
         sender, rnd, seq, flags, x, prev, pflags = fields
-        update = StateUpdate(
+        template = StateUpdate(  # validated once here; receivers get copies (_update)
             sender=sender,
             round=rnd,
-            values=np.frombuffer(x, dtype="<f8").astype(np.float64),  # a copy: never alias input
+            values=np.frombuffer(x, dtype="<f8").astype(np.float64),
             flags=flags,
             prev_values=None if prev is None else np.frombuffer(prev, dtype="<f8").astype(np.float64),
             prev_flags=pflags,
         )
-        return Decoded(update, seq)
+        return (*fields, template)
+
+    @staticmethod
+    def _update(fields: tuple[Any, ...]) -> Decoded:
+        """A fresh Decoded from checked fields: the template's attributes with its arrays copied,
+        never shared between receivers (the template was validated when it was built)."""
+        template: StateUpdate = fields[7]
+        update = object.__new__(StateUpdate)
+        update.__dict__.update(template.__dict__)
+        update.__dict__["values"] = template.values.copy()
+        if template.prev_values is not None:
+            update.__dict__["prev_values"] = template.prev_values.copy()
+        return Decoded(update, fields[2])
 
     def _check_equivocation(self, sender: int, rnd: int, flags: int, x: bytes, prev: bytes | None,
                             pflags: int) -> None:
