@@ -61,8 +61,7 @@ def edge_key(secret: bytes, i: int, j: int) -> bytes:
 
 def frame_tag(key: bytes, sender: int, receiver: int, body: bytes) -> bytes:
     """The 16-byte tag of ``body`` sent by ``sender`` to ``receiver`` under their edge key."""
-    h = hashlib.blake2b(key=key, digest_size=TAG_BYTES, person=_TAG_PERSON)
-    h.update(struct.pack("<II", sender, receiver))
+    h = _edge_hasher(key, sender, receiver)
     h.update(body)
     return h.digest()
 

@@ -852,3 +852,15 @@ def test_parse_memo_is_bounded_in_entries_and_bytes():
     assert len(memo._items) <= 3 and memo._bytes <= 1000
     # a bytearray is not hashable: parsed every time, never stored
     assert memo.get_or_parse(("k", None), bytearray(5), len) == 5 and memo._bytes <= 1000
+
+
+def test_precomputed_edge_hashers_give_the_documented_tags():
+    """FrameAuth copies a keyed hash state per edge (issue 14): its tags are still frame_tag's."""
+    from protocol.auth import frame_tag
+
+    body = b"any frame body"
+    tags = auth(1).tags(body)
+    assert tags == {j: frame_tag(edge_key(SECRET, 1, j), 1, j, body) for j in (0, 2)}
+    assert auth(0).verify(1, body, tags[0]) and auth(2).verify(1, body, tags[2])
+    assert not auth(0).verify(1, body, tags[2]) and not auth(0).verify(1, body + b"!", tags[0])
+    assert auth(1).tags(body) == tags  # the precomputed states are copied, never consumed
