@@ -13,6 +13,7 @@ import collections
 import hashlib
 import math
 import struct
+import threading
 from collections.abc import Collection
 from dataclasses import dataclass
 from typing import Any
@@ -263,6 +264,7 @@ class _ParseMemo:
         self.max_entries, self.max_bytes = max_entries, max_bytes
         self._items: dict[Any, Any] = {}
         self._bytes = 0
+        self._lock = threading.Lock()
         self.hits = self.misses = 0
 
     def get_or_parse(self, key: tuple[Any, ...], data: Any, parse: Any) -> Any:
@@ -276,12 +278,14 @@ class _ParseMemo:
                 found = (True, parse(data))
             except _Reject as r:
                 found = (False, (r.reason, r.detail))
-            self._items[key] = found
-            self._bytes += len(data)
-            while len(self._items) > self.max_entries or self._bytes > self.max_bytes:
-                old = next(iter(self._items))
-                del self._items[old]
-                self._bytes -= len(old[-1])
+            with self._lock:  # robots of several threads may share it: evict consistently
+                if key not in self._items:
+                    self._items[key] = found
+                    self._bytes += len(data)
+                while len(self._items) > self.max_entries or self._bytes > self.max_bytes:
+                    old = next(iter(self._items))
+                    del self._items[old]
+                    self._bytes -= len(old[-1])
         else:
             self.hits += 1
         ok, value = found
