@@ -256,6 +256,62 @@ def _inbox_for(loop: asyncio.AbstractEventLoop) -> _Inbox:
     return box
 
 
+class _Fanout:
+    """One Zenoh subscriber per neighbour key for all the robots of a shared session.
+
+    With one subscriber per robot, a frame of robot j reaches a process hosting K of j's
+    neighbours as K Zenoh callbacks (each a GIL hand-over from Zenoh's thread and a payload
+    copy). Here it is one callback, one copy and one inbox entry; the loop hands the same bytes
+    to each of the K robots (whose decoders then share the parse, protocol.frames). The frames
+    still cross Zenoh; what is shared is the delivery inside the process.
+    """
+
+    def __init__(self, session: Any) -> None:
+        self._session = session
+        self._subs: dict[str, Any] = {}
+        self._shells: dict[str, tuple[RobotShell, ...]] = {}
+
+    def subscribe(self, key: str, j: int, shell: RobotShell) -> _FanoutHandle:
+        """Deliver ``j``'s frames on ``key`` to ``shell`` (loop thread); undeclare the handle."""
+        self._shells[key] = (*self._shells.get(key, ()), shell)
+        if key not in self._subs:
+            self._subs[key] = self._session.declare_subscriber(
+                key, lambda sample, key=key, j=j: self._on_sample_thread(key, j, sample))
+        return _FanoutHandle(self, key, shell)
+
+    def _on_sample_thread(self, key: str, j: int, sample: Any) -> None:
+        shells = self._shells.get(key, ())
+        if not shells:
+            return
+        try:
+            shells[0]._inbox.put(self._deliver, key, j, sample.payload.to_bytes())
+        except RuntimeError:  # loop closed while shutting down
+            pass
+
+    def _deliver(self, key: str, j: int, data: bytes) -> None:
+        for shell in self._shells.get(key, ()):
+            shell._on_raw(j, data)
+
+    def unsubscribe(self, key: str, shell: RobotShell) -> None:
+        """Stop delivering ``key`` to ``shell``; the last one out undeclares the subscriber."""
+        left = tuple(s for s in self._shells.get(key, ()) if s is not shell)
+        self._shells[key] = left
+        if not left:
+            sub = self._subs.pop(key, None)
+            if sub is not None:
+                sub.undeclare()
+
+
+class _FanoutHandle:
+    """A robot's share of a :class:`_Fanout` subscriber, undeclared like a Zenoh subscriber."""
+
+    def __init__(self, fanout: _Fanout, key: str, shell: RobotShell) -> None:
+        self._fanout, self._key, self._shell = fanout, key, shell
+
+    def undeclare(self) -> None:
+        self._fanout.unsubscribe(self._key, self._shell)
+
+
 # --------------------------------------------------------------------------- the shell
 
 
@@ -303,6 +359,7 @@ class RobotShell:
             log.info("robot %d: restored from %s at round %d (restart %d)",
                      self.me, self.checkpoint_path, core.round, self.session.restarts)
         self.links = LinkLayer(spec.faults, spec.seed)
+        self._clean_links = spec.faults.is_clean
         self.received = 0  # raw samples delivered by Zenoh, before the fault link
         self._subs: dict[int, Any] = {}
         self._n_dropped = len(self.session.neighbours_dropped)
@@ -386,8 +443,11 @@ class RobotShell:
         t, c = _pc(), _tt()
         self.received += 1
         now = self.clock()
-        self.links.send(j, self.me, data, now)
-        self._pump(now)
+        if self._clean_links:  # nothing to delay, drop or copy: straight to the session
+            self._feed(j, data, now)
+        else:
+            self.links.send(j, self.me, data, now)
+            self._pump(now)
         # A delayed copy may now be due before the main loop's current deadline: wake it so that
         # it re-reads links.next_due().
         self._wake()
@@ -397,9 +457,12 @@ class RobotShell:
     def _pump(self, now: float) -> None:
         """Hand every frame the fault links deliver by ``now`` to the session."""
         for src, _dst, payload in self.links.deliver(now):
-            out = self.session.receive(src, payload, now)
-            if isinstance(out, Rejected):
-                log.debug("robot %d: rejected frame on %d's key: %s (%s)", self.me, src, out.reason, out.detail)
+            self._feed(src, payload, now)
+
+    def _feed(self, src: int, payload: bytes, now: float) -> None:
+        out = self.session.receive(src, payload, now)
+        if isinstance(out, Rejected):
+            log.debug("robot %d: rejected frame on %d's key: %s (%s)", self.me, src, out.reason, out.detail)
 
     # ---------------------------------------------------------------- send path, files, status
 
@@ -601,10 +664,11 @@ class RobotShell:
             return to_zenoh_config(self.zenoh_config)
         return robot_config(self.connect)
 
-    async def run(self, shared: Any | None = None) -> dict[str, Any]:
+    async def run(self, shared: Any | None = None, fanout: _Fanout | None = None) -> dict[str, Any]:
         """Run to the end. ``shared``: an open Zenoh session several robots of this process use
         (each still with its own publisher, key, subscriptions and liveliness token); it is left
-        open. Without it the robot opens (and closes) its own session."""
+        open. Without it the robot opens (and closes) its own session. ``fanout``: the shared
+        session's neighbour subscribers (one per key for every robot of the process)."""
         import zenoh
 
         self._zenoh = zenoh
@@ -619,6 +683,9 @@ class RobotShell:
         try:
             fleet = self.spec.fleet
             for j in self.session.peers:
+                if fanout is not None:
+                    self._subs[j] = fanout.subscribe(state_key(fleet, j), j, self)
+                    continue
                 self._subs[j] = session.declare_subscriber(
                     state_key(fleet, j), lambda sample, j=j: self._on_sample_thread(j, sample)
                 )
@@ -794,7 +861,8 @@ async def run_robots(
 async def _run_shells(shells: list[RobotShell], handle_signals: bool, session: Any | None = None) -> list[Any]:
     """Run every shell to its end (results or exceptions, in order); with ``handle_signals``
     SIGTERM/SIGINT stop them all cleanly, each writing a result saying ``stopped = "signal"``."""
-    tasks = [asyncio.ensure_future(sh.run(session)) for sh in shells]
+    fanout = None if session is None or os.environ.get("SHAPEFLEET_SUBSCRIBER_PER_ROBOT") else _Fanout(session)
+    tasks = [asyncio.ensure_future(sh.run(session, fanout)) for sh in shells]
     signals = handle_signals and threading.current_thread() is threading.main_thread()
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
@@ -873,9 +941,10 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"shapefleet robot: {exc}", file=sys.stderr)
         return 2
-    results = asyncio.run(run_robots(spec, ids, connect=args.connect, workdir=args.workdir, handle_signals=True,
-                                     zenoh_config=config, status_interval_s=args.status_interval,
-                                     shared_session=args.shared_session, crash_at=args.crash_at))
+    run = run_robots(spec, ids, connect=args.connect, workdir=args.workdir, handle_signals=True,
+                     zenoh_config=config, status_interval_s=args.status_interval,
+                     shared_session=args.shared_session, crash_at=args.crash_at)
+    results = _profiled(asyncio.run, run, args.workdir / f"robots-{ids[0]}-{ids[-1]}.cprofile")
     ok = True
     for rid in ids:
         res = results[rid]
@@ -887,6 +956,21 @@ def main(argv: list[str] | None = None) -> int:
             print(f"shapefleet: {res['error']}", file=sys.stderr)
         ok = ok and res.get("stopped") == "finished" and res.get("converged", True) is not False
     return 0 if ok else 1
+
+
+def _profiled(fn: Callable[..., Any], arg: Any, path: Path) -> Any:
+    """``fn(arg)``, under cProfile when ``SHAPEFLEET_CPROFILE`` is set (stats dumped to ``path``,
+    for ``python -m pstats``): where the event loop thread of a robot process spends its time
+    (the hand-over from Zenoh's threads is seen, their own work is not)."""
+    if not os.environ.get("SHAPEFLEET_CPROFILE"):
+        return fn(arg)
+    import cProfile
+
+    prof = cProfile.Profile()
+    try:
+        return prof.runcall(fn, arg)
+    finally:
+        prof.dump_stats(path)
 
 
 def robot_config_dict_for(connect: list[str], *, loopback_only: bool = True) -> dict[str, Any]:

@@ -94,6 +94,8 @@ AUTO_SOLO_PER_CORE = 2
 STATUS_INTERVAL_S = 0.05
 # robots sharing a process share one Zenoh session (own publisher, key, subscriptions, token each)
 SHARED_SESSION = os.environ.get("SHAPEFLEET_SESSION_PER_ROBOT", "") == ""
+# how long the launcher waits for a robot process whose stdout just ended to exit
+EXIT_AFTER_EOF_S = 0.2
 SHARED_ROBOT_MEMORY_MB = 10.0  # a robot as a task of a shared process: its session, core, buffers
 SHARED_ROBOTS_PER_CORE = 32  # 32 robots on 2 cores converge in well under a minute (docs/scaling.md)
 STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
@@ -586,6 +588,13 @@ class _Fleet:
     # -- status lines ------------------------------------------------------------------------
     def on_line(self, key: int, gen: int, line: bytes | None) -> None:
         p = self.procs[key]
+        if line is None and gen == p.generation and p.proc is not None:
+            # its stdout ends as it exits: wait for that now (reap() sees it at once) rather
+            # than notice it at the next poll of the launcher's loop, up to 0.25 s later
+            try:
+                p.proc.wait(EXIT_AFTER_EOF_S)
+            except subprocess.TimeoutExpired:
+                pass
         if line is None or gen != p.generation:
             return  # end of a stream, or a line a killed process had written before it died
         try:

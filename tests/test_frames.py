@@ -803,3 +803,64 @@ def test_a_fleet_file_without_keys_is_refused_with_exit_2(tmp_path):
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "no frame keys" in lines[0] and "old.json" in lines[0], proc.stderr
+
+
+# ------------------------------------------------------------------------------ parse memo
+
+
+def test_parse_memo_is_shared_but_each_receiver_gets_its_own_arrays_and_verdict():
+    """Robots of one process parse a broadcast frame once (protocol.frames._MEMO); the tag check
+    stays per receiver, and the arrays handed out are never shared between receivers."""
+    from protocol.frames import _MEMO
+
+    data = signed(StateUpdate(1, 30, X, 1, PREV), seq=77)
+    misses = _MEMO.misses
+    first, second = auth_decoder(0).decode(data, expected_sender=1), auth_decoder(2).decode(data, expected_sender=1)
+    assert _MEMO.misses - misses == 2  # the envelope and the body, once for both receivers
+    assert isinstance(first, Decoded) and isinstance(second, Decoded)
+    assert first.update == second.update == StateUpdate(1, 30, X, 1, PREV) and first.seq == 77
+    assert first.update.values is not second.update.values
+    first.update.values[0] = 99.0  # a receiver writing its copy does not touch the other's
+    assert second.update.values[0] == X[0]
+    assert auth_decoder(2).decode(data, expected_sender=1).update.values[0] == X[0]
+    # the memo holds the parse, not the authentication: a stranger still fails on the same bytes
+    assert FrameDecoder(FLEET, KNOWN, DIM, TAG, auth=auth(7)).decode(data, expected_sender=1).reason == "auth"
+    # a decoder that checks differently (another dimension) parses for itself and rejects
+    assert FrameDecoder(FLEET, KNOWN, DIM + 1, TAG, auth=auth(0)).decode(data,
+                                                                         expected_sender=1).reason == "vector-length"
+
+
+_FOR_EVERY_RECEIVER = ("unauthenticated", "tampered-byte", "replayed-as-round-13", "malformed-envelope")
+
+
+@pytest.mark.parametrize(("reason", "data"), [AUTH_CASES[k] for k in _FOR_EVERY_RECEIVER], ids=_FOR_EVERY_RECEIVER)
+def test_a_memoised_rejection_is_the_same_for_every_receiver(reason, data):
+    verdicts = [auth_decoder(me).decode(data, expected_sender=1) for me in (0, 2, 0)]
+    assert all(isinstance(v, Rejected) and v.reason == reason for v in verdicts)
+    assert verdicts[0].detail == verdicts[2].detail
+
+
+def test_parse_memo_is_bounded_in_entries_and_bytes():
+    from protocol.frames import _ParseMemo
+
+    memo = _ParseMemo(max_entries=8, max_bytes=1000)
+    for i in range(50):
+        assert memo.get_or_parse(("k", bytes([i]) * 30), bytes([i]) * 30, len) == 30
+    assert len(memo._items) == 8 and memo._bytes == 240
+    for i in range(50):
+        memo.get_or_parse(("k", bytes([i]) * 300), bytes([i]) * 300, len)
+    assert len(memo._items) <= 3 and memo._bytes <= 1000
+    # a bytearray is not hashable: parsed every time, never stored
+    assert memo.get_or_parse(("k", None), bytearray(5), len) == 5 and memo._bytes <= 1000
+
+
+def test_precomputed_edge_hashers_give_the_documented_tags():
+    """FrameAuth copies a keyed hash state per edge (issue 14): its tags are still frame_tag's."""
+    from protocol.auth import frame_tag
+
+    body = b"any frame body"
+    tags = auth(1).tags(body)
+    assert tags == {j: frame_tag(edge_key(SECRET, 1, j), 1, j, body) for j in (0, 2)}
+    assert auth(0).verify(1, body, tags[0]) and auth(2).verify(1, body, tags[2])
+    assert not auth(0).verify(1, body, tags[2]) and not auth(0).verify(1, body + b"!", tags[0])
+    assert auth(1).tags(body) == tags  # the precomputed states are copied, never consumed

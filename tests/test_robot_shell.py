@@ -697,3 +697,71 @@ def _main() -> None:
 
 if __name__ == "__main__":
     _main()
+
+
+def test_fanout_one_subscriber_per_key_for_the_robots_of_a_process():
+    """Robots sharing a session share one Zenoh subscriber per neighbour key (issue 14): a frame is
+    one callback and one inbox entry, handed to every robot that listens to that key, in order;
+    a robot that drops the neighbour stops getting it; the last one out undeclares."""
+    from agents.robot import _Fanout, _Inbox
+
+    class Sub:
+        def __init__(self, key, cb):
+            self.key, self.cb, self.undeclared = key, cb, False
+
+        def undeclare(self):
+            self.undeclared = True
+
+    class Session:
+        def __init__(self):
+            self.subs = []
+
+        def declare_subscriber(self, key, cb):
+            self.subs.append(Sub(key, cb))
+            return self.subs[-1]
+
+    class Payload:
+        def __init__(self, data):
+            self.data = data
+
+        def to_bytes(self):
+            return self.data
+
+    class Sample:
+        def __init__(self, data):
+            self.payload = Payload(data)
+
+    got = []
+
+    class Shell:
+        def __init__(self, me):
+            self.me = me
+
+        def _on_raw(self, j, data):
+            got.append((self.me, j, data))
+
+    loop = asyncio.new_event_loop()
+    try:
+        session = Session()
+        fan = _Fanout(session)
+        a, b = Shell(0), Shell(2)
+        a._inbox = b._inbox = _Inbox(loop)
+        ha = fan.subscribe("k/1", 1, a)
+        hb = fan.subscribe("k/1", 1, b)
+        fan.subscribe("k/3", 3, b)
+        assert [s.key for s in session.subs] == ["k/1", "k/3"]  # one per key, not per robot
+        session.subs[0].cb(Sample(b"f1"))
+        session.subs[1].cb(Sample(b"f3"))
+        loop.run_until_complete(asyncio.sleep(0))
+        assert got == [(0, 1, b"f1"), (2, 1, b"f1"), (2, 3, b"f3")]
+        hb.undeclare()  # robot 2 dropped neighbour 1: robot 0 still hears it
+        session.subs[0].cb(Sample(b"f1'"))
+        loop.run_until_complete(asyncio.sleep(0))
+        assert got[3:] == [(0, 1, b"f1'")] and not session.subs[0].undeclared
+        ha.undeclare()
+        assert session.subs[0].undeclared and not session.subs[1].undeclared
+        session.subs[0].cb(Sample(b"late"))  # a sample in flight after the last one left
+        loop.run_until_complete(asyncio.sleep(0))
+        assert len(got) == 4
+    finally:
+        loop.close()

@@ -99,6 +99,26 @@ def test_first_frame_then_resend_every_retransmit_s():
     assert s.next_deadline() == pytest.approx(0.2) and s.sent == 2
 
 
+def test_resend_waits_a_round_of_this_fleet_from_its_second_round_on():
+    """Issue 14: before ADAPT_MIN_ROUNDS rounds, the shortest round so far (not the first, which
+    holds the start-up wait) sets the resend interval; a slow fleet no longer resends every
+    retransmit_s during its first rounds."""
+    from protocol.session import ADAPT_FACTOR
+
+    a, b = session(0, (1,)), session(1, (0,))
+    now = 0.0
+    fa, fb = frames(a, now)[-1], frames(b, now)[-1]
+    for step in (2.0, 0.5, 0.4):  # round times: a slow start, then 0.5 s and 0.4 s rounds
+        now += step
+        a.receive(1, fb, now)
+        b.receive(0, fa, now)
+        assert a.advance(now) and b.advance(now)
+        fa, fb = frames(a, now)[-1], frames(b, now)[-1]
+    assert a.round_intervals == pytest.approx([2.0, 0.5, 0.4])
+    frames(a, now)
+    assert a.next_deadline() == pytest.approx(now + ADAPT_FACTOR * 0.4)  # not now + retransmit_s (0.1)
+
+
 def test_neighbour_one_round_behind_triggers_a_fast_resend():
     a, b = session(0, (1,)), session(1, (0,))
     fa, fb = frames(a, 0.0), frames(b, 0.0)
