@@ -343,3 +343,33 @@ class FreeCTADMM(_NewestValues):
         ct._prev_values, ct._values = mine, new
         ct.round += 1
         return new
+
+
+FREE_ALGORITHMS = ("radmm", "admm-newest", "ct-admm-free")
+
+
+def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm",
+                    period: float = 0.01) -> Any:
+    """Robot ``rid``'s free-mode core on the spec's grid (a FleetSpec): the relaxed ADMM, or (for
+    measurement) today's ADMM fed the newest values (``admm-newest``) or the paper's CT-ADMM
+    integrating one ``period`` per tick with held samples (``ct-admm-free``). Here, not in the
+    launcher, because the robot process (agents/free_robot.py) builds it too."""
+    from agents.ct_admm import CTADMMParams
+
+    if algorithm not in FREE_ALGORITHMS:
+        raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
+    if not spec.fixed_grid:
+        raise ValueError("free sync needs a fixed grid and sigma (--grid and --sigma, or --preset paper)")
+    me = spec.robots[rid]
+    degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
+    # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
+    # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
+    given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
+    kw: dict[str, Any] = {}
+    if algorithm == "admm-newest":
+        kw["relax"] = float(given.get("relax", spec.params.get("relax", 1.95)))
+    if algorithm == "ct-admm-free":
+        kw["ct_params"] = CTADMMParams(period=period)
+    cls = {"radmm": RelaxedADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
+    return cls(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
+               params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees, **kw)

@@ -383,14 +383,25 @@ def _simulate_free(args: argparse.Namespace, *, quiet: bool = False) -> RunRepor
         except FleetFailure as exc:
             return RunReport(EXIT_NOT_CONVERGED, out, spec, world, message=f"the run failed: {exc}")
     spec = dataclasses.replace(spec, algorithm="admm")
-    extra = {"fleet": spec.fleet, "topology": args.topology, "sync": "free", "period_s": args.period,
-             "free_algorithm": "radmm", "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults),
-             "links": outcome.link_stats}
+    extra = {"fleet": spec.fleet, "topology": args.topology, **_free_extra(args), "virtual_s": outcome.virtual_s,
+             "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
     report = RunReport(1, out, spec, world, robots=outcome.robots)
     report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra,
                             quiet=quiet)
     report.code = _exit_code(report.result)
     return report
+
+
+def _free_extra(args: argparse.Namespace) -> dict[str, Any]:
+    """What result.json says of a free run (simulate and launch alike)."""
+    return {"sync": "free", "period_s": args.period, "free_algorithm": "radmm"}
+
+
+def _launch_free(args: argparse.Namespace) -> dict[str, Any]:
+    """`launch --sync free`: launch_fleet's arguments that start free robot processes
+    (agents/free_robot.py: each ticks every --period on its own clock, never waits); the rest of
+    the launch -- router, fault links, result files, agreement verdict -- is lockstep launch's."""
+    return {"robot_argv": ("-m", "agents.free_robot", "--period", repr(float(args.period)))}
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -484,7 +495,8 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
     _robots_bound(args)
     if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
         raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
-    check = _crash_check(crashes)
+    free = getattr(args, "sync", "lockstep") == "free"
+    check = _free_check(args) if free else _crash_check(crashes)
 
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "launch", check=check, fleet_id=args.fleet_id)
@@ -495,7 +507,8 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
         with _algorithm_importable(spec):
             outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
                                    restart=not args.no_restart, zenoh_port=args.zenoh_port, progress=not quiet,
-                                   router=router, robots_per_process=args.robots_per_process)
+                                   router=router, robots_per_process=args.robots_per_process,
+                                   **(_launch_free(args) if free else {}))
     except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag
         raise UsageError(str(exc)) from None
     except LaunchError as exc:  # the machine, not the input: say it in one line, exit 1
@@ -514,6 +527,8 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
         "interrupted": outcome.interrupted,
         "timed_out": outcome.timed_out,
     }
+    if free:
+        extra.update(_free_extra(args), virtual_s=outcome.wall_s)
     report.notes += [f"--crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}"
                      for c in outcome.crashes_not_fired]
     report.notes += [str(r["error"]) for r in outcome.robots if r.get("error")]

@@ -390,10 +390,10 @@ OPTIONS: tuple[Option, ...] = (
     # issue 13: free-running robots (protocol/free.py, agents/pdmm.py, docs/robustness.md)
     Option("sync", STR, "lockstep", "lockstep: a round waits for every neighbour's exact value (resent until it "
            "arrives); free: every robot ticks each --period on its own clock with the newest values it holds and "
-           "never waits (the relaxed ADMM, on a fixed grid)", group=ALGORITHM, commands=("simulate",),
+           "never waits (the relaxed ADMM, on a fixed grid)", group=ALGORITHM, commands=("simulate", "launch"),
            section="algorithm", choices=("lockstep", "free"), target=None),
     Option("period", DURATION, 0.01, "free sync: each robot's tick period", group=ALGORITHM,
-           commands=("simulate", "sweep"), section="algorithm", check=positive, target=None),
+           commands=("simulate", "launch", "sweep"), section="algorithm", check=positive, target=None),
     # -- sweep (issue 13): delay x loss x sync, in-process ------------------------------------
     Option("delays", STR, "0ms,10ms,20ms,50ms", "sweep: one-way delays, comma-separated", group=SWEEP,
            commands=("sweep",), metavar="D1,D2,...", check=_durations, target=None),
