@@ -12,8 +12,9 @@ It never waits for a neighbour and never retransmits: a frame lost on the fault 
 is a skipped update of the relaxed ADMM. Faults are injected on the receiving side by the
 project's link layer (protocol/links.py), seeded as in lockstep launch. Status lines and the result
 file have the lockstep shell's format, so the launcher (launcher/fleet.py) runs both alike; with
-``SHAPEFLEET_PROFILE`` set each robot also writes ``robot-I.json.ticks.json`` (the monotonic time
-and the values of every tick: how benchmarks/free.py measures the time to 1e-3 across processes).
+``SHAPEFLEET_PROFILE`` set each robot also writes ``robot-I.json.ticks.json`` (the seconds since
+its start and the values of every tick, as the lockstep rows' round_times and trace: how
+`sweep --over zenoh` and benchmarks/free.py measure the time to 1e-3 across processes).
 
 Run as ``python -m agents.free_robot --fleet-file F --ids 0,1 --connect EP --workdir W --period 0.01``.
 """
@@ -66,7 +67,7 @@ class FreeRobotShell:
         self._waiter: asyncio.Future | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._interrupted = False
-        self.ticks: list[list[float]] = []  # [monotonic time, *values] per tick (SHAPEFLEET_PROFILE)
+        self.ticks: list[list[float]] = []  # [seconds since start, *values] per tick (SHAPEFLEET_PROFILE)
         self._keep_ticks = bool(os.environ.get("SHAPEFLEET_PROFILE"))
 
     # -- receive path (Zenoh thread -> loop) ---------------------------------------------------
@@ -158,7 +159,7 @@ class FreeRobotShell:
             for _dest, frame in s.tick(now):
                 pub.put(frame)
                 if self._keep_ticks and s.stopped in (None, "finished"):
-                    self.ticks.append([now, *map(float, s.core.values)])
+                    self.ticks.append([now - s.t0, *map(float, s.core.values)])
                 self._status_line()
             deadline = s.next_deadline()
             if deadline is None:

@@ -413,11 +413,16 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from launcher import sweep
     from protocol.links import parse_duration, parse_probability
 
-    delays = sweep.parse_list(args.delays, lambda t: parse_duration(t, flag="--delays"), "--delays")
-    losses = sweep.parse_list(args.losses, lambda t: parse_probability(t, flag="--losses"), "--losses")
+    default_delays, default_losses = sweep.DEFAULT_GRID[args.over]
+    delays = sweep.parse_list(args.delays or default_delays, lambda t: parse_duration(t, flag="--delays"), "--delays")
+    losses = sweep.parse_list(args.losses or default_losses, lambda t: parse_probability(t, flag="--losses"),
+                              "--losses")
     syncs = [m.strip() for m in args.syncs.split(",") if m.strip()]
+    try:
+        grid = sweep.cells(delays, losses, syncs, period=args.period, over=args.over)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     out = _out_dir(args, "sweep")
-    grid = sweep.cells(delays, losses, syncs, period=args.period)
     t0 = time.perf_counter()
     with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[last]}"),
                   TimeElapsedColumn(), console=Console(stderr=True)) as bar:
@@ -435,9 +440,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     bad = [r for r in rows if not (r["converged"] and r["error"] < sweep.CLAIM)]
     jobs = args.jobs or os.cpu_count() or 1
     cpu = sum(r["cpu_s"] for r in rows)
-    console.print(f"{len(rows)} runs in {wall:.0f} s wall on {jobs} processes ({cpu:.0f} s of CPU: "
-                  f"{cpu / jobs:.0f} s on {jobs} idle cores; the difference is other load); "
-                  f"wrote {out}/: sweep.csv, robustness.png")
+    cost = (f"on {jobs} processes ({cpu:.0f} s of CPU: {cpu / jobs:.0f} s on {jobs} idle cores; the difference is "
+            "other load)") if args.over == "inprocess" else "over Zenoh, one fleet of processes at a time"
+    console.print(f"{len(rows)} runs in {wall:.0f} s wall {cost}; wrote {out}/: sweep.csv, robustness.png")
     if bad:
         print(f"shapefleet: {len(bad)} runs did not end in agreement within {sweep.CLAIM:g} of the exact answer "
               "(see sweep.csv)", file=sys.stderr)

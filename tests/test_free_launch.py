@@ -10,12 +10,14 @@ Loopback only, multicast scouting off (the launcher's configs).
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
 import pytest
 
 from launcher import api
+from launcher.cli import main
 from tests.conftest import bounded_and_clean
 
 pytestmark = pytest.mark.integration
@@ -71,3 +73,15 @@ def test_free_launch_refuses_what_it_cannot_run(tmp_path):
         api.launch(sync="free", preset="paper", crash="1@40", out=str(tmp_path / "crash"))
     with pytest.raises(api.UsageError, match="--sync free"):
         api.launch(sync="free", out=str(tmp_path / "autogrid"))
+
+
+def test_a_sweep_over_zenoh_runs_real_processes_and_writes_the_same_columns_plus_over(tmp_path):
+    out = tmp_path / "sweep"
+    code = main(["sweep", "--over", "zenoh", "--delays", "0ms", "--losses", "0.2", "--out", str(out)])
+    rows = list(csv.DictReader(open(out / "sweep.csv")))
+    assert code == 0 and [(r["sync"], r["over"]) for r in rows] == [("free", "zenoh"), ("lockstep", "zenoh")]
+    for r in rows:
+        assert r["converged"] == "True" and float(r["error"]) < 1e-3
+        assert 0 < float(r["time_to_claim_s"]) <= float(r["stop_s"]) < 30  # each robot's wall-clock seconds
+        assert int(r["bytes_sent"]) > 0 and int(r["frames_sent"]) > 0
+    assert (out / "robustness.png").exists()
