@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from agents.pdmm import build_free_core
-from agents.robot import PUBLISH_EXPRESS, _inbox_for, _open_session, _write_atomic, robot_config_dict_for
+from agents.robot import PUBLISH_EXPRESS, RobotShell, _inbox_for, _open_session, _write_atomic, robot_config_dict_for
 from protocol.free import FreeSession
 from protocol.keys import state_key
 from protocol.links import LinkLayer
@@ -70,14 +70,10 @@ class FreeRobotShell:
         self.ticks: list[list[float]] = []  # [seconds since start, *values] per tick (SHAPEFLEET_PROFILE)
         self._keep_ticks = bool(os.environ.get("SHAPEFLEET_PROFILE"))
 
-    # -- receive path (Zenoh thread -> loop) ---------------------------------------------------
-    def _on_sample_thread(self, j: int, sample: Any) -> None:
-        if self._closing:
-            return
-        try:
-            self._inbox.put(self._on_raw, j, sample.payload.to_bytes())
-        except RuntimeError:  # loop closed while shutting down
-            pass
+    # the lockstep shell's plumbing, which needs only _closing, _inbox, _on_raw, _waiter, _loop, clock
+    _on_sample_thread = RobotShell._on_sample_thread  # Zenoh thread -> the loop's inbox
+    _wake = RobotShell._wake
+    _wait = RobotShell._wait  # until a frame arrives or a deadline: a bare future and one timer
 
     def _on_raw(self, j: int, data: bytes) -> None:
         if self._closing:
@@ -95,24 +91,6 @@ class FreeRobotShell:
     def _transport(self) -> dict[str, int]:
         st = self.links.stats()
         return {"received": self.received, "lost": st["dropped"], "duplicated": st["duplicated"]}
-
-    # -- time ----------------------------------------------------------------------------------
-    def _wake(self, *_: Any) -> None:
-        w = self._waiter
-        if w is not None and not w.done():
-            w.set_result(None)
-
-    async def _wait(self, deadline: float) -> None:
-        timeout = deadline - self.clock()
-        if timeout <= 0:
-            return
-        self._waiter = waiter = self._loop.create_future()
-        timer = self._loop.call_later(timeout, self._wake)
-        try:
-            await waiter
-        finally:
-            timer.cancel()
-            self._waiter = None
 
     def interrupt(self) -> None:
         """Stop at the next pass of the loop (SIGTERM): the result says ``stopped = "signal"``."""
@@ -274,16 +252,12 @@ def main(argv: list[str] | None = None) -> int:
     results = asyncio.run(run_free_robots(spec, ids, period=args.period, connect=args.connect, workdir=args.workdir,
                                           zenoh_config=config, status_interval_s=args.status_interval,
                                           shared_session=args.shared_session))
-    ok = True
-    for rid in ids:
-        res = results[rid]
-        if isinstance(res, BaseException):
-            print(f"shapefleet: robot {rid}: {res}", file=sys.stderr)
-            ok = False
-            continue
-        if res.get("error"):
-            print(f"shapefleet: {res['error']}", file=sys.stderr)
-        ok = ok and res.get("stopped") == "finished" and res.get("converged") is True
+    rows = [res for res in results.values() if not isinstance(res, BaseException)]
+    for rid, res in sorted(results.items()):
+        why = res if isinstance(res, BaseException) else res.get("error")
+        if why:
+            print(f"shapefleet: robot {rid}: {why}", file=sys.stderr)
+    ok = len(rows) == len(ids) and all(r.get("stopped") == "finished" and r.get("converged") is True for r in rows)
     return 0 if ok else 1
 
 
