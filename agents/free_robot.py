@@ -184,7 +184,7 @@ class FreeRobotShell:
         return result
 
 
-async def run_free_robots(spec: Any, ids: list[int], *, period: float, connect: list[str], workdir: Path,
+async def run_free_robots(spec: Any, ids: list[int], *, period: float, workdir: Path,
                           zenoh_config: dict[str, Any], status_interval_s: float = 0.05,
                           shared_session: bool = False) -> dict[int, dict[str, Any] | BaseException]:
     """Robots ``ids`` as tasks of this process's loop (one Zenoh session each, or one shared);
@@ -249,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"shapefleet robot: {exc}", file=sys.stderr)
         return 2
-    results = asyncio.run(run_free_robots(spec, ids, period=args.period, connect=args.connect, workdir=args.workdir,
+    results = asyncio.run(run_free_robots(spec, ids, period=args.period, workdir=args.workdir,
                                           zenoh_config=config, status_interval_s=args.status_interval,
                                           shared_session=args.shared_session))
     rows = [res for res in results.values() if not isinstance(res, BaseException)]
