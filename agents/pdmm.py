@@ -26,8 +26,9 @@ flight were computed from old z's.
 
 Stopping (no waiting, so no lockstep flags): a robot is *calm* when it heard every neighbour in
 the last ``window`` ticks (a silent or partitioned neighbour is no evidence) and its distance to
-the fixed point, estimated as r / (1 - rate) from its residual r (change per tick and gap to every
-neighbour's newest v) and the contraction seen over the last two windows, is below ``tol``.
+the fixed point, estimated as c / (1 - rate) + g from its change per tick c (the contraction
+seen over the last two windows sums the changes still to come) plus its gap g to every
+neighbour's newest v (`RelaxedADMM.distance_estimate`), is below ``tol``.
 A raw residual bound is not enough: measured on a 4-robot fleet after a partition, residuals
 of 1e-4 per tick still stood 2.5e-3 from the answer. It publishes a hop count h_i = 0 if not
 calm, else 1 + min_j h_j (newest values, capped at D + 1); it stops at h_i >= D + 1
@@ -163,7 +164,8 @@ class RelaxedADMM:
         prox = sum(self._rho.values(), np.zeros(self.dim))
         self._qp = MarginQP(features, labels, x_weight=1.0 / n_robots, prox_weight=prox, C=C)
         self._values = np.zeros(self.dim)
-        self._residuals: list[float] = []
+        self._changes: list[float] = []
+        self._gaps: list[float] = []
         self._heard = {j: -(10**9) for j in self.neighbours}
         self.hops = 0
         self.ticks = 0
@@ -222,17 +224,31 @@ class RelaxedADMM:
         self.ticks += 1
         self.residual = max(change, gap)
         w = self.params.window
-        self._residuals = (self._residuals + [self.residual])[-2 * w :]
+        self._changes = (self._changes + [change])[-2 * w :]
+        self._gaps = (self._gaps + [gap])[-w:]
         cap = self.params.diameter + 1
         # a neighbour that finished (hop count at the cap) is final, not silent
         fresh = all(self.ticks - self._heard[j] <= w or self._their_hops[j] >= cap for j in self.neighbours)
-        calm = fresh and error_estimate(self._residuals, w) < self.params.tol
+        calm = fresh and self.distance_estimate() < self.params.tol
         self.hops = min(cap, 1 + min(self._their_hops.values())) if calm else 0
         if max(self._their_hops.values()) >= cap:  # a neighbour stopped: the decision floods on
             self.hops = cap
         if self.hops >= cap or self.ticks >= self.params.max_ticks:
             self.finished = True
         return self.final_packets()
+
+    def distance_estimate(self) -> float:
+        """How far this robot's v may still be from the fixed point: the changes still to come
+        (the last window's largest change per tick summed as a geometric series at the rate of
+        the last two windows, :func:`error_estimate`) plus its largest gap to a neighbour's newest
+        v in the last window. The two are kept apart because only the change is a per-tick
+        quantity: the gap does not shrink with the period, and summing it as a series (the rule
+        before) inflated the estimate by 1 / (1 - rate per tick), the more so the shorter the
+        period (measured in benchmarks/results/free.md, "stop rule")."""
+        w = self.params.window
+        if len(self._gaps) < w:
+            return math.inf
+        return error_estimate(self._changes, w) + max(self._gaps)
 
     def final_packets(self) -> list[Packet]:
         """The packets of the current state (also what a finished robot repeats while lingering)."""
@@ -343,3 +359,33 @@ class FreeCTADMM(_NewestValues):
         ct._prev_values, ct._values = mine, new
         ct.round += 1
         return new
+
+
+FREE_ALGORITHMS = ("radmm", "admm-newest", "ct-admm-free")
+
+
+def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm",
+                    period: float = 0.01) -> Any:
+    """Robot ``rid``'s free-mode core on the spec's grid (a FleetSpec): the relaxed ADMM, or (for
+    measurement) today's ADMM fed the newest values (``admm-newest``) or the paper's CT-ADMM
+    integrating one ``period`` per tick with held samples (``ct-admm-free``). Here, not in the
+    launcher, because the robot process (agents/free_robot.py) builds it too."""
+    from agents.ct_admm import CTADMMParams
+
+    if algorithm not in FREE_ALGORITHMS:
+        raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
+    if not spec.fixed_grid:
+        raise ValueError("free sync needs a fixed grid and sigma (--grid and --sigma, or --preset paper)")
+    me = spec.robots[rid]
+    degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
+    # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
+    # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
+    given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
+    kw: dict[str, Any] = {}
+    if algorithm == "admm-newest":
+        kw["relax"] = float(given.get("relax", spec.params.get("relax", 1.95)))
+    if algorithm == "ct-admm-free":
+        kw["ct_params"] = CTADMMParams(period=period)
+    cls = {"radmm": RelaxedADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
+    return cls(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
+               params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees, **kw)

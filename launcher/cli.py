@@ -383,14 +383,25 @@ def _simulate_free(args: argparse.Namespace, *, quiet: bool = False) -> RunRepor
         except FleetFailure as exc:
             return RunReport(EXIT_NOT_CONVERGED, out, spec, world, message=f"the run failed: {exc}")
     spec = dataclasses.replace(spec, algorithm="admm")
-    extra = {"fleet": spec.fleet, "topology": args.topology, "sync": "free", "period_s": args.period,
-             "free_algorithm": "radmm", "virtual_s": outcome.virtual_s, "faults": _fault_dict(spec.faults),
-             "links": outcome.link_stats}
+    extra = {"fleet": spec.fleet, "topology": args.topology, **_free_extra(args), "virtual_s": outcome.virtual_s,
+             "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
     report = RunReport(1, out, spec, world, robots=outcome.robots)
     report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra,
                             quiet=quiet)
     report.code = _exit_code(report.result)
     return report
+
+
+def _free_extra(args: argparse.Namespace) -> dict[str, Any]:
+    """What result.json says of a free run (simulate and launch alike)."""
+    return {"sync": "free", "period_s": args.period, "free_algorithm": "radmm"}
+
+
+def _launch_free(args: argparse.Namespace) -> dict[str, Any]:
+    """`launch --sync free`: launch_fleet's arguments that start free robot processes
+    (agents/free_robot.py: each ticks every --period on its own clock, never waits); the rest of
+    the launch -- router, fault links, result files, agreement verdict -- is lockstep launch's."""
+    return {"robot_argv": ("-m", "agents.free_robot", "--period", repr(float(args.period)))}
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -402,11 +413,16 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from launcher import sweep
     from protocol.links import parse_duration, parse_probability
 
-    delays = sweep.parse_list(args.delays, lambda t: parse_duration(t, flag="--delays"), "--delays")
-    losses = sweep.parse_list(args.losses, lambda t: parse_probability(t, flag="--losses"), "--losses")
+    default_delays, default_losses = sweep.DEFAULT_GRID[args.over]
+    delays = sweep.parse_list(args.delays or default_delays, lambda t: parse_duration(t, flag="--delays"), "--delays")
+    losses = sweep.parse_list(args.losses or default_losses, lambda t: parse_probability(t, flag="--losses"),
+                              "--losses")
     syncs = [m.strip() for m in args.syncs.split(",") if m.strip()]
+    try:
+        grid = sweep.cells(delays, losses, syncs, period=args.period, over=args.over)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     out = _out_dir(args, "sweep")
-    grid = sweep.cells(delays, losses, syncs, period=args.period)
     t0 = time.perf_counter()
     with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[last]}"),
                   TimeElapsedColumn(), console=Console(stderr=True)) as bar:
@@ -424,9 +440,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     bad = [r for r in rows if not (r["converged"] and r["error"] < sweep.CLAIM)]
     jobs = args.jobs or os.cpu_count() or 1
     cpu = sum(r["cpu_s"] for r in rows)
-    console.print(f"{len(rows)} runs in {wall:.0f} s wall on {jobs} processes ({cpu:.0f} s of CPU: "
-                  f"{cpu / jobs:.0f} s on {jobs} idle cores; the difference is other load); "
-                  f"wrote {out}/: sweep.csv, robustness.png")
+    cost = (f"on {jobs} processes ({cpu:.0f} s of CPU: {cpu / jobs:.0f} s on {jobs} idle cores; the difference is "
+            "other load)") if args.over == "inprocess" else "over Zenoh, one fleet of processes at a time"
+    console.print(f"{len(rows)} runs in {wall:.0f} s wall {cost}; wrote {out}/: sweep.csv, robustness.png")
     if bad:
         print(f"shapefleet: {len(bad)} runs did not end in agreement within {sweep.CLAIM:g} of the exact answer "
               "(see sweep.csv)", file=sys.stderr)
@@ -484,7 +500,8 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
     _robots_bound(args)
     if args.zenoh_port is not None and _port_in_use(args.zenoh_port):
         raise UsageError(f"--zenoh-port {args.zenoh_port} is in use")
-    check = _crash_check(crashes)
+    free = getattr(args, "sync", "lockstep") == "free"
+    check = _free_check(args) if free else _crash_check(crashes)
 
     t0 = time.perf_counter()
     out, world, spec, central = _prepare(args, "launch", check=check, fleet_id=args.fleet_id)
@@ -495,7 +512,8 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
         with _algorithm_importable(spec):
             outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
                                    restart=not args.no_restart, zenoh_port=args.zenoh_port, progress=not quiet,
-                                   router=router, robots_per_process=args.robots_per_process)
+                                   router=router, robots_per_process=args.robots_per_process,
+                                   **(_launch_free(args) if free else {}))
     except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag
         raise UsageError(str(exc)) from None
     except LaunchError as exc:  # the machine, not the input: say it in one line, exit 1
@@ -514,6 +532,8 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
         "interrupted": outcome.interrupted,
         "timed_out": outcome.timed_out,
     }
+    if free:
+        extra.update(_free_extra(args), virtual_s=outcome.wall_s)
     report.notes += [f"--crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}"
                      for c in outcome.crashes_not_fired]
     report.notes += [str(r["error"]) for r in outcome.robots if r.get("error")]

@@ -465,7 +465,8 @@ class _Fleet:
 
     def __init__(self, spec: FleetSpec, workdir: Path, fleet_file: Path, endpoint: str,
                  crashes: list[CrashPlan], restart: bool, restart_after: float,
-                 started: list[int], console: Any | None, per_process: int = 1) -> None:
+                 started: list[int], console: Any | None, per_process: int = 1,
+                 robot_argv: tuple[str, ...] = ("-m", "agents.robot")) -> None:
         self.spec = spec
         self.restart = restart
         self.restart_after = restart_after
@@ -488,7 +489,7 @@ class _Fleet:
             # every status line (one per robot per round, or fewer: STATUS_INTERVAL_S) says which
             # robot it is for; a robot with a crash plan reports every round so it dies on time
             interval = 0.0 if solo & set(ids) else STATUS_INTERVAL_S
-            argv = [sys.executable, "-m", "agents.robot", "--fleet-file", str(fleet_file),
+            argv = [sys.executable, *robot_argv[:2], "--fleet-file", str(fleet_file), *robot_argv[2:],
                     "--id" if len(ids) == 1 else "--ids", ",".join(map(str, ids)), "--connect", endpoint,
                     "--workdir", str(workdir),
                     "--status-interval", f"{interval:g}"]
@@ -716,6 +717,7 @@ def launch_fleet(
     router: str | None = None,
     on_running: Callable[[str], None] | None = None,
     robots_per_process: int | str | None = "auto",
+    robot_argv: tuple[str, ...] = ("-m", "agents.robot"),
 ) -> LaunchOutcome:
     """Run ``spec`` as one process per robot plus a router on 127.0.0.1; see the module doc.
 
@@ -729,6 +731,8 @@ def launch_fleet(
     ``robots_per_process``: robots run as asyncio tasks of one process (each with its own Zenoh
     session, key and files), a number or "auto" (:func:`choose_robots_per_process`); a robot with a
     crash plan always runs alone, so that its SIGKILL takes only it.
+    ``robot_argv``: the robot program (``-m module``) and its extra arguments (free sync:
+    ``("-m", "agents.free_robot", "--period", "0.01")``).
 
     Returns a :class:`LaunchOutcome` (a ``FleetOutcome``): ``robots`` holds the result of every
     robot that wrote one, sorted by id; a robot dead for good is absent.
@@ -776,7 +780,7 @@ def launch_fleet(
 
     def start_robots(endpoint: str) -> _Fleet:
         robots = _Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
-                        started, console, per_process)
+                        started, console, per_process, robot_argv)
         try:
             robots.start_all()
         except BaseException:

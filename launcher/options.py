@@ -390,14 +390,16 @@ OPTIONS: tuple[Option, ...] = (
     # issue 13: free-running robots (protocol/free.py, agents/pdmm.py, docs/robustness.md)
     Option("sync", STR, "lockstep", "lockstep: a round waits for every neighbour's exact value (resent until it "
            "arrives); free: every robot ticks each --period on its own clock with the newest values it holds and "
-           "never waits (the relaxed ADMM, on a fixed grid)", group=ALGORITHM, commands=("simulate",),
+           "never waits (the relaxed ADMM, on a fixed grid)", group=ALGORITHM, commands=("simulate", "launch"),
            section="algorithm", choices=("lockstep", "free"), target=None),
     Option("period", DURATION, 0.01, "free sync: each robot's tick period", group=ALGORITHM,
-           commands=("simulate", "sweep"), section="algorithm", check=positive, target=None),
+           commands=("simulate", "launch", "sweep"), section="algorithm", check=positive, target=None),
     # -- sweep (issue 13): delay x loss x sync, in-process ------------------------------------
-    Option("delays", STR, "0ms,10ms,20ms,50ms", "sweep: one-way delays, comma-separated", group=SWEEP,
+    Option("delays", STR, None, "sweep: one-way delays, comma-separated (default 0ms,10ms,20ms,50ms; "
+           "--over zenoh: 0ms,20ms)", group=SWEEP,
            commands=("sweep",), metavar="D1,D2,...", check=_durations, target=None),
-    Option("losses", STR, "0,0.1,0.3,0.5", "sweep: loss probabilities, comma-separated", group=SWEEP,
+    Option("losses", STR, None, "sweep: loss probabilities, comma-separated (default 0,0.1,0.3,0.5; "
+           "--over zenoh: 0,0.3)", group=SWEEP,
            commands=("sweep",), metavar="P1,P2,...", check=_probabilities, target=None),
     Option("syncs", STR, "lockstep,free", "sweep: modes, comma-separated: lockstep (today's ADMM, the "
            "reference), free (the relaxed ADMM), free-newest (today's ADMM fed the newest values: biased) or "
@@ -405,6 +407,9 @@ OPTIONS: tuple[Option, ...] = (
            check=_syncs, target=None),
     Option("jobs", INT, None, "sweep: worker processes (default: one per core)", group=SWEEP,
            commands=("sweep",), check=at_least(1), target=None),
+    Option("over", STR, "inprocess", "sweep: inprocess (virtual time, parallel) or zenoh (spot checks: one "
+           "router and robot processes per run, one run at a time, wall-clock seconds)", group=SWEEP,
+           commands=("sweep",), choices=("inprocess", "zenoh"), target=None),
     Option("out", PATH, None, "output folder (default: a new folder under runs/)", metavar="DIR", target=None,
            commands=(*SCENARIO_COMMANDS, "collect", "sweep"), show_default=False),
     # -- network faults ------------------------------------------------------------------

@@ -29,6 +29,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from agents.pdmm import FREE_ALGORITHMS, build_free_core  # noqa: F401 - the free cores live with their mathematics
 from agents.problem import InfeasibleError, SolverError
 from agents.spec import FleetSpec, build_core, restore_core
 from protocol.links import LinkLayer
@@ -238,35 +239,7 @@ class ClockModel:
             raise ValueError(f"drift must be below 0.5, got {self.drift}")
 
 
-FREE_ALGORITHMS = ("radmm", "admm-newest", "ct-admm-free")
 TickFn = Callable[[float, int, "np.ndarray"], None]
-
-
-def build_free_core(spec: FleetSpec, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm",
-                    period: float = 0.01) -> Any:
-    """Robot ``rid``'s free-mode core on the spec's grid: the relaxed ADMM of agents/pdmm.py, or
-    (for measurement) today's ADMM fed the newest values (``admm-newest``) or the paper's CT-ADMM
-    integrating one ``period`` per tick with held samples (``ct-admm-free``)."""
-    from agents.ct_admm import CTADMMParams
-    from agents.pdmm import FreeCTADMM, NewestValueADMM, RelaxedADMM, RelaxedADMMParams
-
-    if algorithm not in FREE_ALGORITHMS:
-        raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
-    if not spec.fixed_grid:
-        raise ValueError("free sync needs a fixed grid and sigma (--grid and --sigma, or --preset paper)")
-    me = spec.robots[rid]
-    degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
-    # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
-    # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
-    given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
-    kw: dict[str, Any] = {}
-    if algorithm == "admm-newest":
-        kw["relax"] = float(given.get("relax", spec.params.get("relax", 1.95)))
-    if algorithm == "ct-admm-free":
-        kw["ct_params"] = CTADMMParams(period=period)
-    cls = {"radmm": RelaxedADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
-    return cls(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
-               params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees, **kw)
 
 
 def simulate_free(

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import math
 import multiprocessing
 import os
@@ -28,7 +29,13 @@ CLAIM = 1e-3
 #: free-newest and free-ct are the measurements of docs/robustness.md (they may diverge: a row says so)
 MODES = {"lockstep": None, "free": "radmm", "free-newest": "admm-newest", "free-ct": "ct-admm-free"}
 FIELDS = ("sync", "delay_s", "loss", "converged", "error", "time_to_claim_s", "stop_s", "rounds", "bytes_sent",
-          "frames_sent", "verdict", "wall_s", "cpu_s")
+          "frames_sent", "verdict", "wall_s", "cpu_s", "over")
+#: where a sweep runs: in process (virtual time) or over Zenoh (processes, wall-clock time)
+OVER = ("inprocess", "zenoh")
+#: the modes a Zenoh robot process runs (agents/robot.py, agents/free_robot.py)
+ZENOH_MODES = ("lockstep", "free")
+#: the grid when --delays / --losses are not given: the full map in process, spot checks over Zenoh
+DEFAULT_GRID = {"inprocess": ("0ms,10ms,20ms,50ms", "0,0.1,0.3,0.5"), "zenoh": ("0ms,20ms", "0,0.3")}
 _CACHE: dict[tuple[int, int], Any] = {}
 
 
@@ -60,7 +67,6 @@ def _error(spec: Any, central: Any, v: np.ndarray) -> float:
 
 def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     """One run of the sweep (in a worker process): the row of FIELDS."""
-    from launcher.report import agreement_verdict
     from launcher.simulate import FleetFailure, simulate_fleet, simulate_free
     from protocol.links import LinkFaults
 
@@ -74,7 +80,11 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
         if _error(spec, central, v) >= CLAIM:
             last_bad[rid] = t
 
-    row: dict[str, Any] = {"sync": cell["sync"], "delay_s": cell["delay_s"], "loss": cell["loss"]}
+    over = cell.get("over", "inprocess")
+    row: dict[str, Any] = {"sync": cell["sync"], "delay_s": cell["delay_s"], "loss": cell["loss"], "over": over}
+    if over == "zenoh":
+        return {**row, **_zenoh_cell(cell, spec, central), "wall_s": time.perf_counter() - t0,
+                "cpu_s": time.process_time() - c0}
     try:
         if cell["sync"] != "lockstep":
             out = simulate_free(spec, period=cell["period"], on_tick=on_tick, max_virtual_s=cell["max_s"],
@@ -91,12 +101,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
             bad = [int(k) for k, v in r["trace"].items() if _error(spec, central, np.asarray(v)) >= CLAIM]
             if bad:
                 last_bad[int(r["id"])] = float(r["round_times"].get(max(bad) + 1, out.virtual_s))
-    b = spec.basis
-
-    def pair(p: dict[str, Any], q: dict[str, Any]) -> float:
-        return b.function_error(b.c_from_x(np.asarray(p["x"])), p["gamma"], b.c_from_x(np.asarray(q["x"])), q["gamma"])
-
-    verdict = agreement_verdict(out.robots, pair, tol=CLAIM)
+    verdict = _verdict(spec, out.robots)
     return {**row, "converged": verdict["converged"], "error": max(errors),
             "time_to_claim_s": max(last_bad.values(), default=0.0) if max(errors) < CLAIM else math.nan,
             "stop_s": out.virtual_s, "rounds": max(int(r["rounds"]) for r in out.robots),
@@ -104,21 +109,98 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
             "verdict": verdict["verdict"], "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
 
 
+def _verdict(spec: Any, robots: list[dict[str, Any]]) -> dict[str, Any]:
+    """The launcher's agreement verdict on the robots' final answers (never a claim of accuracy)."""
+    from launcher.report import agreement_verdict
+
+    b = spec.basis
+
+    def pair(p: dict[str, Any], q: dict[str, Any]) -> float:
+        return b.function_error(b.c_from_x(np.asarray(p["x"])), p["gamma"], b.c_from_x(np.asarray(q["x"])), q["gamma"])
+
+    return agreement_verdict(robots, pair, tol=CLAIM)
+
+
+def _zenoh_cell(cell: dict[str, Any], spec: Any, central: Any) -> dict[str, Any]:
+    """One spot check over Zenoh: a router and robot processes on loopback (launcher/fleet.py),
+    faults on the robots' receiving links. Times are each robot's wall-clock seconds from its own
+    start (lockstep: its session's round_times; free: its tick log, SHAPEFLEET_PROFILE); the
+    worst robot counts. Bytes: each robot's encoded frames times its neighbours (one copy per link,
+    as the in-process links count them)."""
+    import tempfile
+
+    from launcher.fleet import LaunchError, launch_fleet
+
+    argv = ("-m", "agents.free_robot", "--period", repr(float(cell["period"]))) if cell["sync"] == "free" else (
+        "-m", "agents.robot")
+    before = os.environ.get("SHAPEFLEET_PROFILE")
+    os.environ["SHAPEFLEET_PROFILE"] = "1"  # the free robots' tick logs (inherited by the processes)
+    try:
+        with tempfile.TemporaryDirectory(prefix="sweep-zenoh-") as tmp:
+            try:
+                out = launch_fleet(spec, workdir=Path(tmp), crashes=[], restart_after=0.5, restart=False,
+                                   zenoh_port=None, progress=False, robot_argv=argv)
+            except LaunchError as exc:
+                return _failed(f"launch failed: {exc}")
+            last_bad = [_last_bad_time(spec, central, r, Path(tmp)) for r in out.robots]
+    finally:
+        if before is None:
+            os.environ.pop("SHAPEFLEET_PROFILE", None)
+        else:
+            os.environ["SHAPEFLEET_PROFILE"] = before
+    if len(out.robots) != spec.n_robots:
+        return _failed(f"{spec.n_robots - len(out.robots)} robots wrote no result")
+    errors = [_error(spec, central, np.append(r["x"], r["gamma"])) for r in out.robots]
+    verdict = _verdict(spec, out.robots)
+    deg = {i: len(r.neighbours) for i, r in spec.robots.items()}
+    return {"converged": verdict["converged"], "error": max(errors),
+            "time_to_claim_s": max(last_bad) if max(errors) < CLAIM else math.nan,
+            "stop_s": max(float(r["wall_s"]) for r in out.robots), "rounds": max(int(r["rounds"]) for r in out.robots),
+            "bytes_sent": sum(int(r["bytes_sent"]) * deg[int(r["id"])] for r in out.robots),
+            "frames_sent": sum(int(r["frames_sent"]) for r in out.robots), "verdict": verdict["verdict"]}
+
+
+def _failed(why: str) -> dict[str, Any]:
+    return {"converged": False, "error": math.nan, "time_to_claim_s": math.nan, "stop_s": math.nan, "rounds": 0,
+            "bytes_sent": 0, "frames_sent": 0, "verdict": why}
+
+
+def _last_bad_time(spec: Any, central: Any, row: dict[str, Any], workdir: Path) -> float:
+    """The robot's own seconds at which its answer was last 1e-3 or more from the exact one."""
+    ticks = workdir / f"robot-{row['id']}.json.ticks.json"
+    if ticks.exists():  # free: [t, *values] per tick
+        log = json.loads(ticks.read_text())["ticks"]
+        bad = [t for t, *v in log if _error(spec, central, np.asarray(v)) >= CLAIM]
+        return max(bad, default=0.0)
+    bad = [int(k) for k, v in row["trace"].items() if _error(spec, central, np.asarray(v)) >= CLAIM]
+    times = row["round_times"]
+    return float(times.get(max(bad) + 1, row["wall_s"])) if bad else 0.0
+
+
 def cells(delays: list[float], losses: list[float], syncs: list[str], *, seed: int = 0, robots: int = 3,
-          period: float = 0.01, max_s: float = 60.0) -> list[dict[str, Any]]:
-    """Every run of the grid, slowest first (free runs at high delay) so the pool ends together."""
+          period: float = 0.01, max_s: float | None = None, over: str = "inprocess") -> list[dict[str, Any]]:
+    """Every run of the grid, slowest first (free runs at high delay) so the pool ends together.
+    ``max_s``: each run's bound (robots' seconds; default 60 in process, 30 over Zenoh)."""
+    if over not in OVER:
+        raise ValueError(f"--over: {over!r} is not one of {', '.join(OVER)}")
     unknown = [m for m in syncs if m not in MODES]
     if unknown:
         raise ValueError(f"unknown sweep mode {unknown[0]!r}; choose from {', '.join(MODES)}")
-    out = [{"sync": s, "delay_s": d, "loss": p, "seed": seed, "robots": robots, "period": period, "max_s": max_s}
-           for s in syncs for d in delays for p in losses]
+    if over == "zenoh" and set(syncs) - set(ZENOH_MODES):
+        raise ValueError(f"--syncs: over Zenoh the modes are {', '.join(ZENOH_MODES)} (robot processes), "
+                         f"not {sorted(set(syncs) - set(ZENOH_MODES))[0]}")
+    max_s = max_s if max_s is not None else (60.0 if over == "inprocess" else 30.0)
+    out = [{"sync": s, "delay_s": d, "loss": p, "seed": seed, "robots": robots, "period": period, "max_s": max_s,
+            "over": over} for s in syncs for d in delays for p in losses]
     return sorted(out, key=lambda c: (c["sync"] == "lockstep", -c["delay_s"], -c["loss"]))
 
 
 def run_sweep(grid: list[dict[str, Any]], *, jobs: int | None = None,
               progress: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
-    """Run every cell on ``jobs`` processes (default: one per core); rows in the grid's order."""
-    jobs = jobs or os.cpu_count() or 1
+    """Run every cell on ``jobs`` processes (default: one per core); rows in the grid's order.
+    Zenoh cells run one at a time (each is a fleet of processes on its own: parallel runs would
+    share the cores and slow each other's wall clock)."""
+    jobs = 1 if any(c.get("over") == "zenoh" for c in grid) else (jobs or os.cpu_count() or 1)
     rows: list[dict[str, Any]] = []
     if jobs == 1:
         for c in grid:
@@ -188,7 +270,8 @@ def summary(rows: list[dict[str, Any]]) -> Any:
     """A rich table: one line per run."""
     from rich.table import Table
 
-    t = Table(title="sweep: error vs exact and time to 1e-3 (robots' virtual seconds); agree = the verdict "
+    t = Table(title="sweep: error vs exact and time to 1e-3 (robots' seconds: virtual in process, wall-clock over "
+                "Zenoh); agree = the verdict "
                 "(robots agree, connected) -- a biased fleet can agree on a wrong answer")
     for name in ("mode", "delay", "loss", "agree", "error", "to 1e-3", "stop", "rounds", "MB"):
         t.add_column(name, justify="right", no_wrap=True)

@@ -137,6 +137,11 @@ class FreeSession:
         self._next = None if self.stopped is not None and self._linger <= 0 else now + self.period
         return [(BROADCAST, self._encode(packets))]
 
+    def interrupt(self) -> None:
+        """The shell stops the robot from outside (a signal): its row says ``stopped = "signal"``."""
+        if self.stopped is None:
+            self._stop("signal", None)
+
     def _stop(self, why: str, error: str | None) -> None:
         self.stopped, self.error, self._next = why, error, None
 

@@ -33,7 +33,9 @@ def test_cells_put_the_slow_free_runs_first_and_rows_come_back_in_grid_order():
 
 
 @pytest.mark.parametrize("argv, flag", [(["--losses", "1.5"], "--losses"), (["--syncs", "fast"], "--syncs"),
-                                        (["--delays", ""], "--delays"), (["--jobs", "0"], "--jobs")])
+                                        (["--delays", ""], "--delays"), (["--jobs", "0"], "--jobs"),
+                                        (["--over", "zenoh", "--syncs", "free,free-ct"], "--syncs"),
+                                        (["--over", "mars"], "--over")])
 def test_bad_sweep_input_exits_2_naming_the_flag(argv, flag, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["sweep", *argv, "--out", str(tmp_path / "bad")])
