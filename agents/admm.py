@@ -167,16 +167,16 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     right-looking updates are elementwise numpy (each entry updated in the same order), the
     triangular solves exactly rounded sums (math.fsum over Python floats: the same products, less
     overhead than numpy for vectors this short) -- no BLAS call whose summation order varies."""
-    A = np.array(H, dtype=float)
+    A = np.array(H, dtype=float)  # becomes L in its lower triangle, column by column
     n = len(A)
-    L = np.zeros((n, n))
     for k in range(n):
         if not A[k, k] > 0:
             raise np.linalg.LinAlgError("not positive definite")
-        L[k, k] = math.sqrt(A[k, k])
-        L[k + 1 :, k] = A[k + 1 :, k] / L[k, k]
-        A[k + 1 :, k + 1 :] -= np.multiply.outer(L[k + 1 :, k], L[k + 1 :, k])
-    rows, cols, rhs = L.tolist(), L.T.tolist(), [float(v) for v in g]
+        A[k, k] = lkk = math.sqrt(A[k, k])
+        col = A[k + 1 :, k]
+        col /= lkk
+        A[k + 1 :, k + 1 :] -= np.multiply.outer(col, col)
+    rows, cols, rhs = A.tolist(), A.T.tolist(), [float(v) for v in g]
     y = [0.0] * n
     for i in range(n):
         y[i] = (rhs[i] - math.fsum(map(operator.mul, rows[i][:i], y[:i]))) / rows[i][i]
