@@ -192,8 +192,9 @@ class _Hub:
     On a complete graph every robot receives every robot's local solution v_l each round, so each
     can run the hub form of consensus ADMM (z = mean, one scaled dual u_l per robot) for the whole
     fleet, and accelerate its fixed-point map s = (z, u_1..u_N) -> T(s) with type-II Anderson
-    acceleration (Zhang, O'Donoghue & Boyd 2018). All arithmetic that mixes robots is exactly
-    rounded (`_dots`, `_solve_spd`) or elementwise, in robot-id order, so the copies stay bit-for-bit
+    acceleration (Zhang, O'Donoghue & Boyd 2018). All arithmetic that mixes robots runs in an order
+    fixed by the sizes alone -- sums compensated to math.fsum's bits in practice (`_dots`), exactly
+    rounded (`_solve_spd`) or elementwise, in robot-id order -- so the copies stay bit-for-bit
     equal; every extrapolation is an affine combination of states with sum_l u_l = 0, and the
     plain map restores that invariant anyway, so the fixed point is the centralized solution.
     """
