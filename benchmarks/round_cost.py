@@ -20,7 +20,16 @@ processes (benchmarks/zenoh_exchange.py, ``asyncio`` variant) and prints the rat
 
     .venv/bin/python benchmarks/round_cost.py                 # 3 robots, 300 rounds
     .venv/bin/python benchmarks/round_cost.py --robots 8 --robots-per-process 4
-    .venv/bin/python benchmarks/round_cost.py --write         # also benchmarks/results/round_cost.md
+    .venv/bin/python benchmarks/round_cost.py --compute --base /tmp/main-copy --repeats 2
+
+``--compute`` measures the core's cost instead (the "compute per round" section of
+results/round_cost.md): the default run (autogrid, 3 robots, complete graph) in process --
+``simulate_fleet`` alone, no report or plots -- as process CPU seconds, rounds and CPU ms per
+fleet round, then ``launch`` of the same run (3 robot processes + router over loopback Zenoh, what
+``make demo`` runs) as wall seconds. With ``--base`` (another checkout, e.g. an export of main:
+``git archive main | tar -x -C DIR``) every measurement alternates between that tree and this
+one, run back to back with the same interpreter, so that the load of the shared machine hits
+both alike; the load average is printed beside each figure.
 
 Bounded: every run has ``max_wall_s`` and the launcher's own time bound.
 """
@@ -143,6 +152,64 @@ def render(res: dict, bare: float | None, label: str) -> str:
     return "\n".join(lines)
 
 
+COMPUTE_SNIPPET = """
+import json, os, sys, time
+sys.path.insert(0, os.getcwd())
+from launcher.simulate import simulate_fleet
+from launcher.world import Options, build_world
+_, spec = build_world(Options(fleet_id="compute"))
+cpu, wall = time.process_time(), time.perf_counter()
+out = simulate_fleet(spec)
+cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+print(json.dumps({"cpu_s": cpu, "wall_s": wall, "rounds": max(r["rounds"] for r in out.robots)}))
+"""
+
+
+def _compute_run(tree: Path) -> dict:
+    """CPU of the default run's ``simulate_fleet`` in a fresh interpreter importing ``tree``."""
+    load = os.getloadavg()[0]
+    out = subprocess.run([sys.executable, "-c", COMPUTE_SNIPPET], cwd=tree, capture_output=True, text=True,
+                         timeout=600, env={**os.environ, "PYTHONPATH": str(tree)})
+    if out.returncode != 0:
+        raise RuntimeError(f"compute run in {tree} failed: {out.stderr.strip()[-500:]}")
+    return {**json.loads(out.stdout.strip().splitlines()[-1]), "load": load}
+
+
+def _launch_run(tree: Path) -> dict:
+    """Wall seconds of ``launch`` (the default run, what ``make demo`` starts) from ``tree``."""
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="shapefleet-demo-") as tmp:
+        t = time.perf_counter()
+        out = subprocess.run([sys.executable, "-m", "launcher.cli", "launch", "--out", tmp], cwd=tree,
+                             capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(tree)})
+        wall = time.perf_counter() - t
+        rounds = json.loads((Path(tmp) / "result.json").read_text())["rounds"] if out.returncode == 0 else None
+    if out.returncode != 0:
+        raise RuntimeError(f"launch in {tree} failed: {out.stderr.strip()[-500:]}")
+    return {"wall_s": wall, "rounds": rounds, "load": load}
+
+
+def compute_table(base: Path | None, repeats: int, demo: bool) -> str:
+    """Markdown rows: per tree and repeat, in-process CPU and rounds, and launch wall time."""
+    trees = ([("before", base)] if base else []) + [("after", ROOT)]
+    lines = ["| tree | run | rounds | simulate_fleet CPU s | CPU ms per fleet round | load | launch wall s | rounds | load |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    print("\n".join(lines), flush=True)
+    for k in range(repeats):
+        for label, tree in trees:
+            c = _compute_run(tree)
+            row = (f"| {label} | {k + 1} | {c['rounds']} | {c['cpu_s']:.2f} | {1e3 * c['cpu_s'] / c['rounds']:.1f} "
+                   f"| {c['load']:.1f} |")
+            if demo:
+                d = _launch_run(tree)
+                row += f" {d['wall_s']:.1f} | {d['rounds']} | {d['load']:.1f} |"
+            else:
+                row += " | | |"
+            lines.append(row)
+            print(row, flush=True)
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, default=3)
@@ -151,7 +218,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robots-per-process", type=int, default=None)
     ap.add_argument("--label", default=None)
     ap.add_argument("--no-bare", action="store_true")
+    ap.add_argument("--compute", action="store_true", help="the core's cost on the default run (module doc)")
+    ap.add_argument("--base", type=Path, default=None, help="with --compute: another checkout to compare against")
+    ap.add_argument("--repeats", type=int, default=1, help="with --compute: alternations of the trees")
+    ap.add_argument("--no-launch", action="store_true", help="with --compute: skip the launch (make demo) timing")
     args = ap.parse_args(argv)
+    if args.compute:
+        print(f"# compute per round, {os.cpu_count()} cores", flush=True)
+        compute_table(args.base, args.repeats, not args.no_launch)
+        return 0
     load = os.getloadavg()[0]
     res = profile_run(args.robots, args.rounds, topology=args.topology, per_process=args.robots_per_process)
     bare = None if args.no_bare else bare_exchange(args.robots)

@@ -687,3 +687,18 @@ def test_near_data_cell_is_decided_on_lattice_indices_with_ties_allowed_both_way
             want = (nearest & marks[None]).any(axis=1)
             assert got.shape == (len(fine),) and np.array_equal(got, want), (scale, level)
             assert (nearest.sum(axis=1) > 1).any()  # ties exist: halfway nodes and cell centres
+
+
+def test_sweep_raster_kernel_kept_gives_the_basis_bits():
+    """The sweep keeps k(raster, G) per candidate for the solid check: the decision values must
+    be the basis's own bits, for the kept points and after the points change."""
+    from agents.autogrid_sweep import _RasterBasis
+    from agents.kernel import lattice as kernel_lattice
+
+    rng = np.random.default_rng(3)
+    basis = GridBasis(kernel_lattice(6, 5, (-2.0, 2.0, -1.5, 1.5)), 0.7)
+    kept = _RasterBasis(basis)
+    for points in (rng.normal(size=(50, 2)), rng.normal(size=(50, 2)), rng.normal(size=(7, 2))):
+        for _ in range(2):
+            c, gamma = rng.normal(size=basis.size), float(rng.normal())
+            assert kept.decision(points, c, gamma).tobytes() == basis.decision(points, c, gamma).tobytes()
