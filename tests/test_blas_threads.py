@@ -1,0 +1,34 @@
+"""Every shapefleet process computes with one BLAS thread unless the user says otherwise (why: the
+package __init__ files), and the setting takes effect: it must be in place before numpy loads
+OpenBLAS, which a late import would silently miss."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+threadpoolctl = pytest.importorskip("threadpoolctl")
+
+
+def _openblas_threads() -> list[int]:
+    return [p["num_threads"] for p in threadpoolctl.threadpool_info() if p.get("internal_api") == "openblas"]
+
+
+def test_this_test_process_runs_openblas_with_the_configured_thread_count():
+    import numpy  # noqa: F401 - loads OpenBLAS if nothing has yet
+
+    threads = _openblas_threads()
+    assert threads, "numpy's OpenBLAS not found by threadpoolctl"
+    assert set(threads) == {int(os.environ["OPENBLAS_NUM_THREADS"])}
+
+
+@pytest.mark.parametrize("module", ["agents.robot", "launcher.cli"])
+def test_a_robot_process_and_the_cli_start_with_one_blas_thread(module):
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    code = (f"import {module}, numpy, threadpoolctl; "
+            "print(sorted({p['num_threads'] for p in threadpoolctl.threadpool_info() "
+            "if p.get('internal_api') == 'openblas'}))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[1]"
