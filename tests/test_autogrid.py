@@ -66,9 +66,15 @@ def run_fleet(cores, limit=40_000):
     raise AssertionError("fleet did not finish")
 
 
-def _resume_from_checkpoints(cores, robots, params):
-    """Restart every robot from a msgpack round trip of its checkpoint and run to the end."""
-    blobs = [msgpack.packb(c.checkpoint(), use_bin_type=True) for c in cores]
+def _checkpoint_blobs(cores):
+    """Every robot's checkpoint as msgpack bytes (what a robot process writes to disk)."""
+    return [msgpack.packb(c.checkpoint(), use_bin_type=True) for c in cores]
+
+
+def _resume_from_checkpoints(cores, robots, params, blobs=None):
+    """Restart every robot from a msgpack round trip of its checkpoint (of `cores`, or the
+    `blobs` taken earlier) and run to the end."""
+    blobs = _checkpoint_blobs(cores) if blobs is None else blobs
     resumed = make_cores(robots, params)
     for c, b in zip(resumed, blobs):
         c.restore(msgpack.unpackb(b, raw=False, strict_map_key=False))
@@ -223,16 +229,38 @@ def _phase_rounds(core, name, nth=0):
     return starts[i][1], starts[i + 1][1]
 
 
-@pytest.mark.parametrize("when", ["vote", "admm-start", "admm", "flood"])
-def test_checkpoint_in_every_phase_resumes_bit_for_bit(small_run, when):
+WHEN = ("vote", "admm-start", "admm", "flood")
+
+
+def _checkpoints_at(robots, params, stops):
+    """{key: (the phase the robots were in, their checkpoints)} after stops[key] lock-step rounds.
+
+    One run takes them all in turn (a checkpoint only reads the state): the resumes share its
+    prefix instead of running it once each."""
+    cores, done, taken = make_cores(robots, params), 0, {}
+    for key in sorted(stops, key=stops.get):
+        _lockstep(cores, stops[key] - done)
+        done = stops[key]
+        taken[key] = (cores[0].phase, _checkpoint_blobs(cores))
+    return taken
+
+
+@pytest.fixture(scope="module")
+def phase_checkpoints(small_run):
     robots, params, ref = small_run
-    phase = when.split("-")[0]
-    start, end = _phase_rounds(ref[0], phase)
-    stop = {"vote": start, "admm-start": start, "admm": (start + end) // 2, "flood": end - 1}[when]
-    cores = make_cores(robots, params)
-    _lockstep(cores, stop)
-    assert cores[0].phase == phase
-    resumed = _resume_from_checkpoints(cores, robots, params)
+    stops = {}
+    for when in WHEN:
+        start, end = _phase_rounds(ref[0], when.split("-")[0])
+        stops[when] = {"vote": start, "admm-start": start, "admm": (start + end) // 2, "flood": end - 1}[when]
+    return _checkpoints_at(robots, params, stops)
+
+
+@pytest.mark.parametrize("when", WHEN)
+def test_checkpoint_in_every_phase_resumes_bit_for_bit(small_run, phase_checkpoints, when):
+    robots, params, ref = small_run
+    in_phase, blobs = phase_checkpoints[when]
+    assert in_phase == when.split("-")[0]
+    resumed = _resume_from_checkpoints(None, robots, params, blobs)
     for a, b in zip(ref, resumed):
         assert a.round == b.round and a.grid_history == b.grid_history and a.phases == b.phases
         assert np.array_equal(a.function()[1], b.function()[1])
@@ -436,14 +464,24 @@ def test_sigma_sweep_is_scale_free(sweep_runs):
     np.testing.assert_allclose(b.grid, 1000.0 * a.grid, rtol=1e-9, atol=1e-9 * 1000.0 * a.sigma)
 
 
-@pytest.mark.parametrize("phase", ["validate", "tally", "seed"])
-def test_checkpoint_during_the_sigma_sweep_resumes_bit_for_bit(sweep_runs, phase):
+SWEEP_PHASES = ("validate", "tally", "seed")
+
+
+@pytest.fixture(scope="module")
+def sweep_checkpoints(sweep_runs):
+    """{phase: (the phase the robots were in, their checkpoints)}, each taken in the middle of
+    that phase of the sweep, all three by one lock-step run (_checkpoints_at)."""
     _, robots, params, ref, _ = sweep_runs
-    start, end = _phase_rounds(ref[0], phase)
-    cores = make_cores(robots, params)
-    _lockstep(cores, (start + end) // 2)  # inside the phase (the middle of the one-pass sweep)
-    assert cores[0].phase == phase
-    resumed = _resume_from_checkpoints(cores, robots, params)
+    # inside the phase (the middle of the one-pass sweep)
+    return _checkpoints_at(robots, params, {p: sum(_phase_rounds(ref[0], p)) // 2 for p in SWEEP_PHASES})
+
+
+@pytest.mark.parametrize("phase", SWEEP_PHASES)
+def test_checkpoint_during_the_sigma_sweep_resumes_bit_for_bit(sweep_runs, sweep_checkpoints, phase):
+    _, robots, params, ref, _ = sweep_runs
+    in_phase, blobs = sweep_checkpoints[phase]
+    assert in_phase == phase
+    resumed = _resume_from_checkpoints(None, robots, params, blobs)
     for a, b in zip(ref, resumed):
         assert a.round == b.round and a.sigma == b.sigma and a.sigma_validation == b.sigma_validation
         assert np.array_equal(a.function()[1], b.function()[1])

@@ -77,13 +77,19 @@ FAULTS = [
 ]
 
 
+@pytest.fixture(scope="module")
+def clean_ring():
+    """The perfect-network run both fault cases below compare with (deterministic: run once)."""
+    _, clean_spec, _ = make_run(robots=4, topology="ring", max_rounds=120, tol=1e-12)
+    return simulate_fleet(clean_spec)
+
+
 @pytest.mark.parametrize("faults", FAULTS, ids=["mixed", "loss50"])
-def test_faults_change_time_not_iterates(faults):
+def test_faults_change_time_not_iterates(clean_ring, faults):
     """Exact recovery: under loss, delay, duplication and reordering every robot computes the
     very same iterates as on a perfect network -- so the same answer, not a biased one."""
-    _, clean_spec, central = make_run(robots=4, topology="ring", max_rounds=120, tol=1e-12)
     _, faulty_spec, _ = make_run(robots=4, topology="ring", max_rounds=120, tol=1e-12, faults=faults, seed=0)
-    clean = simulate_fleet(clean_spec)
+    clean = clean_ring
     faulty = simulate_fleet(faulty_spec)
     for a, b in zip(clean.robots, faulty.robots, strict=True):
         assert a["trace"].keys() == b["trace"].keys()
