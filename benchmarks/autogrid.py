@@ -93,8 +93,9 @@ def svc_iou(world, bounds, sigma):
     return scenario.iou_on_raster(world.shape, lambda q: clf.decision_function(q) < 0, bounds)
 
 
-def measure(name, kwargs, robots, points, params_kw):
-    world, spec = build_world(Options(fleet_id="bench", robots=robots, points=points, **kwargs))
+def measure(name, kwargs, robots, points, params_kw, free_space=None):
+    free = {} if free_space is None else {"free_space": free_space}
+    world, spec = build_world(Options(fleet_id="bench", robots=robots, points=points, **kwargs, **free))
     params = AutoGridParams(diameter=spec.params["diameter"], **params_kw)
     started = time.perf_counter()
     cores = run_fleet(world, spec, params)
@@ -158,10 +159,12 @@ def measure(name, kwargs, robots, points, params_kw):
 OUTLINE_SWEEP = (2, 3, 4, 6, 8, 12, 16, 24, 32)  # SVC's sigma candidates for the outlines: diag / k
 
 
-def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tuple[float, ...] | None = None) -> dict:
+def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tuple[float, ...] | None = None,
+                    free_space: int | None = None) -> dict:
     """One complex outline with the defaults of `simulate --shape-file path --robots 5 --points 40`
     (the spec's own autogrid parameters), against SVC with sigma by 5-fold CV and the oracle."""
-    world, spec = build_world(Options(fleet_id="bench", shape_file=path, robots=robots, points=points))
+    free = {} if free_space is None else {"free_space": free_space}
+    world, spec = build_world(Options(fleet_id="bench", shape_file=path, robots=robots, points=points, **free))
     params = spec.autogrid_params
     if divisors is not None:  # an experiment: other sigma candidates, everything else simulate's defaults
         params = dataclasses.replace(params, validate_divisors=divisors)
@@ -222,11 +225,12 @@ def main() -> None:
     ap.add_argument("--shapes", default="", help="comma-separated subset of shape names (default: all)")
     ap.add_argument("--outlines", nargs="*", default=None, help="issue 15: these outline CSVs (simulate defaults)")
     ap.add_argument("--divisors", default="", help="with --outlines: sigma candidates diag/d, e.g. 4,6,8,12,16,24")
+    ap.add_argument("--free-space", type=int, default=None, help="free-space samples per kept ray (default: simulate's)")
     args = ap.parse_args()
     if args.outlines is not None:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             divisors = tuple(float(d) for d in args.divisors.split(",")) if args.divisors else None
-            futures = [pool.submit(measure_outline, path, 5, 40, divisors) for path in args.outlines]
+            futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space) for path in args.outlines]
             rows = []
             for future in futures:
                 rows.append(future.result())
@@ -238,7 +242,7 @@ def main() -> None:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         wanted = [w for w in args.shapes.split(",") if w]
         shapes = [(n, k) for n, k in SHAPES if not wanted or n.split()[0] in wanted]
-        futures = [pool.submit(measure, name, kwargs, robots, points, params_kw) for name, kwargs in shapes]
+        futures = [pool.submit(measure, name, kwargs, robots, points, params_kw, args.free_space) for name, kwargs in shapes]
         rows = []
         for future in futures:
             row = future.result()

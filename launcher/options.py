@@ -341,6 +341,9 @@ OPTIONS: tuple[Option, ...] = (
            group=WORLD, section="world"),
     Option("noise", FLOAT, None, f"LiDAR range noise std (default 0.01 {_FOLLOWS})", group=WORLD,
            section="world"),
+    Option("free-space", INT, 0, "outside points per kept LiDAR ray in the free space before its return (issue "
+           "15: a ray certifies free space from the robot to the hit); 0 (default): none, the pairs alone", group=WORLD,
+           section="world", check=at_least(0)),
     Option("grid", STR, None, f"fixed grid of NXxNY points (default: automatic; the paper's is {PAPER_GRID}). "
            "With --algorithm autogrid: the start grid the fleet refines", group=MODEL, section="model",
            metavar="NXxNY", check=parse_grid),

@@ -501,7 +501,7 @@ def simulate_lidar(
     is dropped, so every label is right. With fov < 360 the sensor faces the centroid.
     Returns points (2k, 2) and labels (2k,), pairs consecutive, in ray order.
     """
-    points, labels, _ = _scan(
+    points, labels, _, _ = _scan(
         shape, pose, max_range=max_range, angular_res_deg=angular_res_deg, fov_deg=fov_deg,
         range_noise=range_noise, offset=offset, rng=rng,
     )
@@ -518,8 +518,9 @@ def _scan(
     range_noise: float = 0.01,
     offset: float = 0.1,
     rng: np.random.Generator | int,
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """simulate_lidar, and how many rays returned within range (kept pairs or not)."""
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """simulate_lidar, how many rays returned within range (kept pairs or not), and each kept
+    pair's ray as (direction x, direction y, measured range) rows, in pair order."""
     pose = _as_pose(pose)
     for flag, value, ok, need in (
         ("--range", max_range, max_range > 0, "a positive distance"),
@@ -559,7 +560,8 @@ def _scan(
     )
     points = np.stack([outside[good], inside[good]], axis=1).reshape(-1, 2)
     labels = np.tile(np.array([1, -1], dtype=np.int64), int(good.sum()))
-    return points, labels, int(hit.sum())
+    rays_kept = np.column_stack([direction[hit][good], measured[hit][good]])
+    return points, labels, int(hit.sum()), rays_kept
 
 
 def sample_robot_data(
@@ -568,6 +570,7 @@ def sample_robot_data(
     *,
     points_per_robot: int = 20,
     rng: np.random.Generator | int,
+    free_space: int = 0,
     **lidar_kwargs: float,
 ) -> list[RobotData]:
     """Scan from every pose and keep `points_per_robot` points per robot (robot ids 0..n-1).
@@ -591,7 +594,7 @@ def sample_robot_data(
     pairs_wanted = (points_per_robot + 1) // 2
     robots = []
     for robot_id, pose in enumerate(poses):
-        points, labels, returns = _scan(shape, pose, rng=rng, **lidar_kwargs)
+        points, labels, returns, rays = _scan(shape, pose, rng=rng, **lidar_kwargs)
         pairs = len(points) // 2
         if pairs == 0 and returns:  # it sees the object, but no pair straddles the outline
             offset, noise = lidar_kwargs.get("offset", 0.1), lidar_kwargs.get("range_noise", 0.01)
@@ -608,10 +611,49 @@ def sample_robot_data(
             )
         chosen = np.floor(np.linspace(0, pairs - 1, min(pairs, pairs_wanted)) + 0.5).astype(int)
         rows = (2 * chosen[:, None] + np.array([0, 1])).reshape(-1)[:points_per_robot]
-        robots.append(
-            RobotData(id=robot_id, points=points[rows], labels=labels[rows], pose=pose.copy())
-        )
+        points, labels = points[rows], labels[rows]
+        if free_space > 0:
+            free = free_space_samples(
+                shape, pose, rays[chosen], free_space, offset=lidar_kwargs.get("offset", 0.1)
+            )
+            points = np.vstack([points, free])
+            labels = np.concatenate([labels, np.ones(len(free), dtype=np.int64)])
+        robots.append(RobotData(id=robot_id, points=points, labels=labels, pose=pose.copy()))
     return robots
+
+
+#: free-space samples lie at least this many label offsets before a LiDAR return: beyond the
+#: pair's own outside point (1 offset), so they never crowd the outline the pairs describe
+FREE_MIN_GAP = 2.0
+#: ... and at most this share of the way from there back to the robot
+FREE_REACH = 0.5
+#: the golden ratio's fractional part: spreads the samples' gaps evenly over successive rays
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def free_space_samples(
+    shape: Polygon, pose: np.ndarray, rays: np.ndarray, per_ray: int, *, offset: float
+) -> np.ndarray:
+    """Outside (+1) points along LiDAR rays: a ray certifies free space from the robot to its return.
+
+    `rays` are (direction x, direction y, measured range) rows. Sample k of ray i lies a gap
+    g = offset * (FREE_MIN_GAP + u (r / offset - FREE_MIN_GAP) FREE_REACH) before the return,
+    u = frac((per_ray i + k + 1) golden ratio): a deterministic, scale-free spread (lengths in
+    units of the label offset and the range) that needs no random numbers, so the scan's noise
+    is the same with or without them. A sample the truth puts inside the object (range noise
+    far beyond the offset) is dropped, as simulate_lidar drops a wrong pair.
+    """
+    pose = _as_pose(pose)
+    if per_ray < 1 or len(rays) == 0:
+        return np.zeros((0, 2))
+    index = np.arange(len(rays) * per_ray)
+    ray = rays[index // per_ray]
+    u = np.mod((index + 1) * _GOLDEN, 1.0)
+    room = np.maximum(ray[:, 2] / offset - FREE_MIN_GAP, 0.0)
+    gap = offset * (FREE_MIN_GAP + u * room * FREE_REACH)
+    points = pose + (ray[:, 2] - gap)[:, None] * ray[:, :2]
+    keep = (ray[:, 2] - gap > 0) & ~shapely.intersects_xy(shape, points[:, 0], points[:, 1])
+    return points[keep]
 
 
 # ---------------------------------------------------------------------------------------------

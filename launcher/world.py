@@ -203,6 +203,7 @@ def _robots_and_lengths(opts: Options) -> tuple[Polygon | None, list[scenario.Ro
             max_range=lengths.lidar_range,
             range_noise=lengths.noise,
             offset=lengths.offset,
+            free_space=opts.free_space,
         )
     return shape, robots, lengths
 

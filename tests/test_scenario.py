@@ -550,3 +550,47 @@ def test_flag_parsers_only_raise_scenario_errors(text: str) -> None:
     for parse in (sc.parse_grid, sc.parse_bounds):
         with contextlib.suppress(ScenarioError):
             parse(text)
+
+
+# -- free space along LiDAR rays (issue 15) ------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["crescent", "cross"])
+def test_free_space_samples_lie_outside_on_their_rays_before_the_return(name: str) -> None:
+    """Every free-space sample is +1, truly outside, on the segment from the robot to one of the
+    robot's kept returns and at least FREE_MIN_GAP offsets before it; the pairs come first and
+    are exactly the data without free space (the scan's noise does not depend on them)."""
+    shape = sc.SHAPES[name]()
+    poses = sc.place_robots(shape, 3)
+    plain = sc.sample_robot_data(shape, poses, rng=3, offset=0.3)
+    free = sc.sample_robot_data(shape, poses, rng=3, offset=0.3, free_space=2)
+    for a, b, pose in zip(plain, free, poses, strict=True):
+        n = len(a.points)
+        np.testing.assert_array_equal(b.points[:n], a.points)
+        np.testing.assert_array_equal(b.labels[:n], a.labels)
+        extra, labels = b.points[n:], b.labels[n:]
+        assert len(extra) == 2 * (n // 2) and np.all(labels == 1)  # two per kept ray: none dropped here
+        _assert_labels_true(shape, extra, labels)
+        returns = a.points[0::2] - pose  # each pair's outside point lies on its ray
+        unit = returns / np.hypot(*returns.T)[:, None]
+        for p in extra:
+            d = p - pose
+            along = unit @ d  # distance along each kept ray
+            across = np.abs(unit[:, 0] * d[1] - unit[:, 1] * d[0])  # distance off it
+            ray = int(np.argmin(across - (along > 0)))
+            assert across[ray] < 1e-9 * np.hypot(*d) and along[ray] > 0
+            hit = np.hypot(*returns[ray]) + 0.3  # the measured return: the outside point is 1 offset before it
+            assert along[ray] <= hit - sc.FREE_MIN_GAP * 0.3 + 1e-9
+
+
+def test_free_space_samples_are_scale_free() -> None:
+    """The outline x1000 with every length x1000 gives the same data x1000 (to round-off)."""
+    shape = sc.SHAPES["bean"]()
+    big = affinity.scale(shape, 1000.0, 1000.0, origin=(0, 0))
+    poses = sc.place_robots(shape, 2)
+    small = sc.sample_robot_data(shape, poses, rng=1, offset=0.3, range_noise=0.01, free_space=1)
+    large = sc.sample_robot_data(big, poses * 1000.0, rng=1, offset=300.0, range_noise=10.0, max_range=4000.0,
+                                 free_space=1)
+    for a, b in zip(small, large, strict=True):
+        np.testing.assert_array_equal(a.labels, b.labels)
+        np.testing.assert_allclose(b.points, 1000.0 * a.points, rtol=1e-9, atol=1e-6)

@@ -139,7 +139,7 @@ def test_robots_placed_by_default_see_the_object_at_any_size(tmp_path: Path, kin
     for factor in [unit * 10 ** (i / 10) for i in range(10)] + [1e3 * unit]:
         outline = str(scaled_csv(source, factor, tmp_path))
         for robots in (1, 2, 3, 5, 8, 16):
-            world, _ = world_of(shape_file=outline, robots=robots, topology="geometric")
+            world, _ = world_of(shape_file=outline, robots=robots, topology="geometric", free_space=0)  # the pairs
             assert all(len(r.points) == 20 for r in world.robots), (outline, robots)
             assert world.graph.number_of_edges() == robots * (robots - 1) // 2, (outline, robots)
 
@@ -158,7 +158,7 @@ def test_complex_outlines_placed_by_default_see_the_object(tmp_path: Path, sourc
     factor = 1e-3 if source.stem.endswith("_mm") else 1e3
     for outline in (str(source), str(scaled_csv(source, factor, tmp_path))):
         for robots in (1, 3, 5, 8):
-            world, _ = world_of(shape_file=outline, robots=robots, points=40, topology="geometric")
+            world, _ = world_of(shape_file=outline, robots=robots, points=40, topology="geometric", free_space=0)
             assert all(len(r.points) >= (40 if robots <= 5 else 30) for r in world.robots), (outline, robots)
             assert world.graph.number_of_edges() == robots * (robots - 1) // 2, (outline, robots)
 
