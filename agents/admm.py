@@ -46,7 +46,7 @@ import numpy as np
 from agents.messages import StateUpdate
 from agents.params import params_from
 from agents.problem import MarginQP
-from agents.rounds import RoundCore, from_bytes, relative_gap, to_bytes
+from agents.rounds import RoundCore, check_local_data, from_bytes, relative_gap, to_bytes
 
 
 @dataclass(frozen=True)
@@ -445,6 +445,7 @@ class ConsensusADMM(RoundCore):
         keep_trace: bool = True,
         hub_frames: bool = True,
     ) -> None:
+        check_local_data(features, labels, C)
         super().__init__(
             robot_id,
             neighbours,

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from agents.params import params_from
-from agents.rounds import RoundCore, from_bytes, relative_gap, to_bytes
+from agents.rounds import RoundCore, check_local_data, from_bytes, relative_gap, to_bytes
 
 @dataclass(frozen=True)
 class CTADMMParams:
@@ -138,10 +138,7 @@ class ContinuousTimeADMM(RoundCore):
     ) -> None:
         features = np.asarray(features, dtype=float)
         labels = np.asarray(labels, dtype=float)
-        if features.ndim != 2 or len(features) != len(labels) or len(labels) == 0:
-            raise ValueError(f"features {features.shape} and labels {labels.shape} do not match")
-        if C is not None and not (math.isfinite(C) and C > 0):
-            raise ValueError(f"C must be a positive number or None, got {C!r}")
+        check_local_data(features, labels, C, allow_empty=False)
         super().__init__(
             robot_id,
             neighbours,

@@ -42,7 +42,7 @@ import numpy as np
 from agents.allreduce import SCHEDULES, AllReduce, ReducePlan, frame_slots
 from agents.problem import INFEASIBLE_ADVICE, margin_rows
 from agents.params import params_from
-from agents.rounds import RoundCore, from_bytes, to_bytes
+from agents.rounds import RoundCore, check_local_data, from_bytes, to_bytes
 
 @dataclass(frozen=True)
 class NewtonParams:
@@ -119,6 +119,7 @@ class DistributedNewton(RoundCore):
         C: float | None = None,
         keep_trace: bool = True,
     ) -> None:
+        check_local_data(features, labels, C)
         n = features.shape[1] + 1
         plan = ReducePlan.build(graph, robot_id, params.allreduce)
         super().__init__(
@@ -127,8 +128,6 @@ class DistributedNewton(RoundCore):
         )
         if tuple(sorted(graph.get(robot_id, ()))) != self.neighbours:
             raise ValueError(f"robot {robot_id}: neighbours {self.neighbours} differ from the graph's {graph.get(robot_id)}")
-        if C is not None and not (math.isfinite(C) and C > 0):
-            raise ValueError(f"C must be a positive number, got {C}")
         self.params = params
         self.n = n
         self._C = None if C is None else float(C)

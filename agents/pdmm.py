@@ -55,7 +55,7 @@ import numpy as np
 
 from agents.admm import ADMMParams, ConsensusADMM, edge_penalty
 from agents.problem import MarginQP
-from agents.rounds import RoundCore, check_iterate
+from agents.rounds import RoundCore, check_iterate, check_local_data, check_neighbours, result_row
 
 
 @dataclass(frozen=True)
@@ -148,8 +148,8 @@ class RelaxedADMM:
         C: float | None = None,
         neighbour_degrees: dict[int, int] | None = None,
     ) -> None:
-        if robot_id in neighbours:
-            raise ValueError(f"robot {robot_id} lists itself as a neighbour")
+        check_neighbours(robot_id, neighbours)
+        check_local_data(features, labels, C)
         self.robot_id = robot_id
         self.neighbours = tuple(sorted(neighbours))
         self.dim = features.shape[1] + 1
@@ -264,15 +264,7 @@ class RelaxedADMM:
     def result(self) -> dict[str, Any]:
         """x and gamma of this robot; the shell adds its counters."""
         return {
-            "id": self.robot_id,
-            "algorithm": self.algorithm,
-            "x": self._values[:-1].tolist(),
-            "gamma": float(self._values[-1]),
-            "rounds": self.ticks,
-            "converged": self.converged,
-            "residual": self.residual,
-            "neighbours": list(self.neighbours),
-            "dropped": [],
+            **result_row(self, self._values, rounds=self.ticks, dropped=[]),
             "packets_applied": self.applied,
             "packets_stale": self.stale,
         }

@@ -60,6 +60,40 @@ def relative_gap(v: np.ndarray, w: np.ndarray) -> float:
     return float(np.max(dx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))))
 
 
+def check_neighbours(robot_id: int, neighbours: tuple[int, ...]) -> None:
+    """A robot is not its own neighbour (its frames would count twice)."""
+    if robot_id in neighbours:
+        raise ValueError(f"robot {robot_id} lists itself as a neighbour")
+
+
+def check_local_data(features: Any, labels: Any, C: float | None, *, allow_empty: bool = True) -> None:
+    """Refuse a robot's share of the data that no core can use, with the same message whatever
+    the algorithm: features that are not a matrix with a row per label (no rows at all unless
+    ``allow_empty``: a fold of the sigma sweep may hold none), a C that is not a positive number
+    (None is the hard margin)."""
+    shape = np.shape(features)
+    if len(shape) != 2 or shape[0] != len(labels) or not (allow_empty or len(labels)):
+        raise ValueError(f"features {shape} and labels {np.shape(labels)} do not match")
+    if C is not None and not (math.isfinite(C) and C > 0):
+        raise ValueError(f"C must be a positive number or None (hard margin), got {C!r}")
+
+
+def result_row(core: Any, values: np.ndarray, *, rounds: int, dropped: list[int]) -> dict[str, Any]:
+    """The result every core reports, round-based or free: (x, gamma) = ``values`` and how it
+    stopped (``core``: robot_id, algorithm, converged, residual, neighbours)."""
+    return {
+        "id": core.robot_id,
+        "algorithm": core.algorithm,
+        "x": values[:-1].tolist(),
+        "gamma": float(values[-1]),
+        "rounds": rounds,
+        "converged": core.converged,
+        "residual": core.residual,
+        "neighbours": list(core.neighbours),
+        "dropped": list(dropped),
+    }
+
+
 @dataclass
 class _Inbox:
     """Neighbour values for the current round and the next (a neighbour may be one ahead)."""
@@ -102,8 +136,7 @@ class RoundCore:
         round_cap: int,
         keep_trace: bool,
     ) -> None:
-        if robot_id in neighbours:
-            raise ValueError(f"robot {robot_id} lists itself as a neighbour")
+        check_neighbours(robot_id, neighbours)
         if not 0 <= diameter <= 62:
             raise ValueError(f"diameter must be in [0, 62] (flag bits), got {diameter}")
         self.robot_id = robot_id
@@ -224,17 +257,7 @@ class RoundCore:
 
     def result(self) -> dict[str, Any]:
         """x and gamma of this robot; the shell adds its counters, the launcher the c's."""
-        return {
-            "id": self.robot_id,
-            "algorithm": self.algorithm,
-            "x": self._values[:-1].tolist(),
-            "gamma": float(self._values[-1]),
-            "rounds": self.round,
-            "converged": self.converged,
-            "residual": self.residual,
-            "neighbours": list(self.neighbours),
-            "dropped": list(self.dropped),
-        }
+        return result_row(self, self._values, rounds=self.round, dropped=self.dropped)
 
     # -- checkpoint ---------------------------------------------------------------------------
     def checkpoint(self) -> dict[str, Any]:

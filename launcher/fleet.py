@@ -737,176 +737,241 @@ def launch_fleet(
     Returns a :class:`LaunchOutcome` (a ``FleetOutcome``): ``robots`` holds the result of every
     robot that wrote one, sorted by id; a robot dead for good is absent.
     """
-    unknown = sorted({c.robot for c in crashes} - set(spec.robot_ids))
-    if unknown:
-        raise ValueError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
-    if restart_after < 0:
-        raise ValueError("--restart-after: must be a non-negative number of seconds")
+    router = _check_launch_args(spec, crashes, restart_after, zenoh_port, router)
     per_process = choose_robots_per_process(spec.n_robots, robots_per_process)
-    if router is not None:
-        if zenoh_port is not None:
-            raise ValueError("launch_fleet: give zenoh_port or router, not both")
-        router = validate_endpoint(router)  # loopback only
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     timing = fleet_timing(spec, crashes, restart=restart, restart_after=restart_after)
     run_spec = dataclasses.replace(spec, timing=timing) if timing is not spec.timing else spec
     fleet_file = workdir / "fleet.json"
     run_spec.save(fleet_file)
+    run = _LaunchRun(spec, workdir, time_bound_s(timing, len(crashes) if restart else 0, restart_after),
+                     progress and sys.stdout.isatty())
+    run.catch_stop_signals()
 
-    bound_s = time_bound_s(timing, len(crashes) if restart else 0, restart_after)
-    show = progress and sys.stdout.isatty()
-    console = None
-    if show:
-        from rich.console import Console
+    def start_robots(endpoint: str) -> _Fleet:
+        return run.start_robots(_Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
+                                       run.started, run.console, per_process, robot_argv))
 
-        console = Console()
+    run.start(zenoh_port, router, start_robots)
+    try:
+        if on_running is not None:
+            on_running(run.endpoint)
+        run.supervise()
+    finally:
+        run.shut_down()
+    return run.outcome()
 
-    started: list[int] = []
-    t0 = time.monotonic()
-    interrupted: list[str] = []
-    previous_handlers: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
+
+def _check_launch_args(spec: FleetSpec, crashes: list[CrashPlan], restart_after: float,
+                       zenoh_port: int | None, router: str | None) -> str | None:
+    """ValueError for arguments that cannot make a run; the router endpoint, checked (loopback)."""
+    unknown = sorted({c.robot for c in crashes} - set(spec.robot_ids))
+    if unknown:
+        raise ValueError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
+    if restart_after < 0:
+        raise ValueError("--restart-after: must be a non-negative number of seconds")
+    if router is None:
+        return None
+    if zenoh_port is not None:
+        raise ValueError("launch_fleet: give zenoh_port or router, not both")
+    return validate_endpoint(router)  # loopback only
+
+
+class _LaunchRun:
+    """One launch from the router's start to the outcome, in named steps (see `launch_fleet`)."""
+
+    def __init__(self, spec: FleetSpec, workdir: Path, bound_s: float, show: bool) -> None:
+        self.spec, self.workdir, self.bound_s = spec, workdir, bound_s
+        self.console = None
+        if show:
+            from rich.console import Console
+
+            self.console = Console()
+        self.started: list[int] = []
+        self.t0 = time.monotonic()
+        self.interrupted: list[str] = []
+        self.previous_handlers: dict[int, Any] = {}
+        self.router_restarts: list[float] = []
+        self.timeline = {"launch": self.t0}
+        self.timed_out = False
+        self.live_display: Any = None
+        self.own_router: _Router | None = None
+        self.fleet: _Fleet | None = None
+        self.endpoint = ""
+        self.port = 0
+
+    def catch_stop_signals(self) -> None:
+        """SIGTERM/SIGHUP/SIGINT end the run in order (robots write their results), not the launcher."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+
         def on_signal(signum: int, _frame: Any) -> None:
-            if not interrupted:
-                interrupted.append(signal.Signals(signum).name)
-                log.warning("launcher: %s received; stopping every robot", interrupted[0])
+            if not self.interrupted:
+                self.interrupted.append(signal.Signals(signum).name)
+                log.warning("launcher: %s received; stopping every robot", self.interrupted[0])
 
         for name in STOP_SIGNALS:
             sig = getattr(signal, name)
-            previous_handlers[sig] = signal.signal(sig, on_signal)
-    router_restarts: list[float] = []
-    timeline = {"launch": t0}
+            self.previous_handlers[sig] = signal.signal(sig, on_signal)
 
-    def start_robots(endpoint: str) -> _Fleet:
-        robots = _Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
-                        started, console, per_process, robot_argv)
+    def start_robots(self, robots: _Fleet) -> _Fleet:
+        """Start every robot process of ``robots``; on failure stop those already started."""
         try:
             robots.start_all()
         except BaseException:
             robots.abandon()
             raise
-        timeline["robots_started"] = time.monotonic()
+        self.timeline["robots_started"] = time.monotonic()
         return robots
 
-    if router is None:
-        own_router, fleet = _start_router(zenoh_port, workdir, bound_s + 2 * WALL_MARGIN_S, started,
-                                          meanwhile=start_robots)
-        endpoint, port = own_router.endpoint, own_router.port
-    else:
-        own_router, endpoint, port = None, router, parse_endpoint(router)[2]
-        fleet = start_robots(endpoint)
-    timeline["router_ready"] = time.monotonic()
-    timed_out = False
-    live_display = None
-    try:
-        if on_running is not None:
-            on_running(endpoint)
-        title = f"fleet {spec.fleet}: {spec.n_robots} robots on {endpoint}"
-        if show:
+    def start(self, zenoh_port: int | None, router: str | None, start_robots: Callable[[str], _Fleet]) -> None:
+        """Our own router (the robots start while it comes up) or the given one, then the robots."""
+        if router is None:
+            self.own_router, self.fleet = _start_router(zenoh_port, self.workdir, self._router_lifetime_s(),
+                                                        self.started, meanwhile=start_robots)
+            self.endpoint, self.port = self.own_router.endpoint, self.own_router.port
+        else:
+            self.endpoint, self.port = router, parse_endpoint(router)[2]
+            self.fleet = start_robots(self.endpoint)
+        self.timeline["router_ready"] = time.monotonic()
+
+    def _router_lifetime_s(self) -> float:
+        return self.bound_s + 2 * WALL_MARGIN_S
+
+    def supervise(self) -> None:
+        """Watch the fleet until every robot is done, a stop signal, or the time bound."""
+        fleet = self.fleet
+        assert fleet is not None
+        title = f"fleet {self.spec.fleet}: {self.spec.n_robots} robots on {self.endpoint}"
+        if self.console is not None:
             from rich.live import Live
 
-            live_display = Live(fleet.table(title), console=console, refresh_per_second=REFRESH_PER_S,
-                                transient=True)
-            live_display.start()
-        deadline = t0 + bound_s
+            self.live_display = Live(fleet.table(title), console=self.console, refresh_per_second=REFRESH_PER_S,
+                                     transient=True)
+            self.live_display.start()
+        deadline = self.t0 + self.bound_s
         next_draw = 0.0
         while True:
             now = time.monotonic()
-            if interrupted:
+            if self.interrupted:
                 break
-            if own_router is not None and own_router.proc.poll() is not None and fleet.live():
-                if len(router_restarts) >= ROUTER_RESTARTS:
-                    raise LaunchError(f"the Zenoh router died {len(router_restarts) + 1} times (log: {own_router.log_path})")
-                code = own_router.proc.returncode
-                own_router.stop()
-                own_router = _Router(port, workdir, bound_s + 2 * WALL_MARGIN_S)
-                started.append(own_router.proc.pid)
-                own_router.wait_ready(ROUTER_START_TIMEOUT_S)
-                router_restarts.append(time.monotonic() - t0)
-                fleet._say(f"the router exited (code {code}); restarted on {endpoint} (pid {own_router.proc.pid})")
+            if self._router_died():
+                self._restart_router()
                 continue
             fleet.restart_due(now)
             fleet.reap()
             if not fleet.busy():
                 break
             if now >= deadline:
-                timed_out = True
-                log.warning("fleet %s: time bound %.0fs reached; stopping every robot", spec.fleet, bound_s)
-                if console is not None:
-                    console.log(f"time bound {bound_s:.0f}s reached: stopping every robot")
+                self.timed_out = True
+                log.warning("fleet %s: time bound %.0fs reached; stopping every robot", self.spec.fleet, self.bound_s)
+                if self.console is not None:
+                    self.console.log(f"time bound {self.bound_s:.0f}s reached: stopping every robot")
                 break
             wait = min(0.25, deadline - now)
             nxt = fleet.next_restart()
             if nxt is not None:
                 wait = max(0.0, min(wait, nxt - now))
+            self._pump_events(wait)
+            if self.live_display is not None and now >= next_draw:
+                self.live_display.update(fleet.table(title))
+                next_draw = now + 1.0 / REFRESH_PER_S
+
+    def _router_died(self) -> bool:
+        assert self.fleet is not None
+        return self.own_router is not None and self.own_router.proc.poll() is not None and bool(self.fleet.live())
+
+    def _restart_router(self) -> None:
+        """Start our router again on its port (LaunchError after ROUTER_RESTARTS)."""
+        assert self.own_router is not None and self.fleet is not None
+        if len(self.router_restarts) >= ROUTER_RESTARTS:
+            raise LaunchError(f"the Zenoh router died {len(self.router_restarts) + 1} times "
+                              f"(log: {self.own_router.log_path})")
+        code = self.own_router.proc.returncode
+        self.own_router.stop()
+        self.own_router = _Router(self.port, self.workdir, self._router_lifetime_s())
+        self.started.append(self.own_router.proc.pid)
+        self.own_router.wait_ready(ROUTER_START_TIMEOUT_S)
+        self.router_restarts.append(time.monotonic() - self.t0)
+        self.fleet._say(f"the router exited (code {code}); restarted on {self.endpoint} "
+                        f"(pid {self.own_router.proc.pid})")
+
+    def _pump_events(self, wait: float) -> None:
+        """Handle the robots' status lines: the first waited for up to ``wait`` s, then all queued."""
+        assert self.fleet is not None
+        try:
+            item = self.fleet.events.get(timeout=wait)
+        except queue.Empty:
+            item = None
+        while item is not None:
+            self.fleet.on_line(*item)
             try:
-                item = fleet.events.get(timeout=wait)
+                item = self.fleet.events.get_nowait()
             except queue.Empty:
                 item = None
-            while item is not None:
-                fleet.on_line(*item)
-                try:
-                    item = fleet.events.get_nowait()
-                except queue.Empty:
-                    item = None
-            if live_display is not None and now >= next_draw:
-                live_display.update(fleet.table(title))
-                next_draw = now + 1.0 / REFRESH_PER_S
-    finally:
-        timeline["robots_exited"] = time.monotonic()
+
+    def shut_down(self) -> None:
+        """Stop every robot (SIGTERM: a robot still running writes its result), then the router,
+        the live table and our signal handlers -- each step even when one before it failed."""
+        self.timeline["robots_exited"] = time.monotonic()
         try:
-            if fleet is not None:
-                _stop_all(fleet.live())  # SIGTERM: a robot still running writes its result
+            if self.fleet is not None:
+                _stop_all(self.fleet.live())
         finally:
             try:
-                if own_router is not None:
-                    cpu = _cpu_seconds(own_router.proc.pid)
+                if self.own_router is not None:
+                    cpu = _cpu_seconds(self.own_router.proc.pid)
                     if cpu is not None:  # the router's CPU over the run: fan-out cost (docs/scaling.md)
-                        timeline["router_cpu_s"] = cpu
-                    own_router.stop()
+                        self.timeline["router_cpu_s"] = cpu
+                    self.own_router.stop()
             finally:
-                if live_display is not None:
-                    live_display.stop()
-                if fleet is not None:
-                    fleet.close()
-                for sig, handler in previous_handlers.items():
+                if self.live_display is not None:
+                    self.live_display.stop()
+                if self.fleet is not None:
+                    self.fleet.close()
+                for sig, handler in self.previous_handlers.items():
                     signal.signal(sig, handler)
-    assert fleet is not None
-    while True:  # status lines written just before the end
-        try:
-            fleet.on_line(*fleet.events.get_nowait())
-        except queue.Empty:
-            break
-    fleet.reap()
-    robots = _collect(fleet)
-    have = {res["id"]: res for res in robots}
-    for i, r in fleet.robots.items():  # final word: the result files
-        if i in have:
-            r.state = "finished" if have[i].get("stopped") == "finished" else "stopped"
-        else:
-            r.state = "dead"
-    totals = {
-        k: sum(int(r.get(f"frames_{k}", 0) or 0) for r in robots)
-        for k in ("sent", "received", "lost", "duplicated", "accepted", "rejected")
-    }
-    timeline["stopped"] = time.monotonic()
-    wall = time.monotonic() - t0
-    if console is not None:
-        console.print(fleet.table(f"fleet {spec.fleet}: {len(robots)}/{spec.n_robots} results, {wall:.1f}s"))
-    return LaunchOutcome(
-        robots=robots,
-        wall_s=wall,
-        virtual_s=wall,  # a process fleet runs in real time
-        link_stats=totals,
-        states={i: r.state for i, r in fleet.robots.items()},
-        crashes=list(fleet.crash_events),
-        crashes_not_fired=[c for r in fleet.robots.values() for c in r.crashes],
-        port=port,
-        workdir=workdir,
-        timed_out=timed_out,
-        pids=list(started),
-        interrupted=interrupted[0] if interrupted else None,
-        router_restarts=router_restarts,
-        timeline=timeline,
-    )
+
+    def outcome(self) -> LaunchOutcome:
+        """The result files (the final word on each robot's state) and the run's counters."""
+        fleet = self.fleet
+        assert fleet is not None
+        while True:  # status lines written just before the end
+            try:
+                fleet.on_line(*fleet.events.get_nowait())
+            except queue.Empty:
+                break
+        fleet.reap()
+        robots = _collect(fleet)
+        have = {res["id"]: res for res in robots}
+        for i, r in fleet.robots.items():
+            if i in have:
+                r.state = "finished" if have[i].get("stopped") == "finished" else "stopped"
+            else:
+                r.state = "dead"
+        totals = {
+            k: sum(int(r.get(f"frames_{k}", 0) or 0) for r in robots)
+            for k in ("sent", "received", "lost", "duplicated", "accepted", "rejected")
+        }
+        self.timeline["stopped"] = time.monotonic()
+        wall = time.monotonic() - self.t0
+        if self.console is not None:
+            self.console.print(fleet.table(f"fleet {self.spec.fleet}: {len(robots)}/{self.spec.n_robots} results, "
+                                           f"{wall:.1f}s"))
+        return LaunchOutcome(
+            robots=robots,
+            wall_s=wall,
+            virtual_s=wall,  # a process fleet runs in real time
+            link_stats=totals,
+            states={i: r.state for i, r in fleet.robots.items()},
+            crashes=list(fleet.crash_events),
+            crashes_not_fired=[c for r in fleet.robots.values() for c in r.crashes],
+            port=self.port,
+            workdir=self.workdir,
+            timed_out=self.timed_out,
+            pids=list(self.started),
+            interrupted=self.interrupted[0] if self.interrupted else None,
+            router_restarts=self.router_restarts,
+            timeline=self.timeline,
+        )

@@ -70,21 +70,8 @@ def agreement_verdict(
     robots, which partition, since which round).
     """
     rows = {int(r["id"]): r for r in robots}
-    graph = nx.Graph()
-    graph.add_nodes_from(rows)
-    for i, r in rows.items():
-        for j in r.get("neighbours") or []:
-            j = int(j)
-            if j in rows and i in {int(n) for n in rows[j].get("neighbours") or []}:
-                graph.add_edge(i, j)
-    disagreement = 0.0
-    worst: tuple[int, int] | None = None
-    for i, j in graph.edges:
-        e = max(float(pair_error(rows[i], rows[j])), float(pair_error(rows[j], rows[i])))
-        if not np.isfinite(e):
-            e = float("inf")
-        if e > disagreement or worst is None:
-            disagreement, worst = max(disagreement, e), (min(i, j), max(i, j))
+    graph = _live_links(rows)
+    disagreement, worst = _worst_link(graph, rows, pair_error)
     components = sorted((sorted(int(n) for n in c) for c in nx.connected_components(graph)), key=lambda c: c[0])
     connected = len(components) == 1
     failed = [i for i, r in rows.items() if r.get("stopped") in FAILED_STOPS or r.get("error")]
@@ -130,6 +117,36 @@ def agreement_verdict(
             "exact_bound": WRONG_ANSWER_FACTOR * tol,
         },
     }
+
+
+def _live_links(rows: dict[int, dict[str, Any]]) -> nx.Graph:
+    """The participants, linked i--j where each still lists the other as a neighbour."""
+    graph = nx.Graph()
+    graph.add_nodes_from(rows)
+    for i, r in rows.items():
+        for j in r.get("neighbours") or []:
+            j = int(j)
+            if j in rows and i in {int(n) for n in rows[j].get("neighbours") or []}:
+                graph.add_edge(i, j)
+    return graph
+
+
+def _worst_link(
+    graph: nx.Graph,
+    rows: dict[int, dict[str, Any]],
+    pair_error: Callable[[dict[str, Any], dict[str, Any]], float],
+) -> tuple[float, tuple[int, int] | None]:
+    """The largest disagreement over the live links (both ways; non-finite counts as inf) and
+    its link, the first one when none disagrees (None without links)."""
+    disagreement = 0.0
+    worst: tuple[int, int] | None = None
+    for i, j in graph.edges:
+        e = max(float(pair_error(rows[i], rows[j])), float(pair_error(rows[j], rows[i])))
+        if not np.isfinite(e):
+            e = float("inf")
+        if e > disagreement or worst is None:
+            disagreement, worst = max(disagreement, e), (min(i, j), max(i, j))
+    return disagreement, worst
 
 
 def _wrong_answer(
@@ -361,25 +378,12 @@ def disagreement_before_flood(robots: list[dict[str, Any]]) -> float | None:
     return None if not gaps or any(g is None for g in gaps) else float(max(gaps))
 
 
-def build_autogrid_result(
-    world: World,
-    robots: list[dict[str, Any]],
-    references: dict[int, Reference],
-    *,
-    wall_s: float,
-    extra: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """result.json of an autogrid run (docs/result-schema.md): each robot measured on its own grid.
-
-    The top-level grid, sigma, central solve and the autogrid fields are robot 0's (the first
-    robot with a function); ``robots_agree`` says whether every robot holds the same grid, sigma
-    and function bit for bit. No per-round ``history``: the exchanged vectors change meaning from
-    phase to phase (bounds, sigma vote, ADMM on each grid, flood).
-    """
+def _autogrid_rows(
+    world: World, robots: list[dict[str, Any]], references: dict[int, Reference]
+) -> tuple[list[dict[str, Any]], list[float], list[float], list[float]]:
+    """Each robot's row, measured on its own grid: the rows and the function errors, training
+    accuracies and IoUs of the robots whose reference exists."""
     pts, labels = world.points, world.labels
-    with_f = [r for r in robots if has_function(r)]
-    first = with_f[0] if with_f else (robots[0] if robots else {})
-    ref0 = references.get(int(first["id"])) if with_f else None
     rows, errors, accuracies, ious = [], [], [], []
     for r in robots:
         row = {k: v for k, v in r.items() if k not in ("trace", "x", "round_times", "residuals")}
@@ -395,14 +399,48 @@ def build_autogrid_result(
                 row["function_error"] = b.function_error(c, g, ref.central.c, ref.central.gamma)
                 errors.append(row["function_error"])
         rows.append(row)
+    return rows, errors, accuracies, ious
+
+
+def _autogrid_consensus(
+    robots: list[dict[str, Any]],
+    references: dict[int, Reference],
+    ref0: Reference | None,
+    agree: bool,
+    gap: float | None,
+) -> float:
+    """The consensus error: robots identical after the flood by construction report what was
+    measured before it; robots on one basis, their spread; else unknown (nan)."""
+    if agree:
+        return float("nan") if gap is None else gap
+    if ref0 is not None and all(references.get(int(r["id"])) is not None and references[int(r["id"])].basis is ref0.basis for r in robots):
+        fs = [(np.asarray(r["c"], dtype=float), float(r["gamma"])) for r in robots]
+        return _errors(ref0.basis, fs, ref0.central)[1]
+    return float("nan")
+
+
+def build_autogrid_result(
+    world: World,
+    robots: list[dict[str, Any]],
+    references: dict[int, Reference],
+    *,
+    wall_s: float,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """result.json of an autogrid run (docs/result-schema.md): each robot measured on its own grid.
+
+    The top-level grid, sigma, central solve and the autogrid fields are robot 0's (the first
+    robot with a function); ``robots_agree`` says whether every robot holds the same grid, sigma
+    and function bit for bit. No per-round ``history``: the exchanged vectors change meaning from
+    phase to phase (bounds, sigma vote, ADMM on each grid, flood).
+    """
+    with_f = [r for r in robots if has_function(r)]
+    first = with_f[0] if with_f else (robots[0] if robots else {})
+    ref0 = references.get(int(first["id"])) if with_f else None
+    rows, errors, accuracies, ious = _autogrid_rows(world, robots, references)
     agree = robots_agree(robots)
     gap = disagreement_before_flood(robots)
-    consensus = float("nan")
-    if agree:  # identical after the flood by construction: report what was measured before it
-        consensus = float("nan") if gap is None else gap
-    elif ref0 is not None and all(references.get(int(r["id"])) is not None and references[int(r["id"])].basis is ref0.basis for r in robots):
-        fs = [(np.asarray(r["c"], dtype=float), float(r["gamma"])) for r in robots]
-        consensus = _errors(ref0.basis, fs, ref0.central)[1]
+    consensus = _autogrid_consensus(robots, references, ref0, agree, gap)
     central = ref0.central if ref0 is not None else None
     result: dict[str, Any] = {
         "schema": SCHEMA_VERSION,

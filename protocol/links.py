@@ -31,6 +31,22 @@ _DURATION = re.compile(rf"\s*{_NUMBER}\s*(?P<unit>us|ms|s)?\s*")
 _UNIT_SECONDS = {"us": 1e-6, "ms": 1e-3, "s": 1.0}
 _PROBABILITY = re.compile(rf"\s*{_NUMBER}\s*(?P<pct>%?)\s*")
 _COUNTERS = ("sent", "dropped", "duplicated", "reordered", "delivered")
+_DURATION_HINT = "(use e.g. 20ms or 0.5s)"
+_PROBABILITY_HINT = "(use a fraction such as 0.3 or a percentage such as 30%)"
+
+
+def _match(pattern: re.Pattern[str], text: Any, *, flag: str, example: str, noun: str, negative: str,
+           hint: str) -> re.Match[str]:
+    """``text`` matched by ``pattern``; else ValueError naming ``flag``, what is wrong and ``hint``
+    (the one wording every option parser here gives)."""
+    if not isinstance(text, str):
+        raise ValueError(f"{flag}: expected text such as {example}, got {type(text).__name__} {hint}")
+    m = pattern.fullmatch(text)
+    if m is None:
+        if text.strip().startswith("-"):
+            raise ValueError(f"{flag}: {text!r} {negative} {hint}")
+        raise ValueError(f"{flag}: {text!r} is not a {noun} {hint}")
+    return m
 
 
 def parse_duration(text: str, *, flag: str) -> float:
@@ -38,20 +54,14 @@ def parse_duration(text: str, *, flag: str) -> float:
 
     A bare number other than 0 is refused: "20" could mean seconds or milliseconds.
     """
-    hint = "(use e.g. 20ms or 0.5s)"
-    if not isinstance(text, str):
-        raise ValueError(f"{flag}: expected text such as 20ms, got {type(text).__name__} {hint}")
-    m = _DURATION.fullmatch(text)
-    if m is None:
-        if text.strip().startswith("-"):
-            raise ValueError(f"{flag}: {text!r} is negative; a duration is >= 0 {hint}")
-        raise ValueError(f"{flag}: {text!r} is not a duration {hint}")
+    m = _match(_DURATION, text, flag=flag, example="20ms", noun="duration",
+               negative="is negative; a duration is >= 0", hint=_DURATION_HINT)
     value = float(m["num"])
     if m["unit"] is None and value != 0.0:
-        raise ValueError(f"{flag}: {text!r} has no unit {hint}")
+        raise ValueError(f"{flag}: {text!r} has no unit {_DURATION_HINT}")
     seconds = value * _UNIT_SECONDS[m["unit"] or "s"]
     if not math.isfinite(seconds):
-        raise ValueError(f"{flag}: {text!r} is not a finite duration {hint}")
+        raise ValueError(f"{flag}: {text!r} is not a finite duration {_DURATION_HINT}")
     return seconds
 
 
@@ -60,17 +70,11 @@ def parse_probability(text: str, *, flag: str) -> float:
 
     ValueError names ``flag`` and the accepted forms.
     """
-    hint = "(use a fraction such as 0.3 or a percentage such as 30%)"
-    if not isinstance(text, str):
-        raise ValueError(f"{flag}: expected text such as 0.3, got {type(text).__name__} {hint}")
-    m = _PROBABILITY.fullmatch(text)
-    if m is None:
-        if text.strip().startswith("-"):
-            raise ValueError(f"{flag}: {text!r} is outside [0, 1] {hint}")
-        raise ValueError(f"{flag}: {text!r} is not a probability {hint}")
+    m = _match(_PROBABILITY, text, flag=flag, example="0.3", noun="probability",
+               negative="is outside [0, 1]", hint=_PROBABILITY_HINT)
     value = float(m["num"]) / (100.0 if m["pct"] else 1.0)
     if not 0.0 <= value <= 1.0:
-        raise ValueError(f"{flag}: {text!r} is outside [0, 1] {hint}")
+        raise ValueError(f"{flag}: {text!r} is outside [0, 1] {_PROBABILITY_HINT}")
     return value
 
 
