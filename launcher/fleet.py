@@ -753,8 +753,8 @@ def launch_fleet(
         return run.start_robots(_Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
                                        run.started, run.console, per_process, robot_argv))
 
-    run.start(zenoh_port, router, start_robots)
-    try:
+    try:  # also when the router or a robot fails to start: our signal handlers are put back
+        run.start(zenoh_port, router, start_robots)
         if on_running is not None:
             on_running(run.endpoint)
         run.supervise()
