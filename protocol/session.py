@@ -15,7 +15,8 @@ and the time, and takes bytes and a deadline out (the h11 style)::
 
 What it owns: frame encode/decode with authentication, dedup (a frame no newer than the last one
 heard from its sender carries nothing new), piggyback recovery (the core keeps round k-1 from
-round k's frame), resend (adaptive, plus a fast resend when a neighbour shows it lost our frame),
+round k's frame), resend (adaptive, plus a fast resend when a neighbour's newest frame shows it lacks a value of
+our last two rounds and it is still there at the fast deadline),
 linger after finishing, neighbour death on evidence, the stop reasons and the result row.
 
 Neighbour death (dropping needs evidence that it is gone for good): its liveliness token is gone
@@ -140,6 +141,7 @@ class RobotSession:
         self.last_heard: dict[int, float] = {j: now for j in self.peers}
         self.heard_round: dict[int, int] = {j: -1 for j in self.peers}
         self._seen: dict[int, dict[int, int]] = {}  # sender -> {seq: round} of recent frames
+        self._behind: set[int] = set()  # neighbours whose frame shows they lack a value (receive)
         self.drop_reasons: dict[int, str] = {}
         self._gone: set[int] = set(self.peers)  # neighbours without a liveliness token (yet)
         self._token_at: dict[int, float] = {}
@@ -209,14 +211,23 @@ class RobotSession:
         if len(seen) >= DEDUP_WINDOW:
             newest = max(seen)
             self._seen[source] = seen = {q: r for q, r in seen.items() if q > newest - DEDUP_WINDOW // 2}
+        newest = not seen or out.seq > max(seen)
+        repeat = upd.round in seen.values()
         seen[out.seq] = upd.round
         self.last_heard[source] = now
         if upd.round > self.heard_round[source]:
             self.heard_round[source] = upd.round
-        if upd.round == self.core.round - 1:
-            # source is one round behind us after we advanced: it has not got our last value
-            # (lost, or in flight). Our latest frame carries it as prev: resend it soon.
-            self._republish_now = True
+        if newest and self.heard_round[source] == upd.round and (
+                upd.round == self.core.round - 1 or (repeat and upd.round == self.core.round)):
+            # source's newest frame shows it lacks a value of its round r: it is one round behind
+            # us (r = ours - 1), or it repeats our own round (a resend: it waits for round-r
+            # values). It may lack ours (lost), or only a third robot's. Our latest frame carries
+            # our rounds r and r - 1: resend it after the fast interval if source is still at r
+            # then (_behind_now). A frame overtaken by a newer one of source's is no evidence: a
+            # robot at round r + 1 holds our round r. Before issue 14's follow-up only "one round
+            # behind" counted, overtaken frames included, and a lost frame of our own round waited
+            # for the periodic resend (whose interval the slow lossy rounds stretch).
+            self._behind.add(source)
         self.core.receive(upd)
         return out
 
@@ -434,16 +445,26 @@ class RobotSession:
         """Queue the latest frame again if due; return when the next resend is due."""
         periodic, fast = self._resend_interval()
         last = self._last_put  # compare with the very sums returned as deadlines (virtual clock)
-        if now >= last + periodic or (self._republish_now and now >= last + fast):
+        if now >= last + periodic or ((self._republish_now or self._behind_now()) and now >= last + fast):
             self._publish(self._latest, now)
         nxt = self._last_put + periodic
-        if self._republish_now:
+        if self._republish_now or self._behind_now():
             nxt = min(nxt, self._last_put + fast)
         return nxt
+
+    def _behind_now(self) -> bool:
+        """Whether a neighbour whose frame showed it lacks a value is, as far as we heard, still at
+        that round: one that has moved on since holds our value of it (it could not have advanced
+        without it), so a resend for it would be wasted."""
+        if self._behind:
+            rnd = self.core.round
+            self._behind = {j for j in self._behind if self.heard_round.get(j, -2) in (rnd - 1, rnd)}
+        return bool(self._behind)
 
     def _publish(self, update: StateUpdate, now: float) -> None:
         self._latest = update
         self._republish_now = False
+        self._behind.clear()
         frame = encode_state(update, fleet=self.fleet, seq=self._seq, config_tag=self._tag, auth=self._auth)
         self._seq += 1
         self._out.append((BROADCAST, frame))

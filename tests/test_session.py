@@ -340,3 +340,52 @@ def test_simulate_rows_have_the_session_schema():
         assert back.keys() == r.keys()
         assert {k: type(v) for k, v in back.items()} == {k: type(v) for k, v in r.items()}
         assert r["frames_received"] >= r["frames_accepted"] > 0 and r["stopped"] == "finished"
+
+
+# ----------------------------------------------------------------------------- issue 14: resends
+
+
+def test_a_neighbour_repeating_our_own_round_gets_a_fast_resend_and_an_overtaken_frame_none():
+    """A neighbour's repeat of the round we are at shows it lacks a value of that round (maybe
+    ours, lost): answered after the fast interval, not the periodic one. A frame of its overtaken
+    by a newer one of its sender's (reordered, late) is no evidence: no resend for it."""
+    b = session(1, (0,))
+    fb0 = frames(b, 0.0)[0]
+    b.receive(0, frames(session(0, (1,)), 0.0)[0], 0.0)
+    assert b.advance(0.0)
+    fb1 = frames(b, 0.0)[0]
+    fb1_again = frames(b, 0.1)[0]  # b waits for our round 1 (lost) and repeats its round 1
+    fc0 = frames(session(2, (0,)), 0.0)[0]
+    for late, fast in ((fb1_again, True), (fb0, False)):
+        a = session(0, (1, 2))  # robot 2 keeps a from advancing past round 1
+        frames(a, 0.0)
+        a.receive(1, fb0, 0.0)
+        a.receive(2, fc0, 0.0)
+        assert a.advance(0.0) and a.core.round == 1
+        assert len(frames(a, 0.0)) == 1
+        a.receive(1, fb1, 0.01)  # b is at our round: it holds our round 0
+        assert frames(a, 0.01) == []
+        periodic = a.next_deadline()
+        a.receive(1, late, 0.02)
+        assert frames(a, 0.02) == []
+        assert (a.next_deadline() < periodic) is fast
+
+
+def test_a_fleet_sends_one_frame_per_robot_and_round_without_loss_and_the_same_answer_under_loss():
+    """Without faults every robot sends exactly one frame a round (no resend at all); with 30 %
+    loss the fleet still finishes at the same bits as without loss."""
+    import dataclasses
+
+    from launcher.simulate import simulate_fleet
+    from protocol.links import LinkFaults
+
+    from .conftest import make_run
+
+    _world, spec, _central = make_run(robots=8, max_rounds=25, topology="geometric")
+    clean = simulate_fleet(spec).robots
+    assert all(r["frames_sent"] == r["rounds"] + 1 for r in clean)
+    lossy = simulate_fleet(dataclasses.replace(spec, faults=LinkFaults(loss=0.3))).robots
+    assert sum(r["frames_lost"] for r in lossy) > 0
+    by_id = {r["id"]: r for r in lossy}
+    for r in clean:
+        assert by_id[r["id"]]["x"] == r["x"] and by_id[r["id"]]["gamma"] == r["gamma"]
