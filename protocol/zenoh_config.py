@@ -261,6 +261,11 @@ def router_config_dict(
         "mode": "router",
         "listen": {"endpoints": [endpoint]},
         "connect": connect,
+        # zenoh.open would otherwise wait 0.5 s after it already listens and routes before it
+        # returns, and readiness is announced after open: fast robots ran 8 rounds through a router
+        # the launcher still took for "starting" (and a router killed then failed the launch).
+        # Linked peers connect (and retry) in the background either way.
+        "scouting": {"delay": 0},
     }
     if tls is not None:
         if tls.cert is None:
