@@ -33,7 +33,8 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from agents.pdmm import build_free_core
-from agents.robot import PUBLISH_EXPRESS, RobotShell, _inbox_for, _open_session, _write_atomic, robot_config_dict_for
+from agents.robot import (PUBLISH_EXPRESS, RobotShell, _inbox_for, _open_session, _write_atomic,
+                          robot_config_dict_for, robot_ids_of, robot_process_parser)
 from protocol.free import FreeSession
 from protocol.keys import state_key
 from protocol.links import LinkLayer
@@ -221,18 +222,9 @@ async def run_free_robots(spec: Any, ids: list[int], *, period: float, workdir: 
 def main(argv: list[str] | None = None) -> int:
     """The free robot process `shapefleet launch --sync free` starts. Exit 0 when every robot here
     finished converged, 1 otherwise, 2 on bad arguments."""
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="python -m agents.free_robot", description=main.__doc__.splitlines()[0])
-    ap.add_argument("--fleet-file", type=Path, required=True)
-    who = ap.add_mutually_exclusive_group(required=True)
-    who.add_argument("--id", dest="ids", help="one robot id")
-    who.add_argument("--ids", help="comma-separated robot ids, e.g. 0,1,2")
-    ap.add_argument("--connect", action="append", required=True)
-    ap.add_argument("--workdir", type=Path, required=True, help="robot-I.json goes here")
+    ap = robot_process_parser("python -m agents.free_robot", main.__doc__, "robot-I.json goes here")
     ap.add_argument("--period", type=float, required=True, help="seconds between two ticks")
     ap.add_argument("--status-interval", type=float, default=0.05, help="seconds between status lines")
-    ap.add_argument("--shared-session", action="store_true", help="one Zenoh session for the robots here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
     from agents.spec import FleetSpec
@@ -241,10 +233,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.period > 0:
             raise ValueError(f"--period: must be positive, got {args.period}")
         spec = FleetSpec.load(args.fleet_file)
-        ids = [int(x) for x in args.ids.split(",") if x.strip()]
-        bad = [i for i in ids if i not in spec.robots]
-        if bad or not ids:
-            raise ValueError(f"--ids: robot {bad[0] if bad else args.ids!r} is not in {args.fleet_file}")
+        ids = robot_ids_of(spec, args.ids, args.fleet_file)
         config = robot_config_dict_for(args.connect)
     except ValueError as exc:
         print(f"shapefleet robot: {exc}", file=sys.stderr)

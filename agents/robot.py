@@ -905,23 +905,39 @@ async def _outcome(sh: RobotShell, task: asyncio.Future) -> Any:
     return res
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m agents.robot --fleet-file F --ids 0,1 --connect EP --workdir W``: the robot
-    process ``shapefleet launch`` starts (one or several robots). Only what a robot needs is
-    imported (not the launcher's scenario, topology and plotting modules). Exit 0 when every robot
-    here finished converged, 1 otherwise, 2 on bad arguments."""
+def robot_process_parser(prog: str, doc: str | None, workdir_help: str) -> argparse.ArgumentParser:
+    """The arguments every robot process takes, lockstep (this module) or free (agents/free_robot.py):
+    which fleet file, which of its robots, which router, where results go."""
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m agents.robot", description=main.__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog=prog, description=(doc or "").strip().splitlines()[0])
     ap.add_argument("--fleet-file", type=Path, required=True)
     who = ap.add_mutually_exclusive_group(required=True)
     who.add_argument("--id", dest="ids", help="one robot id")
     who.add_argument("--ids", help="comma-separated robot ids, e.g. 0,1,2")
     ap.add_argument("--connect", action="append", required=True)
-    ap.add_argument("--workdir", type=Path, required=True, help="robot-I.ckpt / robot-I.json go here")
+    ap.add_argument("--workdir", type=Path, required=True, help=workdir_help)
+    ap.add_argument("--shared-session", action="store_true", help="one Zenoh session for the robots here")
+    return ap
+
+
+def robot_ids_of(spec: Any, ids_text: str, fleet_file: Path) -> list[int]:
+    """The robot ids of ``--id``/``--ids``, each one of the fleet file's (ValueError otherwise)."""
+    ids = [int(x) for x in ids_text.split(",") if x.strip()]
+    bad = [i for i in ids if i not in spec.robots]
+    if bad or not ids:
+        raise ValueError(f"--ids: robot {bad[0] if bad else ids_text!r} is not in {fleet_file}")
+    return ids
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m agents.robot --fleet-file F --ids 0,1 --connect EP --workdir W``: the robot
+    process ``shapefleet launch`` starts (one or several robots). Only what a robot needs is
+    imported (not the launcher's scenario, topology and plotting modules). Exit 0 when every robot
+    here finished converged, 1 otherwise, 2 on bad arguments."""
+    ap = robot_process_parser("python -m agents.robot", main.__doc__, "robot-I.ckpt / robot-I.json go here")
     ap.add_argument("--status-interval", type=float, default=0.0, help="seconds between status lines (0: every round)")
     ap.add_argument("--allow-remote", action="store_true", help="a router beyond loopback (multi-host)")
-    ap.add_argument("--shared-session", action="store_true", help="one Zenoh session for the robots here")
     ap.add_argument("--crash-at", type=int, help="fault injection: SIGKILL this (one-robot) process on reaching this round")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
@@ -931,10 +947,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         spec = FleetSpec.load(args.fleet_file)
-        ids = [int(x) for x in args.ids.split(",") if x.strip()]
-        bad = [i for i in ids if i not in spec.robots]
-        if bad or not ids:
-            raise ValueError(f"--ids: robot {bad[0] if bad else args.ids!r} is not in {args.fleet_file}")
+        ids = robot_ids_of(spec, args.ids, args.fleet_file)
         config = robot_config_dict_for(args.connect, loopback_only=not args.allow_remote)
         if args.crash_at is not None and len(ids) != 1:
             raise ValueError("--crash-at: a planned crash takes one robot's process (give --id)")
