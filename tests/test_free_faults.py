@@ -16,6 +16,7 @@ from launcher.simulate import simulate_fleet, simulate_free
 from protocol.links import Link, LinkFaults, LinkLayer
 
 from .conftest import make_run, max_function_error
+from .test_links import fleet_and_robot_side_schedules
 
 
 def _fates(faults: LinkFaults, n: int, seed: int = 1) -> np.ndarray:
@@ -119,23 +120,8 @@ def test_a_robot_side_layer_sees_the_simulators_new_faults_too():
     passes only its incoming frames through its own layer sees the in-process fleet's schedule."""
     faults = LinkFaults(delay=0.01, jitter=0.008, loss=0.2, loss_burst=4, delay_dist="pareto",
                         link_loss=((0, 1, 0.6),), robot_loss=((2, 0.5),))
-    fleet, robot2 = LinkLayer(faults, seed=7), LinkLayer(faults, seed=7)
-    for i in range(2000):
-        src, dst, t = i % 5, (i * 7 + 1) % 5, i * 0.002
-        if src == dst:
-            continue
-        fleet.send(src, dst, i.to_bytes(2, "big"), t)
-        if dst == 2:
-            robot2.send(src, dst, i.to_bytes(2, "big"), t)
-
-    def drain(layer):
-        out = []
-        while (t := layer.next_due()) is not None:
-            out.extend((t, *item) for item in layer.deliver(t))
-        return out
-
-    into2 = [item for item in drain(fleet) if item[2] == 2]
-    assert into2 == drain(robot2) and len(into2) > 100
+    into2, robot2, fleet = fleet_and_robot_side_schedules(faults, seed=7)
+    assert into2 == robot2 and len(into2) > 100
     lost = {k: v["dropped"] / v["sent"] for k, v in fleet.link_stats().items() if v["sent"] > 50}
     # links 0->1, 1->3, 2->0, 3->2 carry the traffic; the per-link and per-robot losses are there
     assert min(lost[(0, 1)], lost[(2, 0)], lost[(3, 2)]) > lost[(1, 3)] + 0.15

@@ -367,11 +367,11 @@ def test_layer_stats_aggregate_links():
         sent=0, dropped=0, duplicated=0, reordered=0, delivered=0, in_flight=0)
 
 
-def test_robot_side_layer_sees_the_simulators_faults():
-    """A robot passing only its incoming frames through its own layer gets the same schedule
-    for those links as the in-process simulator that carries every link of the fleet."""
-    faults = LinkFaults(delay=0.01, jitter=0.008, loss=0.2, duplicate=0.1, reorder=0.1)
-    fleet, robot2 = LinkLayer(faults, seed=99), LinkLayer(faults, seed=99)
+def fleet_and_robot_side_schedules(faults: LinkFaults, seed: int) -> tuple[list, list, LinkLayer]:
+    """2000 frames among 5 robots through one fleet-wide layer (the in-process simulator) and,
+    for the frames into robot 2, through robot 2's own layer (a robot process): the deliveries
+    into robot 2 of each, as (time, *item), and the fleet's layer (for its link statistics)."""
+    fleet, robot2 = LinkLayer(faults, seed=seed), LinkLayer(faults, seed=seed)
     for i in range(2000):
         src, dst, t = i % 5, (i * 7 + 1) % 5, i * 0.002
         if src == dst:
@@ -386,5 +386,12 @@ def test_robot_side_layer_sees_the_simulators_faults():
             out.extend((t, *item) for item in layer.deliver(t))
         return out
 
-    into2 = [item for item in drain(fleet) if item[2] == 2]
-    assert into2 == drain(robot2) and len(into2) > 200
+    return [item for item in drain(fleet) if item[2] == 2], drain(robot2), fleet
+
+
+def test_robot_side_layer_sees_the_simulators_faults():
+    """A robot passing only its incoming frames through its own layer gets the same schedule
+    for those links as the in-process simulator that carries every link of the fleet."""
+    faults = LinkFaults(delay=0.01, jitter=0.008, loss=0.2, duplicate=0.1, reorder=0.1)
+    into2, robot2, _ = fleet_and_robot_side_schedules(faults, seed=99)
+    assert into2 == robot2 and len(into2) > 200
