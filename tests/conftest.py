@@ -41,6 +41,22 @@ def run_to_end(cores, limit=5000):
     raise AssertionError("fleet did not finish")
 
 
+def exchange_until_finished(cores: dict, limit: int) -> None:
+    """Drive ``cores`` (id -> core) by a perfect in-memory exchange: each round every core
+    publishes, its neighbours receive, the ready ones advance; until all have finished or
+    ``limit`` rounds (the reference the networked shells must equal)."""
+    for _ in range(limit):
+        if all(c.finished for c in cores.values()):
+            return
+        for update in [c.outgoing() for c in cores.values()]:
+            for c in cores.values():
+                if update.sender in c.neighbours:
+                    c.receive(update)
+        for c in cores.values():
+            if c.ready():
+                c.advance()
+
+
 def make_run(**kwargs):
     """(world, spec, central) for Options(**kwargs) with a fixed fleet id, on the paper's
     setting (grid 5x3, sigma 1, admm) unless the test passes its own; autogrid runs get no

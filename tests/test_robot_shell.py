@@ -508,18 +508,10 @@ def _real_spec(fleet: str, faults: LinkFaults | None = None, rounds: int = 120):
 def _in_memory(spec) -> dict[int, dict]:
     """Reference: the same cores driven by a perfect in-memory exchange."""
     from agents.spec import build_core
+    from tests.conftest import exchange_until_finished
 
     cores = {i: build_core(spec, i) for i in spec.robot_ids}
-    for _ in range(10 * spec.params["max_rounds"]):
-        if all(c.finished for c in cores.values()):
-            break
-        for u in [c.outgoing() for c in cores.values()]:
-            for c in cores.values():
-                if u.sender in c.neighbours:
-                    c.receive(u)
-        for c in cores.values():
-            if c.ready():
-                c.advance()
+    exchange_until_finished(cores, 10 * spec.params["max_rounds"])
     return {i: c.result() for i, c in cores.items()}
 
 
