@@ -80,7 +80,7 @@ def check_local_data(features: Any, labels: Any, C: float | None, *, allow_empty
         raise ValueError(f"C must be a positive number or None (hard margin), got {C!r}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays inside: compared by identity
 class RobotShare:
     """One robot's share of the fleet's problem, as every core takes it: who it is, whom it hears,
     the rows it fits and the fleet's constants. Checked once here, with the same messages
