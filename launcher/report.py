@@ -574,14 +574,6 @@ def _plain_log_formatter(*, label_only_base: bool) -> Any:
     return PlainLogFormatter(10, labelOnlyBase=label_only_base)
 
 
-def preload_pictures() -> None:
-    """Import what drawing needs (~0.3 s): called in a thread while a fleet runs, so that the
-    pictures after it do not wait for the import."""
-    import matplotlib.backends.backend_agg  # noqa: F401
-    import matplotlib.figure  # noqa: F401
-    import matplotlib.ticker  # noqa: F401
-
-
 def _robot_colours(n: int) -> list[Any]:
     import matplotlib
 
