@@ -231,9 +231,9 @@ def build_result(
     accuracy = min((float(np.mean(np.sign(basis.decision(pts, c, g)) == labels)) for c, g in fs), default=None)
     iou = None
     if world.shape is not None and fs:
-        x0, x1, y0, y1 = world.bounds
+        shared = SharedKernels()  # one raster kernel matrix for every robot (bit for bit basis.decision)
         ious = [
-            scenario.iou_on_raster(world.shape, lambda p, c=c, g=g: basis.decision(p, c, g) < 0, (x0, x1, y0, y1))
+            scenario.iou_on_raster(world.shape, lambda p, c=c, g=g: shared.decision(p, basis, c, g) < 0, world.bounds)
             for c, g in fs
         ]
         iou = min(ious)
