@@ -810,6 +810,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The `shapefleet` program (``argv`` None: the command line; the process ends after it)."""
     args = parse_args(argv)
     try:
         return int(args.func(args) or 0)
@@ -818,6 +819,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("shapefleet: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if argv is None:
+            freeze_before_exit()
+
+
+def freeze_before_exit() -> None:
+    """The process is about to end: put every object in the garbage collector's permanent
+    generation, so that the interpreter's shutdown does not walk them all in its last collections.
+
+    Measured: 0.3-0.5 s (load 12) from the end of `launch` to the process's exit with matplotlib's
+    objects alive, 0.05 s frozen; memory goes back to the OS with the process either way. Only
+    for a process that ends next (a caller of ``main(argv)`` keeps collecting)."""
+    import gc
+
+    gc.freeze()
 
 
 if __name__ == "__main__":
