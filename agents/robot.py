@@ -39,7 +39,7 @@ import weakref
 import zlib
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import msgpack
 
@@ -49,6 +49,9 @@ from protocol.links import LinkLayer
 from agents.rounds import DIVERGED_ABS, check_iterate
 from protocol.session import GIVE_UP_FACTOR, RobotSession, row_to_file
 from protocol.zenoh_config import robot_config, to_zenoh_config
+
+if TYPE_CHECKING:  # annotations only: the parser is built lazily (start-up cost)
+    import argparse
 
 __all__ = [
     "run_robot",
