@@ -337,10 +337,11 @@ class _Hub:
     def _rebuild(self) -> None:
         """The differences and their Gram matrix from the history: the same bits as built step by
         step (`_dots` of the same two vectors, in either order, sums the same products)."""
-        n = 0 if self.s is None else len(self.s)
         gs = [f - s for s, f in zip(self.hist_s, self.hist_f)]
-        self._dg = np.array([b - a for a, b in zip(gs[:-1], gs[1:])]).reshape(-1, n)
-        self._df = np.array([b - a for a, b in zip(self.hist_f[:-1], self.hist_f[1:])]).reshape(-1, n)
+        dgs = [b - a for a, b in zip(gs[:-1], gs[1:])]
+        dfs = [b - a for a, b in zip(self.hist_f[:-1], self.hist_f[1:])]
+        self._dg = np.array(dgs) if dgs else np.zeros((0, 0))
+        self._df = np.array(dfs) if dfs else np.zeros((0, 0))
         m = len(self._dg)
         self._gram = _dots(self._dg[None, :, :], self._dg[:, None, :]) if m else np.zeros((0, 0))
 

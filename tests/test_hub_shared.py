@@ -54,15 +54,16 @@ def test_shared_hub_steps_are_the_unshared_ones_bit_for_bit(counted_steps, monke
     assert hubs[0] == hubs[1] == hubs[2] and len(alone[0]) == rounds + 1
 
 
-def test_a_restored_copy_computes_its_own_steps_and_agrees(counted_steps):
+@pytest.mark.parametrize("restore_at", [0, 15])  # 0: before the hub's first step (no state yet)
+def test_a_restored_copy_computes_its_own_steps_and_agrees(counted_steps, restore_at):
     _, spec, _ = make_run(tol=1e-12)
-    rounds, restore_at = 40, 15
+    rounds = 40
     alone_steps = rounds - 1
     plain, plain_hubs = _traces(spec, rounds)
     counted_steps["steps"] = 0
     admm._SHARED_STEPS.clear()
     restored, hubs = _traces(spec, rounds, restore_at=restore_at)
     # the restored copy's token is its checkpoint's digest: it shares nothing after the restore
-    assert counted_steps["steps"] == alone_steps + (rounds - restore_at)
+    assert counted_steps["steps"] == alone_steps + (rounds - max(restore_at, 1))  # round 0 -> 1 starts the hub
     assert hubs == plain_hubs and hubs[0] == hubs[1] == hubs[2]
     assert restored[1] == plain[1][restore_at:] and restored[0] == plain[0]
