@@ -46,9 +46,9 @@ from typing import Any
 import numpy as np
 
 from agents.messages import StateUpdate
-from agents.params import params_from
+from agents.params import check_counts, check_diameter, check_positive, params_from
 from agents.problem import MarginQP
-from agents.rounds import RoundCore, check_local_data, from_bytes, relative_gap, relative_gaps, to_bytes
+from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gap, relative_gaps, to_bytes
 
 
 @dataclass(frozen=True)
@@ -65,18 +65,12 @@ class ADMMParams:
     safeguard: float = 2.0  # restart Anderson when the fixed-point residual exceeds this x its best
 
     def __post_init__(self) -> None:
-        if not self.rho > 0:
-            raise ValueError(f"rho must be positive, got {self.rho}")
-        if not self.gamma_penalty > 0:
-            raise ValueError(f"gamma_penalty must be positive, got {self.gamma_penalty}")
+        check_positive(self, "rho", "gamma_penalty")
         if not 0 < self.relax < 2:
             raise ValueError(f"over-relaxation must be in (0, 2), got {self.relax}")
-        if not self.tol > 0:
-            raise ValueError(f"tol must be positive, got {self.tol}")
-        if self.max_rounds < 1:
-            raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds}")
-        if not 0 <= self.diameter <= 62:
-            raise ValueError(f"diameter must be in [0, 62] (flag bits), got {self.diameter}")
+        check_positive(self, "tol")
+        check_counts(self, "max_rounds")
+        check_diameter(self.diameter)
         if not 0 <= self.anderson <= 100:
             raise ValueError(f"anderson memory must be in [0, 100], got {self.anderson}")
         if not self.safeguard > 1:
@@ -510,34 +504,19 @@ class ConsensusADMM(RoundCore):
     algorithm = "admm"
 
     def __init__(
-        self,
-        robot_id: int,
-        neighbours: tuple[int, ...],
-        features: np.ndarray,
-        labels: np.ndarray,
-        *,
-        n_robots: int,
-        params: ADMMParams,
-        C: float | None = None,
-        neighbour_degrees: dict[int, int] | None = None,
-        keep_trace: bool = True,
-        hub_frames: bool = True,
+        self, share: RobotShare, params: ADMMParams, *, keep_trace: bool = True, hub_frames: bool = True
     ) -> None:
-        check_local_data(features, labels, C)
+        robot_id = share.robot_id
         super().__init__(
-            robot_id,
-            neighbours,
-            features.shape[1] + 1,
-            diameter=params.diameter,
-            round_cap=params.max_rounds,
+            robot_id, share.neighbours, share.dim, diameter=params.diameter, round_cap=params.max_rounds,
             keep_trace=keep_trace,
         )
         self.params = params
-        self._features = features
-        self._labels = labels
-        self._C = C
-        self._n_robots = n_robots
-        degrees = neighbour_degrees or {}
+        self._features = share.features
+        self._labels = share.labels
+        self._C = share.C
+        self._n_robots = n_robots = share.n_robots
+        degrees = share.degrees
         self._hub: _Hub | None = None
         self._edges: dict[int, _Edge] = {}
         if hub_form(params, n_robots, self.neighbours, degrees):

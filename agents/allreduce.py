@@ -51,17 +51,20 @@ def reduce_in_order(parts: Sequence[np.ndarray], n_min: int) -> np.ndarray:
     return acc
 
 
-def _bfs(graph: Mapping[int, Sequence[int]], root: int) -> dict[int, int]:
-    """Hop distance from root to every reachable robot."""
+def _bfs(graph: Mapping[int, Sequence[int]], root: int) -> tuple[dict[int, int], dict[int, int | None]]:
+    """Hop distance from root to every reachable robot, and each one's parent in the breadth-first
+    tree (neighbours visited in sorted order: every robot builds the same tree)."""
     dist = {root: 0}
+    parent: dict[int, int | None] = {root: None}
     queue = deque([root])
     while queue:
         i = queue.popleft()
         for j in sorted(graph[i]):
             if j not in dist:
                 dist[j] = dist[i] + 1
+                parent[j] = i
                 queue.append(j)
-    return dist
+    return dist, parent
 
 
 def check_graph(graph: Mapping[int, Sequence[int]]) -> None:
@@ -71,7 +74,7 @@ def check_graph(graph: Mapping[int, Sequence[int]]) -> None:
         for j in nbrs:
             if j == i or j not in ids or i not in graph[j]:
                 raise ValueError(f"communication graph: link {i}-{j} is not a link between two distinct robots both list")
-    if ids and len(_bfs(graph, min(ids))) != len(ids):
+    if ids and len(_bfs(graph, min(ids))[0]) != len(ids):
         raise ValueError("communication graph is not connected: no exact fleet-wide sum exists")
 
 
@@ -133,7 +136,7 @@ class ReducePlan:
             raise ValueError(f"robot {robot} is not in the communication graph")
         check_graph(graph)
         ids = tuple(sorted(graph))
-        dist = {i: _bfs(graph, i) for i in ids}
+        dist = {i: _bfs(graph, i)[0] for i in ids}
         diameter = max(max(d.values()) for d in dist.values())
         if schedule == "gather" or diameter <= 1:
             rounds = max(diameter, 1)
@@ -150,16 +153,7 @@ class ReducePlan:
             return cls(robot, ids, "gather", slots, rounds, sends=tuple(spheres[robot]), learns=tuple(learns))
         ecc = {i: max(dist[i].values()) for i in ids}
         root = min(ids, key=lambda i: (ecc[i], i))
-        parent: dict[int, int | None] = {root: None}
-        depth = {root: 0}
-        queue = deque([root])
-        while queue:
-            i = queue.popleft()
-            for j in sorted(graph[i]):
-                if j not in depth:
-                    depth[j] = depth[i] + 1
-                    parent[j] = i
-                    queue.append(j)
+        depth, parent = _bfs(graph, root)
         height = max(depth.values())
         children = tuple(sorted(j for j, p in parent.items() if p == robot))
         return cls(

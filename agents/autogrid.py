@@ -59,7 +59,7 @@ from agents.autogrid_sweep import SigmaSweep
 from agents.autogrid_warm import WarmADMM, carry_edges, carry_vector, superset_maps
 from agents.kernel import GridBasis
 from agents.problem import InfeasibleError, MarginQP
-from agents.rounds import RoundCore, relative_gap
+from agents.rounds import RobotShare, RoundCore, relative_gap
 from protocol.frames import StateUpdate
 
 #: stands for "no data" in the max-consensus on bounds (frames carry finite values only)
@@ -101,22 +101,15 @@ class AdaptiveGridCore(RoundCore):
     algorithm = "autogrid"
 
     def __init__(
-        self,
-        robot_id: int,
-        neighbours: tuple[int, ...],
-        points: np.ndarray,
-        labels: np.ndarray,
-        *,
-        n_robots: int,
-        params: AutoGridParams,
-        start_grid: np.ndarray | None = None,
-        neighbour_degrees: dict[int, int] | None = None,
+        self, share: RobotShare, params: AutoGridParams, *, start_grid: np.ndarray | None = None,
         keep_trace: bool = False,
     ) -> None:
+        robot_id = share.robot_id
         super().__init__(
-            robot_id, neighbours, params.dim, diameter=params.diameter,
+            robot_id, share.neighbours, params.dim, diameter=params.diameter,
             round_cap=params.max_total_rounds, keep_trace=keep_trace,
         )
+        points, labels = share.features, share.labels  # raw points: features are built per grid
         points = np.asarray(points, dtype=float).reshape(-1, 2)
         labels = np.asarray(labels)
         if len(labels) != len(points):
@@ -132,8 +125,8 @@ class AdaptiveGridCore(RoundCore):
             )
         self.params = params
         self._points, self._labels = points, labels
-        self._n_robots = n_robots
-        self._degrees = dict(neighbour_degrees or {})
+        self._share = share
+        self._n_robots = share.n_robots
         self._start_grid = start_grid
         self._units = holdout_units(points, labels)
         self._reset_agreed_state()
@@ -211,10 +204,8 @@ class AdaptiveGridCore(RoundCore):
         self._values, self._flags = self._sweep.stacked(), 0
 
     def _new_sweep(self) -> SigmaSweep:
-        return SigmaSweep(
-            self.robot_id, self.neighbours, self._points, self._labels, self._units, bounds=self.bounds,
-            diag=self._diag, params=self.params, n_robots=self._n_robots, degrees=self._degrees,
-        )
+        share = self._share.with_data(self.neighbours, self._points, self._labels, None)
+        return SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params)
 
     def _enter_tally(self) -> None:
         self._counted(TALLY, self._sweep.tally_vector())
@@ -241,10 +232,9 @@ class AdaptiveGridCore(RoundCore):
             rho=p.rho, relax=p.relax, tol=p.tol, diameter=p.diameter,
             max_rounds=p.hard_rounds if mode == "hard" else p.soft_rounds,
         )
+        C = None if mode == "hard" else (p.C if p.C is not None else p.soft_C)
         self._sub = WarmADMM(
-            self.robot_id, self.neighbours, self._features, self._labels, n_robots=self._n_robots,
-            params=sub_params, C=None if mode == "hard" else (p.C if p.C is not None else p.soft_C),
-            neighbour_degrees={j: self._degrees.get(j, 1) for j in self.neighbours}, keep_trace=False,
+            self._share.with_data(self.neighbours, self._features, self._labels, C), sub_params, keep_trace=False,
             start=self._warm, edges=self._carry if p.warm_duals else None, hub_frames=p.hub_frames,
         )
         self._carry = {}

@@ -32,6 +32,7 @@ from agents.admm import ADMMParams
 from agents.autogrid_rules import PACK, TALLY_BLOCKS, AutoGridParams, coarse_lattice, solid_on_raster
 from agents.autogrid_warm import WarmADMM
 from agents.kernel import GridBasis
+from agents.rounds import RobotShare
 from protocol.frames import StateUpdate
 
 
@@ -84,20 +85,11 @@ class SigmaSweep:
     """One robot's share of the sweep: stacked values out, neighbours' stacked values in."""
 
     def __init__(
-        self,
-        robot_id: int,
-        neighbours: tuple[int, ...],
-        points: np.ndarray,
-        labels: np.ndarray,
-        units: np.ndarray,
-        *,
-        bounds: tuple[float, float, float, float],
-        diag: float,
+        self, share: RobotShare, units: np.ndarray, *, bounds: tuple[float, float, float, float], diag: float,
         params: AutoGridParams,
-        n_robots: int,
-        degrees: dict[int, int],
     ) -> None:
-        self.robot_id, self.params, self.dim = robot_id, params, params.dim
+        points, labels = share.features, share.labels  # autogrid's share: raw points
+        self.robot_id, self.params, self.dim = share.robot_id, params, params.dim
         self._points, self._labels = points, labels
         sub_params = ADMMParams(
             rho=params.rho, relax=params.relax, tol=params.validate_tol,
@@ -117,11 +109,8 @@ class SigmaSweep:
                 held = held_mask(units, fold, params)
                 train = points[~held]
                 feats = basis.features(train) if len(train) else np.zeros((0, len(grid)))
-                sub = WarmADMM(
-                    robot_id, neighbours, feats, labels[~held], n_robots=n_robots, params=sub_params,
-                    C=params.soft_C, neighbour_degrees={j: degrees.get(j, 1) for j in neighbours}, keep_trace=False,
-                    hub_frames=params.hub_frames,
-                )
+                fold_share = share.with_data(share.neighbours, feats, labels[~held], params.soft_C)
+                sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames)
                 self.tasks.append(SweepTask(cand, fold, float(d), sigma, box, basis, held, sub, offset, slot))
                 offset += slot + 3 + (slot + 1 if params.hub_frames else 0)
 

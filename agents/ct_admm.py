@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from agents.params import params_from
-from agents.rounds import RoundCore, check_local_data, from_bytes, relative_gap, to_bytes
+from agents.params import check_counts, check_diameter, params_from
+from agents.rounds import RobotShare, RoundCore, check_local_data, from_bytes, relative_gap, to_bytes
 
 @dataclass(frozen=True)
 class CTADMMParams:
@@ -90,10 +90,8 @@ class CTADMMParams:
             raise ValueError(f"ref_time must be >= 0 (0 = no prefilter), got {self.ref_time!r}")
         if self.metric not in ("matrix", "scalar"):
             raise ValueError(f"metric must be 'matrix' or 'scalar', got {self.metric!r}")
-        if not 0 <= self.diameter <= 62:
-            raise ValueError(f"diameter must be in [0, 62] (flag bits), got {self.diameter}")
-        if self.max_rounds is not None and self.max_rounds < 1:
-            raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds}")
+        check_diameter(self.diameter)
+        check_counts(self, "max_rounds")
 
     @property
     def steps_per_round(self) -> int:
@@ -124,27 +122,13 @@ class ContinuousTimeADMM(RoundCore):
 
     algorithm = "ct-admm"
 
-    def __init__(
-        self,
-        robot_id: int,
-        neighbours: tuple[int, ...],
-        features: np.ndarray,
-        labels: np.ndarray,
-        *,
-        n_robots: int,
-        params: CTADMMParams,
-        C: float | None = None,
-        keep_trace: bool = True,
-    ) -> None:
-        features = np.asarray(features, dtype=float)
-        labels = np.asarray(labels, dtype=float)
-        check_local_data(features, labels, C, allow_empty=False)
+    def __init__(self, share: RobotShare, params: CTADMMParams, *, keep_trace: bool = True) -> None:
+        features = np.asarray(share.features, dtype=float)
+        labels = np.asarray(share.labels, dtype=float)
+        check_local_data(features, labels, share.C, allow_empty=False)  # the flow needs a margin
+        robot_id, n_robots, C = share.robot_id, share.n_robots, share.C
         super().__init__(
-            robot_id,
-            neighbours,
-            features.shape[1] + 1,
-            diameter=params.diameter,
-            round_cap=params.rounds,
+            robot_id, share.neighbours, share.dim, diameter=params.diameter, round_cap=params.rounds,
             keep_trace=keep_trace,
         )
         self.params = params

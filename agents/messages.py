@@ -38,7 +38,9 @@ def as_vector(name: str, value: Any) -> np.ndarray:
     return arr.astype(np.float64, copy=False)
 
 
-def _check_robot_id(robot: Any) -> int:
+def check_robot_id(robot: Any) -> int:
+    """``robot`` if it is an int (never a bool) in [0, MAX_ROBOT_ID], else ValueError: the one
+    rule for a robot id, in messages and in Zenoh keys (protocol/keys.py) alike."""
     if type(robot) is not int:
         raise ValueError(f"robot id must be an int, got {type(robot).__name__}")
     if not 0 <= robot <= MAX_ROBOT_ID:
@@ -64,7 +66,7 @@ class StateUpdate:
     prev_flags: int = 0
 
     def __post_init__(self) -> None:
-        _check_robot_id(self.sender)
+        check_robot_id(self.sender)
         check_int("round", self.round, MAX_ROUND)
         check_int("flags", self.flags, MAX_FLAGS)
         check_int("prev_flags", self.prev_flags, MAX_FLAGS)

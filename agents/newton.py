@@ -41,8 +41,8 @@ import numpy as np
 
 from agents.allreduce import SCHEDULES, AllReduce, ReducePlan, frame_slots
 from agents.problem import INFEASIBLE_ADVICE, margin_rows
-from agents.params import params_from
-from agents.rounds import RoundCore, check_local_data, from_bytes, to_bytes
+from agents.params import check_counts, check_positive, params_from
+from agents.rounds import RobotShare, RoundCore, from_bytes, to_bytes
 
 @dataclass(frozen=True)
 class NewtonParams:
@@ -62,12 +62,8 @@ class NewtonParams:
             raise ValueError(f"centering must be in (0, 1), got {self.centering}")
         if not 0 < self.tau < 1:
             raise ValueError(f"tau must be in (0, 1), got {self.tau}")
-        if not self.stop_mu > 0:
-            raise ValueError(f"stop_mu must be positive, got {self.stop_mu}")
-        if self.max_iterations < 1:
-            raise ValueError(f"max_iterations must be at least 1, got {self.max_iterations}")
-        if self.max_rounds < 1:
-            raise ValueError(f"max_rounds must be at least 1, got {self.max_rounds}")
+        check_positive(self, "stop_mu")
+        check_counts(self, "max_iterations", "max_rounds")
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> NewtonParams:
@@ -108,24 +104,15 @@ class DistributedNewton(RoundCore):
     algorithm = "newton"
 
     def __init__(
-        self,
-        robot_id: int,
-        neighbours: tuple[int, ...],
-        features: np.ndarray,
-        labels: np.ndarray,
-        *,
-        graph: Mapping[int, Sequence[int]],
-        params: NewtonParams,
-        C: float | None = None,
-        keep_trace: bool = True,
+        self, share: RobotShare, params: NewtonParams, *, graph: Mapping[int, Sequence[int]], keep_trace: bool = True
     ) -> None:
-        check_local_data(features, labels, C)
-        n = features.shape[1] + 1
+        robot_id, n = share.robot_id, share.dim
         plan = ReducePlan.build(graph, robot_id, params.allreduce)
         super().__init__(
-            robot_id, neighbours, plan.slots * payload_size(n), diameter=0, round_cap=params.max_rounds,
+            robot_id, share.neighbours, plan.slots * payload_size(n), diameter=0, round_cap=params.max_rounds,
             keep_trace=keep_trace,
         )
+        features, labels, C = share.features, share.labels, share.C
         if tuple(sorted(graph.get(robot_id, ()))) != self.neighbours:
             raise ValueError(f"robot {robot_id}: neighbours {self.neighbours} differ from the graph's {graph.get(robot_id)}")
         self.params = params

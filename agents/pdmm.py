@@ -54,8 +54,9 @@ from typing import Any
 import numpy as np
 
 from agents.admm import ADMMParams, ConsensusADMM, edge_penalty
+from agents.params import check_counts, check_diameter, check_positive
 from agents.problem import MarginQP
-from agents.rounds import RoundCore, check_iterate, check_local_data, check_neighbours, result_row
+from agents.rounds import RobotShare, RoundCore, check_iterate, result_row
 
 
 @dataclass(frozen=True)
@@ -73,18 +74,12 @@ class RelaxedADMMParams:
     max_ticks: int = 20000
 
     def __post_init__(self) -> None:
-        if not self.rho > 0:
-            raise ValueError(f"rho must be positive, got {self.rho}")
-        if not self.gamma_penalty > 0:
-            raise ValueError(f"gamma_penalty must be positive, got {self.gamma_penalty}")
+        check_positive(self, "rho", "gamma_penalty")
         if not 0 < self.alpha < 1:
             raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
-        if not self.tol > 0:
-            raise ValueError(f"tol must be positive, got {self.tol}")
-        if self.window < 1 or self.max_ticks < 1:
-            raise ValueError("window and max_ticks must be at least 1")
-        if not 0 <= self.diameter <= 62:
-            raise ValueError(f"diameter must be in [0, 62], got {self.diameter}")
+        check_positive(self, "tol")
+        check_counts(self, "window", "max_ticks")
+        check_diameter(self.diameter)
 
     @classmethod
     def from_params(cls, params: dict[str, Any]) -> RelaxedADMMParams:
@@ -136,25 +131,12 @@ class RelaxedADMM:
     #: what a tick may raise when its local solve fails (the session stops the robot with the reason)
     solve_errors = RoundCore.solve_errors
 
-    def __init__(
-        self,
-        robot_id: int,
-        neighbours: tuple[int, ...],
-        features: np.ndarray,
-        labels: np.ndarray,
-        *,
-        n_robots: int,
-        params: RelaxedADMMParams,
-        C: float | None = None,
-        neighbour_degrees: dict[int, int] | None = None,
-    ) -> None:
-        check_neighbours(robot_id, neighbours)
-        check_local_data(features, labels, C)
-        self.robot_id = robot_id
-        self.neighbours = tuple(sorted(neighbours))
-        self.dim = features.shape[1] + 1
+    def __init__(self, share: RobotShare, params: RelaxedADMMParams) -> None:
+        self.robot_id = share.robot_id
+        self.neighbours = share.neighbours
+        self.dim = share.dim
         self.params = params
-        degrees = neighbour_degrees or {}
+        degrees = share.degrees
         pen = ADMMParams(rho=params.rho, gamma_penalty=params.gamma_penalty)
         self._rho = {j: edge_penalty(pen, self.dim, len(self.neighbours), degrees.get(j, 1)) for j in self.neighbours}
         self._z = {j: np.zeros(self.dim) for j in self.neighbours}
@@ -162,7 +144,7 @@ class RelaxedADMM:
         self._their_v: dict[int, np.ndarray] = {}
         self._their_hops = {j: 0 for j in self.neighbours}
         prox = sum(self._rho.values(), np.zeros(self.dim))
-        self._qp = MarginQP(features, labels, x_weight=1.0 / n_robots, prox_weight=prox, C=C)
+        self._qp = MarginQP(share.features, share.labels, x_weight=1.0 / share.n_robots, prox_weight=prox, C=share.C)
         self._values = np.zeros(self.dim)
         self._changes: list[float] = []
         self._gaps: list[float] = []
@@ -299,14 +281,10 @@ class NewestValueADMM(_NewestValues):
 
     algorithm = "admm-newest"
 
-    def __init__(self, robot_id: int, neighbours: tuple[int, ...], features: np.ndarray, labels: np.ndarray, *,
-                 n_robots: int, params: RelaxedADMMParams, C: float | None = None,
-                 neighbour_degrees: dict[int, int] | None = None, relax: float = 1.95) -> None:
-        super().__init__(robot_id, neighbours, features, labels, n_robots=n_robots, params=params, C=C,
-                         neighbour_degrees=neighbour_degrees)
+    def __init__(self, share: RobotShare, params: RelaxedADMMParams, *, relax: float = 1.95) -> None:
+        super().__init__(share, params)
         admm = ADMMParams(rho=params.rho, gamma_penalty=params.gamma_penalty, relax=relax, anderson=0)
-        self._admm = ConsensusADMM(robot_id, neighbours, features, labels, n_robots=n_robots, params=admm, C=C,
-                                   neighbour_degrees=neighbour_degrees, keep_trace=False)
+        self._admm = ConsensusADMM(share, admm, keep_trace=False)
         self._started = False
 
     def _solve(self) -> np.ndarray:
@@ -333,15 +311,11 @@ class FreeCTADMM(_NewestValues):
 
     algorithm = "ct-admm-free"
 
-    def __init__(self, robot_id: int, neighbours: tuple[int, ...], features: np.ndarray, labels: np.ndarray, *,
-                 n_robots: int, params: RelaxedADMMParams, ct_params: Any, C: float | None = None,
-                 neighbour_degrees: dict[int, int] | None = None) -> None:
+    def __init__(self, share: RobotShare, params: RelaxedADMMParams, *, ct_params: Any) -> None:
         from agents.ct_admm import ContinuousTimeADMM
 
-        self._ct = ContinuousTimeADMM(robot_id, neighbours, features, labels, n_robots=n_robots, params=ct_params,
-                                      C=C, keep_trace=False)
-        super().__init__(robot_id, neighbours, features, labels, n_robots=n_robots, params=params, C=C,
-                         neighbour_degrees=neighbour_degrees)
+        self._ct = ContinuousTimeADMM(share, ct_params, keep_trace=False)
+        super().__init__(share, params)
 
     def _solve(self) -> np.ndarray:
         ct = self._ct
@@ -368,8 +342,6 @@ def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, a
         raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
     if not spec.fixed_grid:
         raise ValueError("free sync needs a fixed grid and sigma (--grid and --sigma, or --preset paper)")
-    me = spec.robots[rid]
-    degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
     # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
     # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
     given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
@@ -379,5 +351,4 @@ def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, a
     if algorithm == "ct-admm-free":
         kw["ct_params"] = CTADMMParams(period=period)
     cls = {"radmm": RelaxedADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
-    return cls(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
-               params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees, **kw)
+    return cls(spec.share(rid), RelaxedADMMParams.from_params(given), **kw)

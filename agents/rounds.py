@@ -18,12 +18,14 @@ they never see frames, inboxes or flags.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from agents.messages import StateUpdate
+from agents.params import check_diameter
 from agents.problem import InfeasibleError, SolverError
 
 _TINY = 1e-12
@@ -82,6 +84,42 @@ def check_local_data(features: Any, labels: Any, C: float | None, *, allow_empty
         raise ValueError(f"features {shape} and labels {np.shape(labels)} do not match")
     if C is not None and not (math.isfinite(C) and C > 0):
         raise ValueError(f"C must be a positive number or None (hard margin), got {C!r}")
+
+
+@dataclass(frozen=True, eq=False)  # arrays inside: compared by identity
+class RobotShare:
+    """One robot's share of the fleet's problem, as every core takes it: who it is, whom it hears,
+    the rows it fits and the fleet's constants. Checked once here, with the same messages
+    whatever the algorithm, so a core's constructor takes a share and its own parameters only.
+
+    ``features`` are the rows of the robot's margins (the basis's features of its points; raw
+    points for autogrid, which builds features per grid); ``degrees`` maps a neighbour to its
+    neighbour count (missing: unknown, see `agents.admm.hub_form`)."""
+
+    robot_id: int
+    neighbours: tuple[int, ...]
+    features: np.ndarray
+    labels: np.ndarray
+    n_robots: int = 1
+    C: float | None = None
+    degrees: Mapping[int, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_local_data(self.features, self.labels, self.C)
+        check_neighbours(self.robot_id, self.neighbours)
+        object.__setattr__(self, "neighbours", tuple(sorted(self.neighbours)))
+
+    @property
+    def dim(self) -> int:
+        """Length of (x, gamma): a weight per feature and the offset."""
+        return int(np.shape(self.features)[1]) + 1
+
+    def with_data(self, neighbours: tuple[int, ...], features: np.ndarray, labels: np.ndarray,
+                  C: float | None) -> RobotShare:
+        """The same robot and fleet on other rows (a sub-problem: autogrid's grid, a sweep's
+        fold), among the neighbours it still has; each neighbour's degree as known, else 1."""
+        degrees = {j: self.degrees.get(j, 1) for j in neighbours}
+        return replace(self, neighbours=neighbours, features=features, labels=labels, C=C, degrees=degrees)
 
 
 def result_row(core: Any, values: np.ndarray, *, rounds: int, dropped: list[int]) -> dict[str, Any]:
@@ -143,8 +181,7 @@ class RoundCore:
         keep_trace: bool,
     ) -> None:
         check_neighbours(robot_id, neighbours)
-        if not 0 <= diameter <= 62:
-            raise ValueError(f"diameter must be in [0, 62] (flag bits), got {diameter}")
+        check_diameter(diameter)
         self.robot_id = robot_id
         self.neighbours = tuple(sorted(neighbours))
         self.dim = dim
@@ -253,13 +290,9 @@ class RoundCore:
         return check_iterate(self.values)
 
     def status(self) -> dict[str, Any]:
-        return {
-            "robot": self.robot_id,
-            "round": self.round,
-            "residual": self.residual,
-            "finished": self.finished,
-            "converged": self.converged,
-        }
+        """Where the robot is (its status key while it runs): round, residual, how it stopped."""
+        return {"robot": self.robot_id, "round": self.round, "residual": self.residual,
+                "finished": self.finished, "converged": self.converged}
 
     def result(self) -> dict[str, Any]:
         """x and gamma of this robot; the shell adds its counters, the launcher the c's."""

@@ -22,6 +22,7 @@ from agents.extension import load_algorithm
 from agents.kernel import GridBasis
 from agents.newton import DistributedNewton, NewtonParams, frame_size
 from agents.params import params_from
+from agents.rounds import RobotShare
 from protocol.auth import FLEET_SECRET_BYTES, FrameAuth, new_fleet_secret
 from protocol.frames import config_tag as make_config_tag
 from protocol.keys import validate_fleet_id
@@ -288,6 +289,15 @@ class FleetSpec:
     def save(self, path: Path) -> None:
         Path(path).write_text(json.dumps(self.to_json()))
 
+    def share(self, robot_id: int, *, points: bool = False) -> RobotShare:
+        """Robot ``robot_id``'s share of the problem as its core takes it: the basis's features of
+        its points (``points``: the raw points, for autogrid, which builds features per grid),
+        the fleet's C and every neighbour's degree (for the hub form's verdict)."""
+        me = self.robots[robot_id]
+        degrees = {j: len(self.robots[j].neighbours) for j in me.neighbours}
+        rows = me.points if points else self.basis.features(me.points)
+        return RobotShare(robot_id, me.neighbours, rows, me.labels, n_robots=self.n_robots, C=self.C, degrees=degrees)
+
     @classmethod
     def load(cls, path: Path) -> FleetSpec:
         """Read a fleet file; errors name the file (the CLI turns them into exit code 2)."""
@@ -316,28 +326,15 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
         raise ValueError(f"this fleet file holds robot {spec.owner}'s data only, not robot {robot_id}'s")
     if spec.custom:  # a user's fleet algorithm builds itself from the fleet file
         return load_algorithm(spec.algorithm).from_spec(spec, robot_id, keep_trace=keep_trace)
-    me = spec.robots[robot_id]
-    degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
     if spec.algorithm == "autogrid":
-        return AdaptiveGridCore(
-            robot_id,
-            me.neighbours,
-            me.points,
-            me.labels,
-            n_robots=spec.n_robots,
-            params=spec.autogrid_params,
-            start_grid=spec.grid if len(spec.grid) else None,
-            neighbour_degrees=degrees,
-            keep_trace=False,
-        )
-    features = spec.basis.features(me.points)
-    common = {"params": spec.algorithm_params, "C": spec.C, "keep_trace": keep_trace}
+        start_grid = spec.grid if len(spec.grid) else None
+        return AdaptiveGridCore(spec.share(robot_id, points=True), spec.autogrid_params, start_grid=start_grid)
+    share, params = spec.share(robot_id), spec.algorithm_params
     if spec.algorithm == "newton":
-        return DistributedNewton(robot_id, me.neighbours, features, me.labels, graph=spec.graph, **common)
+        return DistributedNewton(share, params, graph=spec.graph, keep_trace=keep_trace)
     if spec.algorithm == "ct-admm":
-        return ContinuousTimeADMM(robot_id, me.neighbours, features, me.labels, n_robots=spec.n_robots, **common)
-    return ConsensusADMM(robot_id, me.neighbours, features, me.labels, n_robots=spec.n_robots,
-                         neighbour_degrees=degrees, **common)
+        return ContinuousTimeADMM(share, params, keep_trace=keep_trace)
+    return ConsensusADMM(share, params, keep_trace=keep_trace)
 
 
 def restore_core(spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]) -> Core:

@@ -60,15 +60,7 @@ def run_fleet(world, spec, params):
     ids = list(spec.robot_ids)
     tag = config_tag("autogrid-bench")
     cores = [
-        AdaptiveGridCore(
-            i,
-            spec.robots[i].neighbours,
-            spec.robots[i].points,
-            spec.robots[i].labels,
-            n_robots=len(ids),
-            params=params,
-            neighbour_degrees={j: len(spec.robots[j].neighbours) for j in spec.robots[i].neighbours},
-        )
+        AdaptiveGridCore(spec.share(i, points=True), params)
         for i in ids
     ]
     decoders = {c.robot_id: FrameDecoder("bench", ids, params.dim, tag) for c in cores}
@@ -88,6 +80,22 @@ def run_fleet(world, spec, params):
     return cores
 
 
+def error_vs_central(world, core, params):
+    """The fleet's basis and its function error against the central solve on the same grid and
+    margin (nan when the central solve fails)."""
+    grid, c, gamma = core.function()
+    basis = GridBasis(grid, core.sigma)
+    central = solve_central(basis, world.points, world.labels, None if core.margin == "hard" else params.soft_C)
+    return basis, basis.function_error(c, gamma, central.c, central.gamma) if central.solved else float("nan")
+
+
+def padded_bounds(shape):
+    """The raster box of the IoU: the outline's bounds padded by 20 % of their larger side."""
+    x0, x1, y0, y1 = scenario.shape_bounds(shape)
+    pad = 0.2 * max(x1 - x0, y1 - y0)
+    return (x0 - pad, x1 + pad, y0 - pad, y1 + pad)
+
+
 def svc_iou(world, bounds, sigma):
     clf = SVC(kernel="rbf", C=1e6, gamma=1.0 / (2 * sigma * sigma)).fit(world.points, world.labels)
     return scenario.iou_on_raster(world.shape, lambda q: clf.decision_function(q) < 0, bounds)
@@ -103,12 +111,8 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None):
     core = cores[0]
     grid, c, gamma = core.function()
     same = all(np.array_equal(k.function()[0], grid) and np.array_equal(k.function()[1], c) for k in cores)
-    basis = GridBasis(grid, core.sigma)
-    central = solve_central(basis, world.points, world.labels, None if core.margin == "hard" else params.soft_C)
-    err = basis.function_error(c, gamma, central.c, central.gamma) if central.solved else float("nan")
-    x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
-    pad = 0.2 * max(x1 - x0, y1 - y0)
-    bounds = (x0 - pad, x1 + pad, y0 - pad, y1 + pad)
+    basis, err = error_vs_central(world, core, params)
+    bounds = padded_bounds(world.shape)
     ours = scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds)
     diag = float(np.hypot(*np.ptp(world.points, axis=0)))
     sweep = [(svc_iou(world, bounds, diag / k), diag / k) for k in SWEEP]
@@ -173,12 +177,8 @@ def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tupl
     wall = time.perf_counter() - started
     core = cores[0]
     grid, c, gamma = core.function()
-    basis = GridBasis(grid, core.sigma)
-    central = solve_central(basis, world.points, world.labels, None if core.margin == "hard" else params.soft_C)
-    err = basis.function_error(c, gamma, central.c, central.gamma) if central.solved else float("nan")
-    x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
-    pad = 0.2 * max(x1 - x0, y1 - y0)
-    bounds = (x0 - pad, x1 + pad, y0 - pad, y1 + pad)
+    basis, err = error_vs_central(world, core, params)
+    bounds = padded_bounds(world.shape)
     diag = float(np.hypot(*np.ptp(world.points, axis=0)))
     sweep = [(svc_iou(world, bounds, diag / k), diag / k) for k in OUTLINE_SWEEP]
     cv = StratifiedKFold(5, shuffle=True, random_state=0)

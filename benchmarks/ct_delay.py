@@ -17,6 +17,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.problem import solve_central  # noqa: E402
+from benchmarks.common import add_row, write_results  # noqa: E402
 from launcher.simulate import simulate_fleet  # noqa: E402
 from launcher.world import Options, build_world  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
@@ -55,17 +56,15 @@ def main() -> None:
             f"| {delay_ms} ms | {loss:.0%} | {k} | {k * period:.2f} s | {net_t:.2f} s | "
             f"{out.robots[0]['rounds']} | {sum(r['frames_lost'] for r in out.robots)} |"
         )
-        lines.append(line)
-        print(line, flush=True)
-    out_path = Path(__file__).parent / "results" / "ct_delay.md"
-    out_path.write_text(
+        add_row(lines, line)
+    write_results(
+        "ct_delay.md",
         "# CT-ADMM: time to 1e-2 against network delay (default scenario, in-process fleet)\n\n"
         "Flow time = round x T_sp (10 ms), the paper's clock. Network time = the virtual network clock when\n"
         "the last robot computed that round (without compute time): each round waits for the\n"
         "neighbours' exact samples, so delay and loss stretch it, and retransmissions after a loss add\n"
-        "the 20 ms retransmit interval.\n\n" + "\n".join(lines) + "\n"
+        "the 20 ms retransmit interval.\n\n" + "\n".join(lines) + "\n",
     )
-    print(f"wrote {out_path}")
 
 
 if __name__ == "__main__":

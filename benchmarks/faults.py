@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 from agents.kernel import GridBasis  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
 from launcher import scenario  # noqa: E402
+from tests.conftest import processes_with, wait_until  # noqa: E402 -- the reliability tests' process probes
 
 OUT = ROOT / "benchmarks" / "results" / "faults.md"
 PAPER = ["--preset", "paper"]
@@ -63,21 +64,8 @@ ROWS = [
 ]
 
 
-def _processes_with(marker: str) -> list[int]:
-    found = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit() and int(entry) != os.getpid():
-            try:
-                cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            except OSError:
-                continue
-            if marker in cmd:
-                found.append(int(entry))
-    return found
-
-
 def _pid(out: Path, needle: str) -> int | None:
-    for p in _processes_with(str(out)):
+    for p in processes_with(str(out)):
         try:
             if needle in Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"):
                 return p
@@ -93,16 +81,6 @@ def _round_of(out: Path, rid: int) -> int:
         return int(read_checkpoint(out / "fleet" / f"robot-{rid}.ckpt")["core"]["round"])
     except (ValueError, OSError, KeyError):
         return 0
-
-
-def _wait(pred, timeout: float):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.05)
-    return None
 
 
 def _exact_error(out: Path) -> float | None:
@@ -128,22 +106,22 @@ def run_row(row: Row, folder: Path) -> dict:
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         if row.action == "pause":
-            pid = _wait(lambda: _round_of(out, 2) >= 5 and _pid(out, "--id 2"), 30)
+            pid = wait_until(lambda: _round_of(out, 2) >= 5 and _pid(out, "--id 2"), 30)
             os.kill(pid, signal.SIGSTOP)
             time.sleep(row.action_s)
             os.kill(pid, signal.SIGCONT)
         elif row.action == "router":
-            pid = _wait(lambda: _round_of(out, 0) >= 5 and _pid(out, "launcher.router"), 30)
+            pid = wait_until(lambda: _round_of(out, 0) >= 5 and _pid(out, "launcher.router"), 30)
             os.kill(pid, signal.SIGKILL)
         elif row.action in ("sigterm", "sighup"):
-            _wait(lambda: _round_of(out, 0) >= 5, 30)
+            wait_until(lambda: _round_of(out, 0) >= 5, 30)
             os.kill(proc.pid, getattr(signal, row.action.upper()))
         _, err = proc.communicate(timeout=180)
     finally:
         if proc.poll() is None:
             os.kill(proc.pid, signal.SIGKILL)
             proc.communicate()
-        left = _processes_with(str(out))
+        left = processes_with(str(out))
         for pid in left:
             os.kill(pid, signal.SIGKILL)
     wall = time.monotonic() - t0

@@ -153,6 +153,7 @@ def ct_admm(lines: list[str]) -> None:
     """The paper's CT-ADMM on the robot's clock: one period of flow per tick, samples held."""
     from agents.ct_admm import CTADMMParams
     from agents.pdmm import FreeCTADMM, RelaxedADMMParams
+    from agents.rounds import RobotShare
 
     _, spec, central = scenario(0)
     lines += ["", "## CT-ADMM with sampled-and-held neighbour samples", "",
@@ -160,9 +161,10 @@ def ct_admm(lines: list[str]) -> None:
               "10 s of flow (1000 periods of 10 ms); lag 0 is the lockstep CT-ADMM.", "",
               "| lag (periods) | delay | final error vs exact |", "|---|---|---|"]
     for lag in (0, 1, 2, 5):
-        cores = {rid: FreeCTADMM(rid, r.neighbours, spec.basis.features(r.points), r.labels, n_robots=spec.n_robots,
-                                 params=RelaxedADMMParams(max_ticks=1000), ct_params=CTADMMParams())
-                 for rid, r in spec.robots.items()}
+        shares = {rid: RobotShare(rid, r.neighbours, spec.basis.features(r.points), r.labels, n_robots=spec.n_robots)
+                  for rid, r in spec.robots.items()}
+        cores = {rid: FreeCTADMM(share, RelaxedADMMParams(max_ticks=1000), ct_params=CTADMMParams())
+                 for rid, share in shares.items()}
         queue = []
         for _ in range(1000):
             queue.append({rid: c.tick() for rid, c in cores.items()})

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -28,18 +27,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.problem import certify_hard_margin, margin_rows, solve_central  # noqa: E402
 from agents.spec import build_core  # noqa: E402
+from benchmarks.common import FLEETS, add_row, lockstep_round, write_results  # noqa: E402
 from launcher.world import Options, build_world  # noqa: E402
 from protocol.frames import encode_state  # noqa: E402
 
-SCENARIOS = [
-    ("paper setting: 3 robots, blob, complete", {}),
-    ("4 robots, ring", {"robots": 4, "topology": "ring"}),
-    ("5 robots, line", {"robots": 5, "topology": "line"}),
-    ("8 robots, ring", {"robots": 8, "topology": "ring"}),
-    ("8 robots, complete", {"robots": 8}),
-    ("16 robots, geometric 3.0", {"robots": 16, "topology": "geometric", "comm_range": 3.0}),
-    ("16 robots, ring", {"robots": 16, "topology": "ring"}),
-]
+#: benchmarks/rounds.py's fleets on the paper's blob, but the 16-robot complete graph
+SCENARIOS = [(name, kw) for name, kw in FLEETS if "shape" not in kw and name != "16 robots, complete"]
 
 
 def measure(kwargs: dict, algorithm: str, params: dict | None = None, tol: float = 1e-6) -> dict:
@@ -61,15 +54,9 @@ def measure(kwargs: dict, algorithm: str, params: dict | None = None, tol: float
     compute = 0.0
     frame_bytes = 0
     while not all(c.finished for c in cores):
-        updates = [c.outgoing() for c in cores]
+        updates, seconds = lockstep_round(cores)
         frame_bytes = max(frame_bytes, len(encode_state(updates[0], fleet=spec.fleet, seq=0, config_tag=spec.config_tag)))
-        for c in cores:
-            for u in updates:
-                c.receive(u)
-        t = time.perf_counter()
-        for c in cores:
-            c.advance()
-        compute += time.perf_counter() - t
+        compute += seconds
         if not error(ref) < tol:
             last_bad = cores[0].round
     rounds = cores[0].round
@@ -123,14 +110,12 @@ def main() -> None:
                 f"{'yes' if r['converged'] else 'no'} | {r['error_exact']:.1e}{'' if r['certified'] else ' (uncertified)'} | "
                 f"{r['error_central']:.1e} | {r['ms']:.3f} | {r['floats']} | {r['frame_bytes']} | {r['run_kb']:.0f} |"
             )
-            lines.append(line)
-            print(line, flush=True)
-    out = Path(__file__).parent / "results" / "newton.md"
-    out.write_text(
+            add_row(lines, line)
+    write_results(
+        "newton.md",
         "# Distributed interior point (`--algorithm newton`) vs ADMM (in process)\n\n"
-        "Written by `benchmarks/newton.py`.\n\n" + "\n".join(lines) + "\n"
+        "Written by `benchmarks/newton.py`.\n\n" + "\n".join(lines) + "\n",
     )
-    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -28,6 +27,7 @@ from agents.admm import ADMMParams  # noqa: E402
 from protocol.frames import encode_state  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
 from agents.spec import build_core  # noqa: E402
+from benchmarks.common import FLEETS, add_row, lockstep_round, write_results  # noqa: E402
 from launcher.world import Options, build_world, resolve_options  # noqa: E402
 from launcher.scenario import REFERENCE_LENGTHS  # noqa: E402
 
@@ -47,19 +47,7 @@ BEFORE = {
     "16 robots, complete": (385, 408, 2.5e-06, 2.745),
 }
 
-SCENARIOS = [
-    ("paper setting: 3 robots, blob, complete", {}),
-    ("3 robots, bean", {"shape": "bean"}),
-    ("3 robots, star", {"shape": "star"}),
-    ("3 robots, crescent", {"shape": "crescent"}),
-    ("4 robots, ring", {"robots": 4, "topology": "ring"}),
-    ("5 robots, line", {"robots": 5, "topology": "line"}),
-    ("8 robots, ring", {"robots": 8, "topology": "ring"}),
-    ("8 robots, complete", {"robots": 8}),
-    ("16 robots, geometric 3.0", {"robots": 16, "topology": "geometric", "comm_range": 3.0}),
-    ("16 robots, ring", {"robots": 16, "topology": "ring"}),
-    ("16 robots, complete", {"robots": 16}),
-]
+SCENARIOS = FLEETS
 
 
 def measure(kwargs: dict, max_rounds: int) -> dict:
@@ -83,14 +71,7 @@ def measure(kwargs: dict, max_rounds: int) -> dict:
     for c in cores:
         publish(c, c.outgoing(), 0)
     while not all(c.finished for c in cores):
-        updates = [c.outgoing() for c in cores]
-        for c in cores:
-            for u in updates:
-                c.receive(u)
-        t = time.perf_counter()
-        for c in cores:
-            c.advance()
-        compute += time.perf_counter() - t
+        compute += lockstep_round(cores)[1]
         for c in cores:
             publish(c, c.outgoing(), c.round)
         if first is None and error() < 1e-3:
@@ -176,8 +157,7 @@ def stop_check(max_rounds: int) -> list[str]:
                     worst = max(worst, r["error"])
                 line = (f"| {shape} | {topology} {robots} | {seed} | {first} | {r['stop']} | "
                         f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e} | {ratio} | {verdict} |")
-                lines.append(line)
-                print(line, flush=True)
+                add_row(lines, line)
     lines += ["", f"Largest error at a stop by the rule: {worst:.1e} (tol {tol:g})."]
     return lines
 
@@ -190,10 +170,8 @@ def main() -> None:
                     help="only the stopping rule's error at stop on sparse fleets (shapes x seeds)")
     args = ap.parse_args()
     if args.stop_check:
-        out = Path(__file__).parent / "results" / "rounds-stop.md"
         body = stop_check(args.max_rounds)
-        out.write_text("# Decentralized ADMM: the stopping rule on sparse fleets\n" + "\n".join(body) + "\n")
-        print(f"wrote {out}")
+        write_results("rounds-stop.md", "# Decentralized ADMM: the stopping rule on sparse fleets\n" + "\n".join(body) + "\n")
         return
     rows = SCENARIOS[:1] if args.quick else SCENARIOS
     d = resolve_options(Options(preset="paper"))
@@ -224,8 +202,7 @@ def main() -> None:
             f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e} ({f'{b[2]:.1e}' if b else '-'}) | {r['rank']} | "
             f"{r['ms']:.3f} ({f'{b[3]:.3f}' if b else '-'}) | {r['bytes']:.0f} |"
         )
-        lines.append(line)
-        print(line, flush=True)
+        add_row(lines, line)
     lines += [
         "",
         "## Bytes sent per robot per run, every algorithm (`simulate`, no faults)",
@@ -241,11 +218,9 @@ def main() -> None:
         r = algorithm_bytes(kwargs)
         line = (f"| {algo} | {label} | {r['rounds']} | {'yes' if r['converged'] else 'no'} | {r['frames']:.0f} | "
                 f"{r['bytes']:.0f} | {r['bytes'] / r['frames']:.0f} |")
-        lines.append(line)
-        print(line, flush=True)
-    out = Path(__file__).parent / "results" / ("rounds-quick.md" if args.quick else "rounds.md")
-    out.write_text("# Decentralized ADMM: rounds to tolerance (in process), before and after\n\n" + "\n".join(lines) + "\n")
-    print(f"wrote {out}")
+        add_row(lines, line)
+    write_results("rounds-quick.md" if args.quick else "rounds.md",
+                  "# Decentralized ADMM: rounds to tolerance (in process), before and after\n\n" + "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

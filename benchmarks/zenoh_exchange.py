@@ -35,7 +35,9 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -82,6 +84,38 @@ def _wait_peers(session, run: str, me: int, peers: list[int], timeout: float) ->
 # ----------------------------------------------------------------------------------- workers
 
 
+def _declare(session: Any, run: str, me: int, peers: list[int], on_sample: Any, express: bool) -> tuple[list, Any, Any]:
+    """A worker's subscriber per peer (``on_sample`` each), its publisher and liveliness token."""
+    subs = [session.declare_subscriber(_key(run, j), on_sample) for j in peers]
+    pub = session.declare_publisher(_key(run, me), express=express)
+    return subs, pub, session.liveliness().declare_token(_alive_key(run, me))
+
+
+def _publish_rounds(pub: Any, me: int, rounds: int, dim: int) -> Iterator[tuple[int, bytes]]:
+    """Publish worker ``me``'s frame of each round in turn; yields (round, frame) for the caller
+    to wait on its peers' frames of that round (and resend the frame while it waits)."""
+    for r in range(rounds):
+        frame = _payload(me, r, dim)
+        pub.put(frame)
+        yield r, frame
+
+
+def _time_left(deadline: float, me: int, r: int) -> float:
+    """Seconds left before ``deadline``; TimeoutError naming the worker's round when none are."""
+    left = deadline - time.monotonic()
+    if left <= 0:
+        raise TimeoutError(f"worker {me} stuck in round {r}")
+    return left
+
+
+def _undeclare(subs: list, pub: Any, token: Any) -> None:
+    """Withdraw what `_declare` declared, before the session closes."""
+    token.undeclare()
+    for s in subs:
+        s.undeclare()
+    pub.undeclare()
+
+
 def worker_asyncio(endpoint: str, run: str, me: int, n: int, rounds: int, dim: int, express: bool, timeout: float):
     import zenoh
 
@@ -106,22 +140,15 @@ def worker_asyncio(endpoint: str, run: str, me: int, n: int, rounds: int, dim: i
 
         session = zenoh.open(robot_config([endpoint]))
         try:
-            subs = [session.declare_subscriber(_key(run, j), on_sample) for j in peers]
-            pub = session.declare_publisher(_key(run, me), express=express)
-            token = session.liveliness().declare_token(_alive_key(run, me))
+            subs, pub, token = _declare(session, run, me, peers, on_sample, express)
             await asyncio.to_thread(_wait_peers, session, run, me, peers, timeout)
             stamps = []
             deadline = time.monotonic() + timeout
-            for r in range(rounds):
-                frame = _payload(me, r, dim)
-                pub.put(frame)
+            for r, frame in _publish_rounds(pub, me, rounds, dim):
                 while min(latest.values()) < r:
                     event.clear()
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        raise TimeoutError(f"worker {me} stuck in round {r}")
                     try:
-                        await asyncio.wait_for(event.wait(), min(RETRANSMIT_S, left))
+                        await asyncio.wait_for(event.wait(), min(RETRANSMIT_S, _time_left(deadline, me, r)))
                     except TimeoutError:
                         pub.put(frame)
                 stamps.append(time.perf_counter())
@@ -130,10 +157,7 @@ def worker_asyncio(endpoint: str, run: str, me: int, n: int, rounds: int, dim: i
             while time.monotonic() < end:
                 pub.put(_payload(me, rounds - 1, dim))
                 await asyncio.sleep(0.05)
-            token.undeclare()
-            for s in subs:
-                s.undeclare()
-            pub.undeclare()
+            _undeclare(subs, pub, token)
             return stamps
         finally:
             session.close()
@@ -151,21 +175,14 @@ def worker_blocking(endpoint: str, run: str, me: int, n: int, rounds: int, dim: 
     inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
     session = zenoh.open(robot_config([endpoint]))
     try:
-        subs = [session.declare_subscriber(_key(run, j), lambda s: inbox.put(s.payload.to_bytes())) for j in peers]
-        pub = session.declare_publisher(_key(run, me), express=express)
-        token = session.liveliness().declare_token(_alive_key(run, me))
+        subs, pub, token = _declare(session, run, me, peers, lambda s: inbox.put(s.payload.to_bytes()), express)
         _wait_peers(session, run, me, peers, timeout)
         stamps = []
         deadline = time.monotonic() + timeout
-        for r in range(rounds):
-            frame = _payload(me, r, dim)
-            pub.put(frame)
+        for r, frame in _publish_rounds(pub, me, rounds, dim):
             while min(latest.values()) < r:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError(f"worker {me} stuck in round {r}")
                 try:
-                    data = inbox.get(timeout=min(RETRANSMIT_S, left))
+                    data = inbox.get(timeout=min(RETRANSMIT_S, _time_left(deadline, me, r)))
                 except queue.Empty:
                     pub.put(frame)
                     continue
@@ -177,10 +194,7 @@ def worker_blocking(endpoint: str, run: str, me: int, n: int, rounds: int, dim: 
         while time.monotonic() < end:
             pub.put(_payload(me, rounds - 1, dim))
             time.sleep(0.05)
-        token.undeclare()
-        for s in subs:
-            s.undeclare()
-        pub.undeclare()
+        _undeclare(subs, pub, token)
         return stamps
     finally:
         session.close()

@@ -109,14 +109,6 @@ class LaunchError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class CrashPlan:
-    """SIGKILL robot ``robot`` as soon as it reports round ``round`` or later."""
-
-    robot: int
-    round: int
-
-
-@dataclass(frozen=True)
 class CrashEvent:
     """A crash the launcher carried out."""
 
@@ -144,6 +136,14 @@ class LaunchOutcome(FleetOutcome):
     # monotonic-clock marks of the run (launch, router_ready, robots_started, robots_exited,
     # stopped): start-up and shut-down costs, compared with the robots' own marks by benchmarks
     timeline: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CrashPlan:
+    """SIGKILL robot ``robot`` as soon as it reports round ``round`` or later."""
+
+    robot: int
+    round: int
 
 
 _CRASH_RE = re.compile(r"\s*(\d+)\s*@\s*(\d+)\s*")

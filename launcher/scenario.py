@@ -18,6 +18,7 @@ scaled: see :func:`world_lengths` and :data:`REFERENCE_LENGTH`.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import re
 from collections.abc import Callable
@@ -208,18 +209,10 @@ class WorldLengths:
     given: tuple[str, ...] = ()
 
     def as_dict(self) -> dict[str, object]:
-        """The ``world`` object of result.json (docs/result-schema.md)."""
-        return {
-            "length": self.length,
-            "basis": self.basis,
-            "scale": self.scale,
-            "standoff": self.standoff,
-            "range": self.lidar_range,
-            "offset": self.offset,
-            "noise": self.noise,
-            "comm_range": self.comm_range,
-            "given": list(self.given),
-        }
+        """The ``world`` object of result.json (docs/result-schema.md): the fields in their order,
+        ``lidar_range`` under its flag's name ``range``, ``given`` as a list."""
+        row = {"range" if f.name == "lidar_range" else f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return {**row, "given": list(self.given)}
 
 
 def characteristic_length(shape: Polygon | None = None, points: np.ndarray | None = None) -> float:
@@ -328,16 +321,20 @@ def _check_width(name: str, line: int, row: list[str], expected: list[str]) -> N
 MAX_COORDINATE = 1e9
 
 
-def _number(name: str, line: int, field: str, text: str) -> float:
-    """A finite float, or a ScenarioError naming file, line and field."""
+def _finite(text: str, where: str) -> float:
+    """A finite float, or a ScenarioError saying ``where`` (a flag's part, a file's field) and why."""
     try:
         value = float(text)
     except ValueError:
-        raise ScenarioError(
-            f"{name} line {line}: {field} is {text.strip()!r}, not a number"
-        ) from None
-    if not math.isfinite(value):
-        raise ScenarioError(f"{name} line {line}: {field} is {text.strip()!r}, must be finite")
+        value = None
+    if value is None or not math.isfinite(value):
+        raise ScenarioError(f"{where} is {text.strip()!r}, {'not a number' if value is None else 'must be finite'}")
+    return value
+
+
+def _number(name: str, line: int, field: str, text: str) -> float:
+    """A finite float, or a ScenarioError naming file, line and field."""
+    value = _finite(text, f"{name} line {line}: {field}")
     if abs(value) > MAX_COORDINATE:
         raise ScenarioError(
             f"{name} line {line}: {field} is {text.strip()!r}, "
@@ -482,15 +479,7 @@ def place_robots(shape: Polygon, n: int, *, standoff: float = 1.5) -> np.ndarray
 
 
 def simulate_lidar(
-    shape: Polygon,
-    pose: np.ndarray,
-    *,
-    max_range: float = 4.0,
-    angular_res_deg: float = 1.0,
-    fov_deg: float = 360.0,
-    range_noise: float = 0.01,
-    offset: float = 0.1,
-    rng: np.random.Generator | int,
+    shape: Polygon, pose: np.ndarray, *, rng: np.random.Generator | int, **lidar: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Scan the object from `pose`; every return becomes an outside (+1) / inside (-1) pair.
 
@@ -499,12 +488,11 @@ def simulate_lidar(
     return along the ray, the -1 point `offset` past it. A pair whose points are not really on
     their sides of the true outline (thin horns, grazing rays, noise larger than the offset)
     is dropped, so every label is right. With fov < 360 the sensor faces the centroid.
+    ``lidar``: the sensor's settings, by their names in `_scan` (max_range, angular_res_deg,
+    fov_deg, range_noise, offset), each defaulting as there.
     Returns points (2k, 2) and labels (2k,), pairs consecutive, in ray order.
     """
-    points, labels, _, _ = _scan(
-        shape, pose, max_range=max_range, angular_res_deg=angular_res_deg, fov_deg=fov_deg,
-        range_noise=range_noise, offset=offset, rng=rng,
-    )
+    points, labels, _, _ = _scan(shape, pose, rng=rng, **lidar)
     return points, labels
 
 
@@ -739,18 +727,7 @@ def parse_bounds(text: str) -> tuple[float, float, float, float]:
     parts = text.split(",")
     if len(parts) != 4:
         raise ScenarioError(f"--grid-bounds: {text!r} is not x0,x1,y0,y1, e.g. -2.5,2.5,-1.5,1.5")
-    values = []
-    for label, part in zip(("x0", "x1", "y0", "y1"), parts, strict=True):
-        try:
-            value = float(part)
-        except ValueError:
-            raise ScenarioError(
-                f"--grid-bounds: {label} is {part.strip()!r}, not a number"
-            ) from None
-        if not math.isfinite(value):
-            raise ScenarioError(f"--grid-bounds: {label} is {part.strip()!r}, must be finite")
-        values.append(value)
-    x0, x1, y0, y1 = values
+    x0, x1, y0, y1 = (_finite(part, f"--grid-bounds: {label}") for label, part in zip(("x0", "x1", "y0", "y1"), parts))
     if not x0 < x1:
         raise ScenarioError(f"--grid-bounds: x0 = {x0:g} must be less than x1 = {x1:g}")
     if not y0 < y1:

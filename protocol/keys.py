@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import re
 
+from agents.messages import MAX_ROBOT_ID, check_robot_id
+
 ROOT = "shapefleet"
 MAX_FLEET_ID_LEN = 64
-MAX_ROBOT_ID = 2**31 - 1
 
 _FLEET_CHARS = re.compile(r"[A-Za-z0-9_-]")
 _ROBOT_KEY = re.compile(
@@ -38,13 +39,9 @@ def validate_fleet_id(s: str) -> str:
     return s
 
 
-def validate_robot_id(robot: int) -> int:
-    """Return ``robot`` if it is an int in [0, 2**31), else raise ValueError (bool is refused)."""
-    if type(robot) is not int:
-        raise ValueError(f"robot id must be an int, got {type(robot).__name__}")
-    if not 0 <= robot <= MAX_ROBOT_ID:
-        raise ValueError(f"robot id {robot} is outside [0, {MAX_ROBOT_ID}]")
-    return robot
+#: ``robot`` if it is an int in [0, 2**31), else ValueError (bool is refused): a key names a
+#: robot as a message does, by one rule (agents/messages.py)
+validate_robot_id = check_robot_id
 
 
 def fleet_prefix(fleet: str) -> str:

@@ -148,15 +148,9 @@ class RobotSession:
         self,
         core: Any,
         *,
-        fleet: str,
-        senders: tuple[int, ...],
-        dim: int,
-        config_tag: bytes,
-        timing: SessionTiming,
-        now: float,
-        auth: FrameAuth | None = None,
-        link_checks: bool = False,
-        resume: Mapping[str, Any] | None = None,
+        fleet: str, senders: tuple[int, ...], dim: int, config_tag: bytes,  # the frames it accepts
+        timing: SessionTiming, now: float,  # its clock
+        auth: FrameAuth | None = None, link_checks: bool = False, resume: Mapping[str, Any] | None = None,
     ) -> None:
         """``resume``: a checkpoint envelope (``checkpoint()`` output) whose core ``core`` was
         restored from; its counters carry over and ``restarts`` grows by one. ``link_checks``:

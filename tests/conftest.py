@@ -21,6 +21,42 @@ from launcher.world import Options, build_world
 PAPER = {"grid": "5x3", "sigma": 1.0, "algorithm": "admm"}
 
 
+def step_all(cores, deliver=None):
+    """One lock-step round: everyone publishes, everyone receives, everyone advances."""
+    updates = [c.outgoing() for c in cores]
+    for c in cores:
+        for u in updates:
+            if deliver is None or deliver(u, c):
+                c.receive(u)
+    for c in cores:
+        c.advance()
+
+
+def run_to_end(cores, limit=5000):
+    """Lock-step rounds until every core has finished (at most ``limit``)."""
+    for _ in range(limit):
+        if all(c.finished for c in cores):
+            return
+        step_all(cores)
+    raise AssertionError("fleet did not finish")
+
+
+def exchange_until_finished(cores: dict, limit: int) -> None:
+    """Drive ``cores`` (id -> core) by a perfect in-memory exchange: each round every core
+    publishes, its neighbours receive, the ready ones advance; until all have finished or
+    ``limit`` rounds (the reference the networked shells must equal)."""
+    for _ in range(limit):
+        if all(c.finished for c in cores.values()):
+            return
+        for update in [c.outgoing() for c in cores.values()]:
+            for c in cores.values():
+                if update.sender in c.neighbours:
+                    c.receive(update)
+        for c in cores.values():
+            if c.ready():
+                c.advance()
+
+
 def make_run(**kwargs):
     """(world, spec, central) for Options(**kwargs) with a fixed fleet id, on the paper's
     setting (grid 5x3, sigma 1, admm) unless the test passes its own; autogrid runs get no
@@ -65,6 +101,18 @@ def processes_with(marker: str) -> list[int]:
         if marker in cmdline:
             found.append(int(entry))
     return found
+
+
+def wait_until(predicate, timeout: float):
+    """The first truthy value of ``predicate()``, polled every 50 ms for at most ``timeout``
+    seconds; None when it never came (the caller says what it waited for)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    return None
 
 
 @contextlib.contextmanager

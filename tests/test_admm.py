@@ -7,29 +7,11 @@ import numpy as np
 import pytest
 
 from agents.admm import ADMMParams, ConsensusADMM
+from agents.rounds import RobotShare
 from agents.spec import build_core, restore_core
 from protocol.frames import StateUpdate
 
-from .conftest import make_run, max_function_error
-
-
-def step_all(cores, deliver=None):
-    """One lock-step round: everyone publishes, everyone receives, everyone advances."""
-    updates = [c.outgoing() for c in cores]
-    for c in cores:
-        for u in updates:
-            if deliver is None or deliver(u, c):
-                c.receive(u)
-    for c in cores:
-        c.advance()
-
-
-def run_to_end(cores, limit=5000):
-    for _ in range(limit):
-        if all(c.finished for c in cores):
-            return
-        step_all(cores)
-    raise AssertionError("fleet did not finish")
+from .conftest import make_run, max_function_error, run_to_end, step_all
 
 
 @pytest.fixture()
@@ -158,9 +140,7 @@ def test_plain_and_accelerated_reach_the_same_fixed_point(anderson):
     _, spec, central = make_run(tol=1e-6)
     params = ADMMParams(**{**spec.params, "anderson": anderson})
     cores = [
-        ConsensusADMM(i, spec.robots[i].neighbours, spec.basis.features(spec.robots[i].points), spec.robots[i].labels,
-                      n_robots=spec.n_robots, params=params,
-                      neighbour_degrees={j: len(spec.robots[j].neighbours) for j in spec.robots[i].neighbours})
+        ConsensusADMM(spec.share(i), params)
         for i in spec.robot_ids
     ]
     assert all((c._hub is not None) == (anderson > 0) for c in cores)
@@ -180,9 +160,7 @@ def test_round_cap_stops_everyone_unconverged():
 def cores_with_anderson(spec, anderson):
     params = ADMMParams(**{**spec.params, "anderson": anderson})
     return [
-        ConsensusADMM(i, spec.robots[i].neighbours, spec.basis.features(spec.robots[i].points), spec.robots[i].labels,
-                      n_robots=spec.n_robots, params=params,
-                      neighbour_degrees={j: len(spec.robots[j].neighbours) for j in spec.robots[i].neighbours})
+        ConsensusADMM(spec.share(i), params)
         for i in spec.robot_ids
     ]
 
@@ -312,7 +290,7 @@ def test_bad_parameters_are_refused(kwargs, match):
 
 def test_robot_cannot_be_its_own_neighbour():
     with pytest.raises(ValueError, match="itself"):
-        ConsensusADMM(0, (0, 1), np.ones((2, 3)), np.array([1, -1]), n_robots=2, params=ADMMParams())
+        ConsensusADMM(RobotShare(0, (0, 1), np.ones((2, 3)), np.array([1, -1]), n_robots=2), ADMMParams())
 
 
 def test_hub_form_only_when_every_robot_sees_the_whole_fleet():

@@ -16,10 +16,13 @@ from sklearn.svm import SVC
 from agents.autogrid import AdaptiveGridCore, AutoGridParams, choose_sigma, holdout_units, is_solid, lattice
 from agents.kernel import GridBasis
 from agents.problem import solve_central
+from agents.rounds import RobotShare
 from launcher import scenario
 from launcher.gridstudy import _shifted_bounds
 from launcher.world import Options, build_world
 from protocol.frames import Decoded, FrameDecoder, config_tag, encode_state
+
+from .conftest import step_all
 
 FLEET = "autogrid-test"
 TAG = config_tag("autogrid")
@@ -29,14 +32,9 @@ def make_cores(robots, params, *, start_grid=None, scale=1.0):
     """robots: {id: (neighbours, points, labels)} -> one core per robot."""
     return [
         AdaptiveGridCore(
-            rid,
-            nb,
-            np.asarray(pts) * scale,
-            lab,
-            n_robots=len(robots),
-            params=params,
+            RobotShare(rid, nb, np.asarray(pts) * scale, lab, n_robots=len(robots), degrees={j: len(robots[j][0]) for j in nb}),
+            params,
             start_grid=None if start_grid is None else np.asarray(start_grid) * scale,
-            neighbour_degrees={j: len(robots[j][0]) for j in nb},
         )
         for rid, (nb, pts, lab) in sorted(robots.items())
     ]
@@ -197,7 +195,7 @@ def test_local_infeasibility_is_voted_without_running_admm():
 def test_lone_robot_runs_every_phase_at_once():
     world, _ = build_world(Options(fleet_id="t", robots=1))
     r = world.robots[0]
-    core = AdaptiveGridCore(0, (), r.points, r.labels, n_robots=1, params=AutoGridParams(diameter=0, max_points=80))
+    core = AdaptiveGridCore(RobotShare(0, (), r.points, r.labels), AutoGridParams(diameter=0, max_points=80))
     assert core.finished and core.converged and core.round == 0
     grid, c, gamma = core.function()
     central = solve_central(GridBasis(grid, core.sigma), r.points, r.labels)
@@ -206,12 +204,7 @@ def test_lone_robot_runs_every_phase_at_once():
 
 def _lockstep(cores, rounds):
     for _ in range(rounds):
-        ups = [c.outgoing() for c in cores]
-        for c in cores:
-            for u in ups:
-                c.receive(u)
-        for c in cores:
-            c.advance()
+        step_all(cores)
 
 
 @pytest.fixture(scope="module")

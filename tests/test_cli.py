@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -97,24 +98,22 @@ def test_default_out_folder_is_new_under_runs(tmp_path):
     assert result["sigma"] == 1.0 and len(result["grid"]) == 15 and result["algorithm"] == "central"
 
 
-BAD = [
-    (["--shape", "teapot"], "--shape"),
-    (["--grid", "5by3"], "--grid"),
-    (["--grid", "0x3"], "--grid"),
-    (["--grid-bounds", "1,0,0,1"], "--grid-bounds"),
-    (["--sigma", "-1"], "--sigma"),
-    (["--sigma", "nan"], "--sigma"),
-    (["--robots", "0"], "--robots"),
-    (["--topology", "star"], "--topology"),
-    (["--topology", "geometric", "--comm-range", "0.5"], "--comm-range"),
-    (["--shape-file", str(DATA / "bowtie.csv")], "self-intersecting"),
-    (["--shape-file", "/nonexistent/shape.csv"], "shape.csv"),
-    (["--loss", "1.5"], "--loss"),
-    (["--delay", "20 parsecs"], "--delay"),
-]
+def _bad_flags() -> list[tuple[list[str], str]]:
+    """The rows of data/bad_flags.txt: (flags as shell words, needle of the one-line error)."""
+    fill = {"data": str(DATA), "tally_slots": str(AutoGridParams(max_points=4).tally_slots)}
+    rows = []
+    for line in (DATA / "bad_flags.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            flags, needle = (part.strip().format(**fill) for part in line.split(" | ", 1))
+            rows.append((shlex.split(flags), needle))
+    return rows
 
 
-@pytest.mark.parametrize("args,needle", BAD, ids=[b[1] + str(i) for i, b in enumerate(BAD)])
+BAD = _bad_flags()
+
+
+# every row in process (test_bad_flags_exit_2_with_one_line); two through the installed command
+@pytest.mark.parametrize("args,needle", [row for row in BAD if row[1] in ("--shape", "--delay")], ids=["--shape", "--delay"])
 def test_bad_input_exits_2_with_one_message(tmp_path, args, needle):
     proc = run_cli("simulate", "--out", str(tmp_path / "o"), *args)
     assert proc.returncode == 2
@@ -260,22 +259,8 @@ def test_algorithm_resolution():
     assert (opts.grid, opts.sigma) == ("5x3", 0.7)
 
 
-AUTO_BAD = [
-    (["--preset", "fast"], "--preset: 'fast' is not a preset"),
-    (["--max-grid-points", "3"], "--max-grid-points: '3' must be at least 4"),
-    (["--max-grid-points", "0"], "--max-grid-points"),
-    (["--max-grid-points", "many"], "--max-grid-points: 'many' is not an integer"),
-    (["--max-grid-points", "100000"], "--max-grid-points: 100000 does not fit a frame"),
-    (["--grid-bounds=-2,2,-1,1"], "--grid-bounds: places the grid of --grid"),
-    (["--algorithm", "autogrid", "--grid", "20x20"], "--grid: 20x20 is 400 start points, more than --max-grid-points 300"),
-    # a ring: on a complete graph the hub's w doubles the frame and with it the tally's room
-    (["--robots", "8", "--topology", "ring", "--max-grid-points", "4"],
-     f"--max-grid-points: 4 leaves room for robot ids below {AutoGridParams(max_points=4).tally_slots}"),
-]
-
-
-@pytest.mark.parametrize("args,needle", AUTO_BAD, ids=[str(i) for i in range(len(AUTO_BAD))])
-def test_bad_automatic_grid_flags_exit_2_with_one_line(tmp_path, capsys, args, needle):
+@pytest.mark.parametrize("args,needle", BAD, ids=[str(i) for i in range(len(BAD))])
+def test_bad_flags_exit_2_with_one_line(tmp_path, capsys, args, needle):
     with pytest.raises(SystemExit) as exc:
         main(["simulate", "--out", str(tmp_path / "o"), *args])
     err = capsys.readouterr().err.strip().splitlines()

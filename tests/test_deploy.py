@@ -12,7 +12,7 @@ from agents.spec import FleetSpec, build_core
 from launcher import deploy
 from launcher.cli import main
 from launcher.simulate import simulate_fleet
-from tests.conftest import make_run
+from tests.conftest import exchange_until_finished, make_run
 
 
 @pytest.fixture(scope="module")
@@ -52,16 +52,7 @@ def test_robots_built_from_their_own_files_compute_the_fleets_iterates(run):
     """Each core from its own per-robot file, driven by a perfect exchange == the simulator."""
     _, spec, _ = run
     cores = {i: build_core(spec.for_robot(i), i) for i in spec.robot_ids}
-    for _ in range(spec.params["max_rounds"] + 1):
-        if all(c.finished for c in cores.values()):
-            break
-        for update in [c.outgoing() for c in cores.values()]:
-            for c in cores.values():
-                if update.sender in c.neighbours:
-                    c.receive(update)
-        for c in cores.values():
-            if c.ready():
-                c.advance()
+    exchange_until_finished(cores, spec.params["max_rounds"] + 1)
     want = {r["id"]: r for r in simulate_fleet(spec).robots}
     for i, core in cores.items():
         got = core.result()

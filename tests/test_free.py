@@ -24,10 +24,7 @@ BOUND = 1e-3  # every robot's function error against the certified central solve
 
 
 def _core(spec, rid, **params):
-    me = spec.robots[rid]
-    return RelaxedADMM(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
-                       params=RelaxedADMMParams(**params), C=spec.C,
-                       neighbour_degrees={j: len(spec.robots[j].neighbours) for j in me.neighbours})
+    return RelaxedADMM(spec.share(rid), RelaxedADMMParams(**params))
 
 
 def _agree(spec, robots):

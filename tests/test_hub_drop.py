@@ -98,10 +98,8 @@ def test_without_shared_w_the_same_crash_agrees_on_a_wrong_answer():
     world, spec, _ = make_run(robots=4, topology="complete", max_rounds=5000)
     params = ADMMParams(**spec.params)
     cores = {
-        i: ConsensusADMM(i, r.neighbours, spec.basis.features(r.points), r.labels, n_robots=spec.n_robots,
-                         params=params, neighbour_degrees={j: len(spec.robots[j].neighbours) for j in r.neighbours},
-                         hub_frames=False)
-        for i, r in spec.robots.items()
+        i: ConsensusADMM(spec.share(i), params, hub_frames=False)
+        for i in spec.robots
     }
     survivors = staggered_crash(cores, 3, {0: 15, 1: 16, 2: 16})
     assert all(c.converged for c in survivors)
@@ -117,10 +115,8 @@ def test_shared_map_is_the_old_map_bit_for_bit_while_copies_agree():
 
     def fleet(hub_frames: bool) -> list[ConsensusADMM]:
         return [
-            ConsensusADMM(i, r.neighbours, spec.basis.features(r.points), r.labels, n_robots=spec.n_robots,
-                          params=params, neighbour_degrees={j: len(spec.robots[j].neighbours) for j in r.neighbours},
-                          hub_frames=hub_frames)
-            for i, r in spec.robots.items()
+            ConsensusADMM(spec.share(i), params, hub_frames=hub_frames)
+            for i in spec.robots
         ]
 
     new, old = fleet(True), fleet(False)
@@ -167,9 +163,8 @@ def _autogrid_fleet_into(phase: str, **params_kw):
     world, spec = build_world(Options(fleet_id="t", shape="star", points=15, robots=4))
     params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0, **params_kw)
     cores = {
-        i: AdaptiveGridCore(i, r.neighbours, r.points, r.labels, n_robots=4, params=params,
-                            neighbour_degrees={j: len(spec.robots[j].neighbours) for j in r.neighbours})
-        for i, r in spec.robots.items()
+        i: AdaptiveGridCore(spec.share(i, points=True), params)
+        for i in spec.robots
     }
     never = {i: 10**9 for i in (0, 1, 2)}
     k = 0

@@ -61,25 +61,34 @@ def test_parse_duration_accepts(text, seconds):
 
 
 @pytest.mark.parametrize(
-    ("text", "message"),
+    ("parse", "flag", "text", "why"),
     [
-        ("20 parsecs", "--jitter: '20 parsecs' is not a duration (use e.g. 20ms or 0.5s)"),
-        ("-5ms", "--jitter: '-5ms' is negative"),
-        ("20", "--jitter: '20' has no unit"),
-        ("nan", "--jitter: 'nan' is not a duration"),
-        ("nanms", "--jitter: 'nanms' is not a duration"),
-        ("infs", "--jitter: 'infs' is not a duration"),
-        ("1e400s", "--jitter: '1e400s' is not a finite duration"),
-        ("", "--jitter: '' is not a duration"),
-        ("ms", "--jitter: 'ms' is not a duration"),
-        ("20 ms s", "--jitter: '20 ms s' is not a duration"),
-        ("20MS", "--jitter: '20MS' is not a duration"),
+        (parse_duration, "--jitter", "20 parsecs", "is not a duration (use e.g. 20ms or 0.5s)"),
+        (parse_duration, "--jitter", "-5ms", "is negative"),
+        (parse_duration, "--jitter", "20", "has no unit"),
+        (parse_duration, "--jitter", "nan", "is not a duration"),
+        (parse_duration, "--jitter", "nanms", "is not a duration"),
+        (parse_duration, "--jitter", "infs", "is not a duration"),
+        (parse_duration, "--jitter", "1e400s", "is not a finite duration"),
+        (parse_duration, "--jitter", "", "is not a duration"),
+        (parse_duration, "--jitter", "ms", "is not a duration"),
+        (parse_duration, "--jitter", "20 ms s", "is not a duration"),
+        (parse_duration, "--jitter", "20MS", "is not a duration"),
+        (parse_probability, "--loss", "1.5", "is outside [0, 1]"),
+        (parse_probability, "--loss", "101%", "is outside [0, 1]"),
+        (parse_probability, "--loss", "-0.1", "is outside [0, 1]"),
+        (parse_probability, "--loss", "-5%", "is outside [0, 1]"),
+        (parse_probability, "--loss", "nan", "is not a probability"),
+        (parse_probability, "--loss", "inf", "is not a probability"),
+        (parse_probability, "--loss", "a lot", "is not a probability"),
+        (parse_probability, "--loss", "", "is not a probability"),
+        (parse_probability, "--loss", "30%%", "is not a probability"),
     ],
 )
-def test_parse_duration_rejects_naming_the_flag(text, message):
+def test_parsers_reject_naming_the_flag_and_the_text(parse, flag, text, why):
     with pytest.raises(ValueError) as err:
-        parse_duration(text, flag="--jitter")
-    assert str(err.value).startswith(message)
+        parse(text, flag=flag)
+    assert str(err.value).startswith(f"{flag}: {text!r} {why}")
 
 
 def test_parse_duration_requires_text():
@@ -94,26 +103,6 @@ def test_parse_duration_requires_text():
 )
 def test_parse_probability_accepts(text, p):
     assert parse_probability(text, flag="--loss") == p
-
-
-@pytest.mark.parametrize(
-    ("text", "message"),
-    [
-        ("1.5", "--loss: '1.5' is outside [0, 1]"),
-        ("101%", "--loss: '101%' is outside [0, 1]"),
-        ("-0.1", "--loss: '-0.1' is outside [0, 1]"),
-        ("-5%", "--loss: '-5%' is outside [0, 1]"),
-        ("nan", "--loss: 'nan' is not a probability"),
-        ("inf", "--loss: 'inf' is not a probability"),
-        ("a lot", "--loss: 'a lot' is not a probability"),
-        ("", "--loss: '' is not a probability"),
-        ("30%%", "--loss: '30%%' is not a probability"),
-    ],
-)
-def test_parse_probability_rejects_naming_the_flag(text, message):
-    with pytest.raises(ValueError) as err:
-        parse_probability(text, flag="--loss")
-    assert str(err.value).startswith(message)
 
 
 def test_parse_probability_requires_text():

@@ -24,31 +24,13 @@ from launcher.scenario import ScenarioError
 from launcher.simulate import simulate_fleet
 from protocol.links import LinkFaults
 
-from .conftest import make_run, max_function_error
+from .conftest import make_run, max_function_error, step_all
 
 PAPER_NEWTON = {"algorithm": "newton"}
 
 
 def _spec_with(spec, **params):
     return dataclasses.replace(spec, params={**spec.params, **params})
-
-
-def step_all(cores):
-    """One lock-step round: everyone publishes, everyone receives, everyone advances."""
-    updates = [c.outgoing() for c in cores]
-    for c in cores:
-        for u in updates:
-            c.receive(u)
-    for c in cores:
-        c.advance()
-
-
-def run_to_end(cores, limit=2000):
-    for _ in range(limit):
-        if all(c.finished for c in cores):
-            return
-        step_all(cores)
-    raise AssertionError("fleet did not finish")
 
 
 def _assert_identical(robots):

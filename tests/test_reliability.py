@@ -9,12 +9,14 @@ Exit codes (launcher/cli.py): 0 converged, 1 not converged / failed, 2 bad input
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import networkx as nx
@@ -25,7 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from tests.conftest import bounded_and_clean, processes_with  # noqa: E402
+from tests.conftest import bounded_and_clean, processes_with, wait_until  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
@@ -73,14 +75,28 @@ def _run(*args: str, timeout: float = 50) -> subprocess.CompletedProcess:
                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
 
 
+@contextlib.contextmanager
+def _launched(*args: str) -> Iterator[subprocess.Popen]:
+    """`_start(*args)`, stopped by its PID (SIGTERM) if it still runs when the block ends."""
+    proc = _start(*args)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGTERM)
+            proc.communicate(timeout=15)
+
+
+def _result(out: Path) -> dict:
+    """The run's result.json."""
+    return json.loads((out / "result.json").read_text())
+
+
 def _wait_for(predicate, timeout: float, what: str):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+    value = wait_until(predicate, timeout)
+    if not value:
+        raise AssertionError(f"timed out waiting for {what}")
+    return value
 
 
 def _pid(out: Path, needle: str) -> int | None:
@@ -105,7 +121,7 @@ def _exact_error(out: Path) -> float:
     from agents.problem import solve_central
     from launcher import scenario
 
-    result = json.loads((out / "result.json").read_text())
+    result = _result(out)
     robots = scenario.load_data_csv(out / "data.csv")
     kept = [r for r in robots if r.id in result.get("participants", [r.id for r in robots])]
     basis = GridBasis(np.asarray(result["grid"], dtype=float), float(result["sigma"]))
@@ -196,8 +212,7 @@ def test_pause_longer_than_dead_after_heals_on_the_exact_answer(tmp_path):
     """Row 1: SIGSTOP one of 4 robots for longer than --dead-after, then SIGCONT: nobody drops
     anybody (its liveliness token stays), the fleet resumes and ends on the exact answer."""
     out = tmp_path / "run"
-    proc = _start("launch", *PAPER, "--robots", "4", "--dead-after", "1.5s", "--out", str(out))
-    try:
+    with _launched("launch", *PAPER, "--robots", "4", "--dead-after", "1.5s", "--out", str(out)) as proc:
         pid = _wait_for(lambda: _round_of(out, 2) >= 5 and _pid(out, "--id 2"), 30, "robot 2 at round 5")
         os.kill(pid, signal.SIGSTOP)
         paused_at = _round_of(out, 2)
@@ -205,13 +220,9 @@ def test_pause_longer_than_dead_after_heals_on_the_exact_answer(tmp_path):
         others = [_round_of(out, i) for i in (0, 1, 3)]
         os.kill(pid, signal.SIGCONT)
         err = _finish(proc, 45)
-    finally:
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGTERM)
-            proc.communicate(timeout=15)
     assert all(r <= paused_at + 2 for r in others), (paused_at, others)  # they waited for it
     assert proc.returncode == 0, err
-    result = json.loads((out / "result.json").read_text())
+    result = _result(out)
     assert result["converged"] is True and result["absent"] == [] and result["participants"] == [0, 1, 2, 3]
     assert all(r["neighbours_dropped"] == [] for r in result["robots"])
     assert _exact_error(out) < 1e-3
@@ -224,17 +235,12 @@ def test_router_killed_mid_run_is_restarted_and_the_fleet_heals(tmp_path):
     out = tmp_path / "run"
     # 20 ms links: the run lasts seconds, so the router dies mid-run (the accelerated ADMM needs
     # only ~120 rounds, well under a second on clean loopback)
-    proc = _start("launch", *PAPER, "--robots", "4", "--dead-after", "1.5s", "--delay", "20ms", "--out", str(out))
-    try:
+    with _launched("launch", *PAPER, "--robots", "4", "--dead-after", "1.5s", "--delay", "20ms", "--out", str(out)) as proc:
         router = _wait_for(lambda: _round_of(out, 0) >= 5 and _pid(out, "launcher.router"), 30, "round 5")
         os.kill(router, signal.SIGKILL)
         err = _finish(proc, 45)
-    finally:
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGTERM)
-            proc.communicate(timeout=15)
     assert proc.returncode == 0, err
-    result = json.loads((out / "result.json").read_text())
+    result = _result(out)
     assert len(result["router_restarts"]) == 1
     assert result["converged"] is True and result["absent"] == [] and len(result["robots"]) == 4
     assert all(r["neighbours_dropped"] == [] for r in result["robots"])
@@ -260,7 +266,7 @@ def test_sigterm_and_sighup_stop_every_child_and_write_a_partial_result(tmp_path
             proc.communicate()
     assert proc.returncode == 128 + getattr(signal, sig), err
     assert [p for p in processes_with(str(out))] == []  # no orphan
-    result = json.loads((out / "result.json").read_text())
+    result = _result(out)
     assert result["interrupted"] == sig and result["converged"] is False
     assert f"stopped by {sig}" in err and "robot-<id>.json" in err and "Traceback" not in err
     assert {r["stopped"] for r in result["robots"]} <= {"signal", "finished"}
@@ -309,7 +315,7 @@ def test_crash_that_never_fires_is_reported(tmp_path):
     out = tmp_path / "run"
     proc = _run("launch", *PAPER, "--crash", "2@4000", "--out", str(out), timeout=35)
     assert proc.returncode == 0, proc.stderr
-    result = json.loads((out / "result.json").read_text())
+    result = _result(out)
     assert result["rounds"] < 4000 and result["crashes"] == []
     assert result["crashes_not_fired"] == [{"robot": 2, "round": 4000}]
     assert "--crash 2@4000 never fired" in proc.stderr
@@ -321,7 +327,7 @@ def test_one_robot_reports_its_exact_answer_as_converged(tmp_path):
     out = tmp_path / "run"
     proc = _run("simulate", *PAPER, "--robots", "1", "--out", str(out), timeout=25)
     assert proc.returncode == 0, proc.stderr
-    result = json.loads((out / "result.json").read_text())
+    result = _result(out)
     assert result["converged"] is True and result["rounds"] == 0
     assert result["metrics"]["function_error"] < 1e-9
     assert _exact_error(out) < 1e-9
@@ -334,7 +340,7 @@ def test_line_of_three_whose_middle_robot_dies_is_not_converged(tmp_path):
     out = tmp_path / "run"
     proc = _run("launch", *PAPER, "--topology", "line", "--crash", "1@20", "--no-restart", "--out", str(out), timeout=35)
     assert proc.returncode == 1, proc.stderr
-    result = json.loads((out / "result.json").read_text())
+    result = _result(out)
     assert result["converged"] is False and result["absent"] == [1]
     assert result["agreement"]["components"] == [[0], [2]] and result["agreement"]["connected"] is False
     assert result["agreement"]["partition_since_round"] >= 20
@@ -355,7 +361,7 @@ def test_solver_failure_is_one_line_and_never_converged(tmp_path):
     proc = _run("launch", *PAPER, "--rho", "1e300", "--dead-after", "1s", "--out", str(out), timeout=35)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
     assert "local solver failed" in proc.stderr
-    result = json.loads((out / "result.json").read_text())
+    result = _result(out)
     assert result["converged"] is False and result["agreement"]["failed"]
     for log in (out / "fleet").glob("robot-*.log"):
         assert "Traceback" not in log.read_text()

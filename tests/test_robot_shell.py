@@ -21,6 +21,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import msgpack
 import numpy as np
@@ -35,6 +36,7 @@ from agents.rounds import RoundCore, check_iterate  # noqa: E402
 from protocol.frames import StateUpdate, config_tag, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
 from protocol.links import LinkFaults  # noqa: E402
+from protocol.session import SessionTiming  # noqa: E402
 from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint  # noqa: E402
 from tests.conftest import start_router  # noqa: E402
 
@@ -45,11 +47,10 @@ TEST_TIMEOUT_S = 40.0
 # ----------------------------------------------------------------------------- fake core
 
 
-@dataclass(frozen=True)
-class Timing:
-    retransmit_s: float = 0.05
-    dead_after_s: float = 5.0
-    max_wall_s: float = 20.0
+def fast_timing(**changes: float) -> SessionTiming:
+    """The fake fleet's short time-outs with ``changes``; linger and give-up derived by the
+    session, as for a spec's Timing that does not give them."""
+    return SessionTiming.of(SimpleNamespace(**{"retransmit_s": 0.05, "dead_after_s": 5.0, "max_wall_s": 20.0, **changes}))
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,7 @@ class FakeSpec:
     dim: int = 4
     seed: int = 7
     faults: LinkFaults = field(default_factory=LinkFaults)
-    timing: Timing = field(default_factory=Timing)
+    timing: SessionTiming = field(default_factory=fast_timing)
     slow_s: float = 0.0  # sleep per advance (only to give crash tests time); 0 = pure
 
     @property
@@ -330,7 +331,7 @@ async def test_lossy_delayed_links_still_exact(router):
     """Loss, duplication, delay, jitter and reordering on every receiving link: same iterates."""
     async with asyncio.timeout(TEST_TIMEOUT_S):
         faults = LinkFaults(delay=0.002, jitter=0.001, loss=0.3, duplicate=0.2, reorder=0.2)
-        spec = FakeSpec("shell-lossy", LINE3, rounds=30, faults=faults, timing=Timing(retransmit_s=0.02))
+        spec = FakeSpec("shell-lossy", LINE3, rounds=30, faults=faults, timing=fast_timing(retransmit_s=0.02))
         out = await asyncio.gather(*(_run(spec, i, router) for i in spec.robot_ids))
         results = dict(zip(spec.robot_ids, out))
         _assert_exact(results, expected(spec), 30)
@@ -410,7 +411,7 @@ async def test_restart_resumes_from_checkpoint(router, tmp_path):
 
 async def test_silent_neighbour_is_dropped(router):
     async with asyncio.timeout(TEST_TIMEOUT_S):
-        spec = FakeSpec("shell-dead", LINE3, rounds=10, timing=Timing(dead_after_s=0.5))
+        spec = FakeSpec("shell-dead", LINE3, rounds=10, timing=fast_timing(dead_after_s=0.5))
         r0, r1 = await asyncio.gather(*(_run(spec, i, router) for i in (0, 1)))  # robot 2 never starts
         _assert_exact({0: r0, 1: r1}, expected(spec, {0: (1,), 1: (0,)}), 10)
         assert r1["neighbours_dropped"] == [2] and r0["neighbours_dropped"] == []
@@ -422,7 +423,7 @@ async def test_neighbour_that_dropped_us_is_dropped_too(router):
     instead of hanging until max_wall_s. Cut off from every neighbour, it stops "isolated": it
     never declares convergence on its own data."""
     async with asyncio.timeout(TEST_TIMEOUT_S):
-        spec = FakeSpec("shell-ahead", LINE3, rounds=150, slow_s=0.005, timing=Timing(dead_after_s=0.3))
+        spec = FakeSpec("shell-ahead", LINE3, rounds=150, slow_s=0.005, timing=fast_timing(dead_after_s=0.3))
         early = [asyncio.ensure_future(_run(spec, i, router)) for i in (0, 1)]
         await asyncio.sleep(0.6)
         t = time.monotonic()
@@ -461,7 +462,7 @@ async def test_solver_failure_or_divergence_stops_the_robot_never_converged(rout
     """Issue 11: robot 1 stops with a one-line error; its neighbours, cut off from their only
     neighbour once its token is gone, stop isolated: nobody converges on a broken fleet."""
     async with asyncio.timeout(TEST_TIMEOUT_S):
-        spec = FakeSpec(f"shell-fail-{stopped}", LINE3, rounds=20, timing=Timing(dead_after_s=0.3))
+        spec = FakeSpec(f"shell-fail-{stopped}", LINE3, rounds=20, timing=fast_timing(dead_after_s=0.3))
         r0, r1, r2 = await asyncio.gather(*(_run(spec, i, router, build=core) for i in (0, 1, 2)))
         assert r1["stopped"] == stopped and r1["converged"] is False and words in r1["error"]
         assert r1["error"].startswith("robot 1 round ")
@@ -471,7 +472,7 @@ async def test_solver_failure_or_divergence_stops_the_robot_never_converged(rout
 
 async def test_wall_clock_cap(router):
     async with asyncio.timeout(TEST_TIMEOUT_S):
-        spec = FakeSpec("shell-wall", LINE3, rounds=10, timing=Timing(dead_after_s=60, max_wall_s=0.5))
+        spec = FakeSpec("shell-wall", LINE3, rounds=10, timing=fast_timing(dead_after_s=60, max_wall_s=0.5))
         t = time.monotonic()
         stream = io.StringIO()
         res = await _run(spec, 0, router, status_stream=stream)  # robot 1 never comes
@@ -507,18 +508,10 @@ def _real_spec(fleet: str, faults: LinkFaults | None = None, rounds: int = 120):
 def _in_memory(spec) -> dict[int, dict]:
     """Reference: the same cores driven by a perfect in-memory exchange."""
     from agents.spec import build_core
+    from tests.conftest import exchange_until_finished
 
     cores = {i: build_core(spec, i) for i in spec.robot_ids}
-    for _ in range(10 * spec.params["max_rounds"]):
-        if all(c.finished for c in cores.values()):
-            break
-        for u in [c.outgoing() for c in cores.values()]:
-            for c in cores.values():
-                if u.sender in c.neighbours:
-                    c.receive(u)
-        for c in cores.values():
-            if c.ready():
-                c.advance()
+    exchange_until_finished(cores, 10 * spec.params["max_rounds"])
     return {i: c.result() for i, c in cores.items()}
 
 
