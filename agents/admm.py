@@ -38,6 +38,7 @@ from __future__ import annotations
 import hashlib
 import math
 import operator
+import threading
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -416,6 +417,7 @@ def _digest(*parts: bytes | np.ndarray) -> bytes:
 #: is no longer here is simply computed again. SHARED_STEPS_KEPT = 0 turns the sharing off.
 _SHARED_STEPS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 SHARED_STEPS_KEPT = 64
+_SHARED_LOCK = threading.Lock()  # fleets run in worker threads (launcher/api.py run_async) share it
 
 
 #: restart the acceleration when its best residual has not improved for STALL x memory rounds
@@ -603,7 +605,10 @@ class ConsensusADMM(RoundCore):
         prev = self._prev_mean
         key = _digest(hub.token, b"w" if ws is not None else b"-", b"p" if prev is not None else b"-",
                       b"" if prev is None else prev, np.concatenate(values), b"" if ws is None else np.concatenate(ws))
-        done = _SHARED_STEPS.get(key)
+        with _SHARED_LOCK:
+            done = _SHARED_STEPS.get(key)
+            if done is not None:
+                _SHARED_STEPS.move_to_end(key)
         if done is None:
             if ws is None:
                 ws = values if hub.s is None else [hub.message(i, v) for i, v in zip(hub.ids, values)]
@@ -620,12 +625,12 @@ class ConsensusADMM(RoundCore):
             primal = float(np.max(gaps[: len(values)]))
             dual = 0.0 if prev is None else float(gaps[-1])
             done = (hub.snapshot(), mean, max(primal, dual))
-            if SHARED_STEPS_KEPT > 0:
-                _SHARED_STEPS[key] = done
+            with _SHARED_LOCK:
+                if SHARED_STEPS_KEPT > 0:
+                    _SHARED_STEPS[key] = done
                 while len(_SHARED_STEPS) > SHARED_STEPS_KEPT:
                     _SHARED_STEPS.popitem(last=False)
         else:
-            _SHARED_STEPS.move_to_end(key)
             hub.adopt(done[0])
         hub.token = key
         return done[1], done[2]
