@@ -420,14 +420,13 @@ class FrameDecoder:
         first = seen.get(rnd)
         if first is not None and first != claim:
             raise _Reject("equivocation", f"sender {sender} sent two different frames for round {rnd}")
-        if prev is not None:
-            prev_claim = (pflags, prev)
-            prev_first = seen.get(rnd - 1)
-            if prev_first is not None and prev_first != prev_claim:
-                raise _Reject("equivocation", f"sender {sender} sent two different frames for round {rnd - 1}")
+        prev_claim = None if prev is None else (pflags, prev)
+        prev_first = None if prev is None else seen.get(rnd - 1)
+        if prev_first is not None and prev_first != prev_claim:
+            raise _Reject("equivocation", f"sender {sender} sent two different frames for round {rnd - 1}")
         if first is None:
             seen[rnd] = claim
-        if prev is not None and prev_first is None:
+        if prev_claim is not None and prev_first is None:
             seen[rnd - 1] = prev_claim
         oldest_kept = max(seen) - EQUIVOCATION_WINDOW  # rounds up to this one are forgotten
         if min(seen) <= oldest_kept:
