@@ -35,8 +35,11 @@ No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 
 from __future__ import annotations
 
+import hashlib
 import math
 import operator
+import threading
+from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
@@ -46,7 +49,7 @@ import numpy as np
 from agents.messages import StateUpdate
 from agents.params import check_counts, check_diameter, check_positive, params_from
 from agents.problem import MarginQP
-from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gap, to_bytes
+from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gap, relative_gaps, to_bytes
 
 
 @dataclass(frozen=True)
@@ -129,14 +132,18 @@ def _pairwise_sum(q: np.ndarray) -> np.ndarray:
     its cost: one vectorised pass over all columns instead of one fsum call per dot product
     (~10 us each, 300k of them per default autogrid run). Only elementwise IEEE additions run in
     a pairing that depends on n alone -- no BLAS, no reduction order chosen by numpy or by a CPU's
-    SIMD width -- so identical inputs give identical bits on any host with the same packages.
+    SIMD width -- so identical inputs give identical bits on any host with the same packages; and
+    each column's result depends on that column alone, so sums may be batched side by side.
     """
     n = len(q)
     if n == 0:
         return np.zeros(q.shape[1:])
     h = 1 << (max(n - 1, 1).bit_length() - 1)
-    s, e = q[:h].copy(), np.zeros((h,) + q.shape[1:])
-    s[: n - h], e[: n - h] = _two_sum(s[: n - h], q[h:])
+    if n == 2 * h:  # a power of two: the first pairing covers every term (no copy, no zero errors)
+        s, e = _two_sum(q[:h], q[h:])
+    else:
+        s, e = q[:h].copy(), np.zeros((h,) + q.shape[1:])
+        s[: n - h], e[: n - h] = _two_sum(s[: n - h], q[h:])
     while h > 1:
         h //= 2
         s, err = _two_sum(s[:h], s[h : 2 * h])
@@ -191,6 +198,11 @@ class _Hub:
     rounded (`_solve_spd`) or elementwise, in robot-id order -- so the copies stay bit-for-bit
     equal; every extrapolation is an affine combination of states with sum_l u_l = 0, and the
     plain map restores that invariant anyway, so the fixed point is the centralized solution.
+
+    Copies in one process (the in-process fleet, robots sharing a process) take the very same
+    steps: `token` digests everything a copy's state follows from, and a step already taken from an
+    equal token with equal inputs is adopted (`snapshot` / `adopt`, ConsensusADMM._shared_step)
+    instead of computed again -- the same bits, computed once per process instead of once per robot.
     """
 
     def __init__(self, ids: tuple[int, ...], dim: int, penalty: np.ndarray, params: ADMMParams) -> None:
@@ -203,13 +215,15 @@ class _Hub:
         self.s: np.ndarray | None = None  # the state at which the robots' current v were computed
         self.hist_s: list[np.ndarray] = []  # past states s_k and their images T(s_k)
         self.hist_f: list[np.ndarray] = []
-        self._dg: list[np.ndarray] = []  # successive differences of residuals and of images
-        self._df: list[np.ndarray] = []
+        self._dg = np.zeros((0, 0))  # successive differences of residuals and of images, a row each
+        self._df = np.zeros((0, 0))
         self._gram = np.zeros((0, 0))  # dg_i . dg_j (`_dots`: the same bits on every copy)
         self._rhs = np.zeros(0)  # dg_i . g of the current step
         self.best = math.inf  # smallest fixed-point residual since the last restart
         self.stalled = 0  # rounds since `best` last improved
         self.desynced = False  # the last step found the copies differing
+        self.token = _digest(repr((ids, dim, self.relax, self.memory, self.safeguard, STALL, ANDERSON_REG)).encode(),
+                             penalty)
 
     def center(self, me: int) -> np.ndarray:
         """Robot `me`'s proximal centre z - u_me."""
@@ -217,11 +231,11 @@ class _Hub:
         k = self.ids.index(me)
         return self.s[: self.dim] - self.s[(k + 1) * self.dim : (k + 2) * self.dim]
 
-    def _mean(self, rows: list[np.ndarray]) -> np.ndarray:
-        acc = rows[0].copy()
-        for r in rows[1:]:
-            acc = acc + r
-        return acc / len(rows)
+    @staticmethod
+    def _mean(rows: list[np.ndarray]) -> np.ndarray:
+        """The rows' mean, added one row after another in id order (numpy's reduction over the
+        first, slow axis adds row by row: the same bits as a loop, in one call)."""
+        return np.add.reduce(np.array(rows), axis=0) / len(rows)
 
     def start(self, ws: list[np.ndarray]) -> None:
         """After round 0 (each robot's own solution, w_l = v_l): z = their mean, u_l = v_l - z."""
@@ -242,12 +256,20 @@ class _Hub:
         after copies differed (survivors that dropped a dead robot in different rounds), and
         sum_l u'_l = 0 always: a fixed point is the members' exact optimum. When the copies agree
         it is the usual over-relaxed update bit for bit (h + u == u + h)."""
-        z_new = self._mean(ws)
-        return np.concatenate([z_new] + [w - z_new for w in ws])
+        w = np.array(ws)
+        d = w.shape[1]
+        out = np.empty(d * (len(w) + 1))
+        out[:d] = z_new = np.add.reduce(w, axis=0) / len(w)  # = _mean(ws)
+        np.subtract(w, z_new, out=out[d:].reshape(w.shape))
+        return out
 
     def synced(self, values: list[np.ndarray], ws: list[np.ndarray]) -> bool:
-        """True when every robot's w is what this copy computes for it: all copies agree (bits)."""
-        return all(np.array_equal(w, self.message(i, v)) for i, v, w in zip(self.ids, values, ws))
+        """True when every robot's w is what this copy computes for it: all copies agree (bits).
+        (`message` for every robot at once: the same elementwise operations.)"""
+        assert self.s is not None
+        d = self.dim
+        h = self.relax * np.array(values) + (1.0 - self.relax) * self.s[:d]
+        return np.array_equal(h + self.s[d:].reshape(h.shape), np.array(ws))
 
     def step(self, ws: list[np.ndarray], synced: bool = True) -> float:
         """Fold in the robots' w at s, move s to the next point; returns |T - s|.
@@ -258,37 +280,52 @@ class _Hub:
         assert self.s is not None
         f = self._map(ws)
         g = f - self.s
-        res = math.sqrt(float(_dots(g, g)))
         if not synced or self.desynced:
             self._forget()
         self.desynced = not synced
+        m = len(self._dg)
+        if self.hist_s:  # this step's difference: the Gram matrix gets a row
+            dg = g - (self.hist_f[-1] - self.hist_s[-1])
+            dgs = np.empty((m + 1, len(g)))
+            if m:
+                dgs[:m] = self._dg
+            dgs[m] = dg
+            # one pass of exactly rounded sums, side by side: dg_i . dg (the new row), dg_i . g
+            # (the right-hand side) and g . g (the residual); columns are summed independently
+            terms = np.empty((len(g), 2 * m + 3))
+            np.multiply(dgs.T, dg[:, None], out=terms[:, : m + 1])
+            np.multiply(dgs.T, g[:, None], out=terms[:, m + 1 : 2 * m + 2])
+            np.multiply(g, g, out=terms[:, -1])
+            sums = _pairwise_sum(terms)
+        else:
+            sums = _pairwise_sum((g * g)[:, None])
+        res = math.sqrt(float(sums[-1]))
         if res > self.safeguard * self.best or self.stalled > STALL * self.memory:
             self._forget()  # the extrapolation went astray or stopped helping: restart from the plain step
         self.stalled = 0 if res < self.best else self.stalled + 1
         self.best = min(self.best, res)
+        if self.hist_s:  # (still there: not forgotten above)
+            df = np.empty((m + 1, len(f)))
+            if m:
+                df[:m] = self._df
+            np.subtract(f, self.hist_f[-1], out=df[m])
+            gram = np.empty((m + 1, m + 1))
+            gram[:m, :m] = self._gram
+            gram[m, :] = gram[:, m] = sums[: m + 1]
+            self._dg, self._df, self._gram, self._rhs = dgs, df, gram, sums[m + 1 : 2 * m + 2]
         self.hist_s.append(self.s)
         self.hist_f.append(f)
-        if len(self.hist_s) > 1:
-            dg = g - (self.hist_f[-2] - self.hist_s[-2])
-            self._dg.append(dg)
-            self._df.append(f - self.hist_f[-2])
-            # one pass for the Gram matrix's new row (dg_i . dg) and the right-hand side (dg_i . g)
-            row, self._rhs = _dots(np.array(self._dg), np.stack([dg, g])[:, None, :])
-            m = len(row)
-            gram = np.empty((m, m))
-            gram[: m - 1, : m - 1] = self._gram
-            gram[m - 1, :] = gram[:, m - 1] = row
-            self._gram = gram
         if len(self._dg) > self.memory:  # keep the last `memory` differences
             self.hist_s, self.hist_f = self.hist_s[1:], self.hist_f[1:]
             self._dg, self._df = self._dg[1:], self._df[1:]
             self._gram = self._gram[1:, 1:].copy()
             self._rhs = self._rhs[1:]
-        self.s = self._extrapolate() if self._dg else f
+        self.s = self._extrapolate() if len(self._dg) else f
         return res
 
     def _forget(self) -> None:
-        self.hist_s, self.hist_f, self._dg, self._df, self.best = [], [], [], [], math.inf
+        self.hist_s, self.hist_f, self.best = [], [], math.inf
+        self._dg, self._df = np.zeros((0, 0)), np.zeros((0, 0))
         self._gram, self._rhs = np.zeros((0, 0)), np.zeros(0)
         self.stalled = 0
 
@@ -296,11 +333,12 @@ class _Hub:
         """The differences and their Gram matrix from the history: the same bits as built step by
         step (`_dots` of the same two vectors, in either order, sums the same products)."""
         gs = [f - s for s, f in zip(self.hist_s, self.hist_f)]
-        self._dg = [b - a for a, b in zip(gs[:-1], gs[1:])]
-        self._df = [b - a for a, b in zip(self.hist_f[:-1], self.hist_f[1:])]
+        dgs = [b - a for a, b in zip(gs[:-1], gs[1:])]
+        dfs = [b - a for a, b in zip(self.hist_f[:-1], self.hist_f[1:])]
+        self._dg = np.array(dgs) if dgs else np.zeros((0, 0))
+        self._df = np.array(dfs) if dfs else np.zeros((0, 0))
         m = len(self._dg)
-        dg = np.array(self._dg)
-        self._gram = _dots(dg[None, :, :], dg[:, None, :]) if m else np.zeros((0, 0))
+        self._gram = _dots(self._dg[None, :, :], self._dg[:, None, :]) if m else np.zeros((0, 0))
 
     def _extrapolate(self) -> np.ndarray:
         """Type-II Anderson: T(s) minus the combination of past steps that best cancels g
@@ -313,10 +351,12 @@ class _Hub:
             coef = _solve_spd(H, self._rhs)
         except np.linalg.LinAlgError:
             return self.hist_f[-1]
-        out = self.hist_f[-1].copy()
-        for c, d in zip(coef, self._df):
-            out = out - c * d
-        return out
+        # T(s) - coef_1 df_1 - coef_2 df_2 - ..., one term after another (numpy's reduction over
+        # the first, slow axis subtracts row by row: the same bits as a loop, in one call)
+        terms = np.empty((m + 1, self._df.shape[1]))
+        terms[0] = self.hist_f[-1]
+        np.multiply(coef[:, None], self._df, out=terms[1:])
+        return np.subtract.reduce(terms, axis=0)
 
     def drop(self, j: int) -> None:
         """Continue over the survivors: the dead robot's dual goes, the acceleration restarts."""
@@ -326,6 +366,18 @@ class _Hub:
         if self.s is not None:
             self.s = np.concatenate([self.s[: (k + 1) * d], self.s[(k + 2) * d :]])
         self._forget()
+        self.token = _digest(self.token, b"drop %d" % j)
+
+    def snapshot(self) -> tuple[Any, ...]:
+        """The state a step leaves, for copies that take the same step (`adopt`): arrays are never
+        changed in place once made, so copies may hold the same ones; the lists are copied."""
+        return (self.s, list(self.hist_s), list(self.hist_f), self._dg, self._df, self._gram, self._rhs,
+                self.best, self.stalled, self.desynced)
+
+    def adopt(self, snap: tuple[Any, ...]) -> None:
+        (self.s, hist_s, hist_f, self._dg, self._df, self._gram, self._rhs,
+         self.best, self.stalled, self.desynced) = snap
+        self.hist_s, self.hist_f = list(hist_s), list(hist_f)
 
     def state(self) -> dict[str, Any]:
         return {
@@ -347,6 +399,25 @@ class _Hub:
         self.stalled = int(state["stalled"])
         self.desynced = bool(state["desynced"])
         self._rebuild()
+        self.token = _digest(self.token, b"load", repr((self.ids, self.best, self.stalled, self.desynced)).encode(),
+                             b"" if self.s is None else self.s, *self.hist_s, b"|", *self.hist_f)
+
+
+def _digest(*parts: bytes | np.ndarray) -> bytes:
+    """A 20-byte digest of byte strings and contiguous arrays (their raw bytes)."""
+    h = hashlib.blake2b(digest_size=20)
+    for part in parts:
+        h.update(part)
+    return h.digest()
+
+
+#: hub steps taken lately in this process, by the digest of the copy's token and the round's
+#: inputs (ConsensusADMM._shared_step): (hub snapshot, mean of the v's, residual). A process's
+#: robots are at most a round apart and autogrid's sweep runs ~10 hubs side by side; a step that
+#: is no longer here is simply computed again. SHARED_STEPS_KEPT = 0 turns the sharing off.
+_SHARED_STEPS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
+SHARED_STEPS_KEPT = 64
+_SHARED_LOCK = threading.Lock()  # fleets run in worker threads (launcher/api.py run_async) share it
 
 
 #: restart the acceleration when its best residual has not improved for STALL x memory rounds
@@ -375,13 +446,22 @@ def error_estimate(residuals: list[float], *, typical_older: bool = False) -> fl
         return float("inf")
     recent = max(residuals[-w:])
     before = residuals[-2 * w : -w]
-    older = float(np.median(before)) if typical_older else max(before)
+    older = _median(before) if typical_older else max(before)
     if not older > 0:
         return 0.0 if recent == 0 else float("inf")
     rate = (recent / older) ** (1.0 / w)
     if rate >= 1.0:
         return float("inf")
     return recent / (1.0 - rate)
+
+
+def _median(xs: list[float]) -> float:
+    """np.median's value (the two middle values' mean, (a + b) / 2, for an even count) without
+    its ~50 us of overhead per call; NaN as np.median gives it."""
+    if any(x != x for x in xs):
+        return float("nan")
+    s, h = sorted(xs), len(xs) // 2
+    return s[h] if len(xs) % 2 else (s[h - 1] + s[h]) / 2
 
 
 def edge_penalty(params: ADMMParams, dim: int, my_degree: int, their_degree: int) -> np.ndarray:
@@ -507,24 +587,53 @@ class ConsensusADMM(RoundCore):
         assert hub is not None
         d, me = self.dim, self.robot_id
         values = [mine if i == me else theirs[i][:d] for i in hub.ids]
-        if self._hub_frames:
-            ws = [self._w if i == me else theirs[i][d:] for i in hub.ids]
-        else:
-            ws = values if hub.s is None else [hub.message(i, v) for i, v in zip(hub.ids, values)]
-        if hub.s is None:
-            hub.start(ws)
-        else:
-            hub.step(ws, not self._hub_frames or hub.synced(values, ws))
-        mean = hub._mean(values)
-        primal = relative_gap(mean, np.array(values))
-        dual = 0.0 if self._prev_mean is None else relative_gap(mean, self._prev_mean)
-        self._prev_mean = mean
-        self.residual = max(primal, dual)
+        ws = [self._w if i == me else theirs[i][d:] for i in hub.ids] if self._hub_frames else None
+        self._prev_mean, self.residual = self._shared_step(values, ws)
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW :]
         below = error_estimate(self._residuals, typical_older=True) < self.params.tol
         new = self._primal_step()
         self._prev_w, self._w = self._w, hub.message(me, new)
         return new, below
+
+    def _shared_step(self, values: list[np.ndarray], ws: list[np.ndarray] | None) -> tuple[np.ndarray, float]:
+        """The part of a hub round every copy computes alike -- the hub's step on the robots' v and
+        w (None: no w in the frames, each copy computes them), the mean of the v's and the residual
+        -- taken once per process: a copy with the same token and inputs adopts the step already
+        taken (`_SHARED_STEPS`). Returns (mean, residual)."""
+        hub = self._hub
+        assert hub is not None
+        prev = self._prev_mean
+        key = _digest(hub.token, b"w" if ws is not None else b"-", b"p" if prev is not None else b"-",
+                      b"" if prev is None else prev, np.concatenate(values), b"" if ws is None else np.concatenate(ws))
+        with _SHARED_LOCK:
+            done = _SHARED_STEPS.get(key)
+            if done is not None:
+                _SHARED_STEPS.move_to_end(key)
+        if done is None:
+            if ws is None:
+                ws = values if hub.s is None else [hub.message(i, v) for i, v in zip(hub.ids, values)]
+                synced = True
+            else:
+                synced = hub.s is None or hub.synced(values, ws)
+            if hub.s is None:
+                hub.start(ws)
+            else:
+                hub.step(ws, synced)
+            mean = hub._mean(values)
+            # primal: the v's spread around their mean; dual: the mean's move since last round
+            gaps = relative_gaps(mean, np.array(values if prev is None else values + [prev]))
+            primal = float(np.max(gaps[: len(values)]))
+            dual = 0.0 if prev is None else float(gaps[-1])
+            done = (hub.snapshot(), mean, max(primal, dual))
+            with _SHARED_LOCK:
+                if SHARED_STEPS_KEPT > 0:
+                    _SHARED_STEPS[key] = done
+                while len(_SHARED_STEPS) > SHARED_STEPS_KEPT:
+                    _SHARED_STEPS.popitem(last=False)
+        else:
+            hub.adopt(done[0])
+        hub.token = key
+        return done[1], done[2]
 
     def _save_state(self) -> dict[str, Any]:
         return {

@@ -57,9 +57,15 @@ def from_bytes(b: bytes | None) -> np.ndarray | None:
 def relative_gap(v: np.ndarray, w: np.ndarray) -> float:
     """Distance of (x, gamma) to w (one vector or a row per neighbour, the largest counts),
     measured like the fleet's function error, relative to v."""
+    return float(np.max(relative_gaps(v, w)))
+
+
+def relative_gaps(v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """`relative_gap` of each row of w to v (one call for several gaps: each row's value is the
+    same bits as on its own)."""
     d = np.atleast_2d(w) - v
     dx = np.sqrt(np.einsum("ij,ij->i", d[:, :-1], d[:, :-1])) / max(float(np.sqrt(v[:-1] @ v[:-1])), _TINY)
-    return float(np.max(dx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))))
+    return dx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))
 
 
 def check_neighbours(robot_id: int, neighbours: tuple[int, ...]) -> None:

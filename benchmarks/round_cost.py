@@ -21,6 +21,7 @@ processes (benchmarks/zenoh_exchange.py, ``asyncio`` variant) and prints the rat
     .venv/bin/python benchmarks/round_cost.py                 # 3 robots, 300 rounds
     .venv/bin/python benchmarks/round_cost.py --robots 8 --robots-per-process 4
     .venv/bin/python benchmarks/round_cost.py --compute --base /tmp/main-copy --repeats 2
+    .venv/bin/python benchmarks/round_cost.py --in-process --base /tmp/main-copy --repeats 2
 
 ``--compute`` measures the core's cost instead (the "compute per round" section of
 results/round_cost.md): the default run (autogrid, 3 robots, complete graph) in process --
@@ -30,6 +31,10 @@ fleet round, then ``launch`` of the same run (3 robot processes + router over lo
 ``git archive main | tar -x -C DIR``) every measurement alternates between that tree and this
 one, run back to back with the same interpreter, so that the load of the shared machine hits
 both alike; the load average is printed beside each figure.
+
+``--in-process`` measures the per-round compute of the paper preset the same way (3 robots to
+convergence, 16 robots for 60 rounds; CPU ms per fleet round), this tree also with the hub's
+shared step off (what a process hosting one robot computes; agents/admm.py SHARED_STEPS_KEPT).
 
 Bounded: every run has ``max_wall_s`` and the launcher's own time bound.
 """
@@ -210,6 +215,48 @@ def compute_table(base: Path | None, repeats: int, demo: bool) -> str:
     return "\n".join(lines)
 
 
+PER_ROUND_SNIPPET = """
+import json, os, sys, time
+sys.path.insert(0, os.getcwd())
+import agents.admm as admm
+from launcher.simulate import simulate_fleet
+from launcher.world import Options, build_world
+robots, rounds, share = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1"
+if not share and hasattr(admm, "SHARED_STEPS_KEPT"):
+    admm.SHARED_STEPS_KEPT = 0
+kw = {} if rounds <= 0 else {"max_rounds": rounds, "tol": 1e-12}
+_, spec = build_world(Options(fleet_id="per-round", preset="paper", robots=robots, **kw))
+simulate_fleet(spec)  # warm: first-call imports and caches
+cpu = time.process_time()
+out = simulate_fleet(spec)
+cpu = time.process_time() - cpu
+print(json.dumps({"cpu_s": cpu, "rounds": max(r["rounds"] for r in out.robots)}))
+"""
+
+
+def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: int) -> str:
+    """In-process CPU per fleet round of the paper preset (``simulate_fleet``, no report), per tree;
+    this tree also with the hub's shared step turned off (agents/admm.py SHARED_STEPS_KEPT = 0: what
+    one robot per process computes)."""
+    runs = ([("before", base, True)] if base else []) + [("after", ROOT, True), ("after, no sharing", ROOT, False)]
+    lines = ["| robots | rounds | tree | CPU ms per fleet round | per robot-round | load |", "|---:|---:|---|---:|---:|---:|"]
+    print("\n".join(lines), flush=True)
+    for robots, rounds in sizes:
+        for _ in range(repeats):
+            for label, tree, share in runs:
+                load = os.getloadavg()[0]
+                out = subprocess.run([sys.executable, "-c", PER_ROUND_SNIPPET, str(robots), str(rounds), "1" if share else "0"],
+                                     cwd=tree, capture_output=True, text=True, timeout=900,
+                                     env={**os.environ, "PYTHONPATH": str(tree)})
+                if out.returncode != 0:
+                    raise RuntimeError(f"in-process run in {tree} failed: {out.stderr.strip()[-500:]}")
+                got = json.loads(out.stdout.strip().splitlines()[-1])
+                ms = 1e3 * got["cpu_s"] / got["rounds"]
+                lines.append(f"| {robots} | {got['rounds']} | {label} | {ms:.2f} | {ms / robots:.3f} | {load:.1f} |")
+                print(lines[-1], flush=True)
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, default=3)
@@ -222,7 +269,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--base", type=Path, default=None, help="with --compute: another checkout to compare against")
     ap.add_argument("--repeats", type=int, default=1, help="with --compute: alternations of the trees")
     ap.add_argument("--no-launch", action="store_true", help="with --compute: skip the launch (make demo) timing")
+    ap.add_argument("--in-process", action="store_true",
+                    help="in-process CPU per fleet round of the paper preset, 3 robots to convergence and 16 "
+                         "robots for 60 rounds (with --base: against another checkout; --repeats)")
     args = ap.parse_args(argv)
+    if args.in_process:
+        print(f"# in-process CPU per fleet round, {os.cpu_count()} cores", flush=True)
+        per_round_table(args.base, [(3, 0), (16, 60)], args.repeats)
+        return 0
     if args.compute:
         print(f"# compute per round, {os.cpu_count()} cores", flush=True)
         compute_table(args.base, args.repeats, not args.no_launch)

@@ -413,22 +413,25 @@ class FrameDecoder:
                             pflags: int) -> None:
         """Refuse a frame whose values of a round differ from those first accepted; then remember.
         (The raw little-endian float64 bytes of the frame: what values.tobytes() gives.)"""
-        seen = self._seen.setdefault(sender, {})
-        claims = [(rnd, (flags, x))]
-        if prev is not None:
-            claims.append((rnd - 1, (pflags, prev)))
-        for rnd, claim in claims:
-            first = seen.get(rnd)
-            if first is not None and first != claim:
-                raise _Reject(
-                    "equivocation",
-                    f"sender {sender} sent two different frames for round {rnd}",
-                )
-        for rnd, claim in claims:
-            seen.setdefault(rnd, claim)
-        newest = max(seen)
-        for rnd in [r for r in seen if r <= newest - EQUIVOCATION_WINDOW]:
-            del seen[rnd]
+        seen = self._seen.get(sender)
+        if seen is None:
+            seen = self._seen[sender] = {}
+        claim = (flags, x)
+        first = seen.get(rnd)
+        if first is not None and first != claim:
+            raise _Reject("equivocation", f"sender {sender} sent two different frames for round {rnd}")
+        prev_claim = None if prev is None else (pflags, prev)
+        prev_first = None if prev is None else seen.get(rnd - 1)
+        if prev_first is not None and prev_first != prev_claim:
+            raise _Reject("equivocation", f"sender {sender} sent two different frames for round {rnd - 1}")
+        if first is None:
+            seen[rnd] = claim
+        if prev_claim is not None and prev_first is None:
+            seen[rnd - 1] = prev_claim
+        oldest_kept = max(seen) - EQUIVOCATION_WINDOW  # rounds up to this one are forgotten
+        if min(seen) <= oldest_kept:
+            for r in [r for r in seen if r <= oldest_kept]:
+                del seen[r]
 
     def _decode_fields(self, data: Any, expected_sender: int | None) -> tuple[Any, ...]:
         """Every check of a frame body; its fields (sender, round, seq, flags, x, prev, pflags)
