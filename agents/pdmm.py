@@ -353,21 +353,33 @@ class FreeCTADMM(_NewestValues):
         return new
 
 
-FREE_ALGORITHMS = ("radmm", "admm-newest", "ct-admm-free")
+FREE_ALGORITHMS = ("auto", "radmm", "hub", "admm-newest", "ct-admm-free")
 
 
-def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm",
+def free_algorithm_for(spec: Any, algorithm: str = "auto") -> str:
+    """``auto``: the free hub ADMM (agents/free_hub.py, Anderson-accelerated) on a complete graph,
+    where every robot hears every robot, the relaxed ADMM on any other graph; a named one as is."""
+    if algorithm != "auto":
+        return algorithm
+    complete = all(len(n) == spec.n_robots - 1 for n in spec.graph.values())
+    return "hub" if spec.n_robots > 1 and complete else "radmm"
+
+
+def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, algorithm: str = "auto",
                     period: float = 0.01) -> Any:
-    """Robot ``rid``'s free-mode core on the spec's grid (a FleetSpec): the relaxed ADMM, or (for
+    """Robot ``rid``'s free-mode core on the spec's grid (a FleetSpec): ``auto`` (`free_algorithm_for`),
+    the free hub ADMM, the relaxed ADMM, or (for
     measurement) today's ADMM fed the newest values (``admm-newest``) or the paper's CT-ADMM
     integrating one ``period`` per tick with held samples (``ct-admm-free``). Here, not in the
     launcher, because the robot process (agents/free_robot.py) builds it too."""
     from agents.ct_admm import CTADMMParams
+    from agents.free_hub import FreeHubADMM, FreeHubParams
 
     if algorithm not in FREE_ALGORITHMS:
         raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
     if not spec.fixed_grid:
         raise ValueError("free sync needs a fixed grid and sigma (--grid and --sigma, or --preset paper)")
+    algorithm = free_algorithm_for(spec, algorithm)
     me = spec.robots[rid]
     degrees = {j: len(spec.robots[j].neighbours) for j in me.neighbours}
     # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
@@ -378,6 +390,7 @@ def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, a
         kw["relax"] = float(given.get("relax", spec.params.get("relax", 1.95)))
     if algorithm == "ct-admm-free":
         kw["ct_params"] = CTADMMParams(period=period)
-    cls = {"radmm": RelaxedADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
+    cls = {"radmm": RelaxedADMM, "hub": FreeHubADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
+    typed = (FreeHubParams if algorithm == "hub" else RelaxedADMMParams).from_params(given)
     return cls(rid, me.neighbours, spec.basis.features(me.points), me.labels, n_robots=spec.n_robots,
-               params=RelaxedADMMParams.from_params(given), C=spec.C, neighbour_degrees=degrees, **kw)
+               params=typed, C=spec.C, neighbour_degrees=degrees, **kw)

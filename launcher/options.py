@@ -405,7 +405,8 @@ OPTIONS: tuple[Option, ...] = (
            "--over zenoh: 0,0.3)", group=SWEEP,
            commands=("sweep",), metavar="P1,P2,...", check=_probabilities, target=None),
     Option("syncs", STR, "lockstep,free", "sweep: modes, comma-separated: lockstep (today's ADMM, the "
-           "reference), free (the relaxed ADMM), free-newest (today's ADMM fed the newest values: biased) or "
+           "reference), free (as simulate --sync free: the free hub ADMM on a complete graph, else the relaxed ADMM), "
+           "free-radmm (the relaxed ADMM), free-newest (today's ADMM fed the newest values: biased) or "
            "free-ct (CT-ADMM with held samples)", group=SWEEP, commands=("sweep",), metavar="MODES",
            check=_syncs, target=None),
     Option("jobs", INT, None, "sweep: worker processes (default: one per core)", group=SWEEP,
