@@ -28,14 +28,24 @@ consensus problem, one block per robot, reads of bounded staleness: it converges
 enough eta against the largest staleness (their step 1 / (1 + 2 tau / sqrt(N)) for random
 blocks); eta larger than that is a measured choice (benchmarks/free.py), not a theorem.
 
-Acceleration (``hub_anderson`` > 0): robot i treats its own sequence t_i -> F(t_i) = t_i + eta
-(m_i - x_i) as a fixed-point map and extrapolates it with type-II Anderson over the last
-``hub_anderson`` steps (regularised least squares), safeguarded: the step is kept only while the
-robot's residual |m_i - x_i| stays within ``hub_safeguard`` x the best since the last restart,
-otherwise the history is dropped and the plain step taken. At a fixed point the residuals are
-zero, the least squares returns zero and the extrapolation is the plain step: the fixed point, so
-the answer, is unchanged. Convergence of the extrapolated asynchronous map is not a theorem; the
-safeguard bounds how far a rejected extrapolation can go (it restarts from the plain step).
+Acceleration (``hub_anderson`` > 0, the default 15): Anderson on the robot's *view of the whole
+fleet*. From the newest packets robot i knows every robot's (x_j, a_j), hence t_j = 2 x_j - a_j:
+a point S = (t_1..t_N) of the fleet's state and, exactly, the Douglas-Rachford image of that point,
+F(S)_j = t_j + eta (mean_k a_k - x_j) -- each x_j is robot j's own prox of its own t_j. So every
+view is an exact evaluation of the one fleet operator at some (mixed-age) point, which is what
+type-II Anderson needs: it extrapolates from the last ``hub_anderson`` views (regularised least
+squares on the P-weighted residuals, as lockstep's hub) and the robot keeps its own block of the
+result as its new t_i. It steps only when a packet brought news (an unchanged view would repeat
+the same evaluation). Safeguard: when the view's residual exceeds ``hub_safeguard`` x the best
+since the last restart, the history is dropped and the plain step taken (``restarts`` counts
+them). In lockstep (everyone's newest = current) every robot holds the same views and this is
+lockstep's global Anderson. At a fixed point the residual is zero, the least squares returns zero
+and the extrapolation is the plain step: the fixed point, so the answer, is unchanged
+(tests/test_free_hub.py). Convergence of the extrapolated asynchronous iteration is not a theorem
+(measured: benchmarks/results/free.md); the answer it stops at is checked against the exact one
+in every benchmark and sweep cell. Anderson on the robot's own t_i sequence alone was slower than
+no acceleration (664 against 476 iterations without a clock): robots then extrapolate with
+unrelated coefficients.
 
 Stop: the relaxed ADMM's calm rule (agents/pdmm.py ``RelaxedADMM.tick``: distance estimate below
 ``tol``, hop counts over the diameter, the stop floods). No I/O, no clock.
@@ -60,7 +70,7 @@ class FreeHubParams(RelaxedADMMParams):
 
     rho: float = 8.0  # measured at loss 0.3, 20 ms, period 5 ms: 5 and 10 slower, 12-20 much slower
     hub_relax: float = 1.0  # eta in (0, 2): 1 is plain ADMM; smaller damps staleness (ARock's step)
-    hub_anderson: int = 15  # memory of the Anderson acceleration on the robot's view (0: none)
+    hub_anderson: int = 15  # memory of the Anderson acceleration on the robot's view (0: none; 5 and 30 slower)
     hub_safeguard: float = 2.0  # restart Anderson when the residual exceeds this x its best
 
     def __post_init__(self) -> None:
@@ -100,38 +110,16 @@ class FreeHubADMM(RelaxedADMM):
         self.restarts = 0  # rejected extrapolations
         self._news: set[int] = set()  # neighbours with a new packet since the last step
 
-    def receive(self, p: Packet) -> bool:
-        """Keep neighbour p.sender's newest (v, a) by sequence number; older packets are dropped."""
-        if not self._fresh(p):
-            return False
-        j = p.sender
-        if p.edge.shape != (self.dim,) or p.values.shape != (self.dim,):
-            raise ValueError(f"robot {j} sent vectors of the wrong length, expected {self.dim}")
-        self._last_seq[j] = p.seq
-        self._held[j] = p.edge
-        self._their_v[j] = p.values
-        self._their_hops[j] = p.hops
-        self._heard[j] = self.ticks
-        self.applied += 1
+    def _apply_edge(self, j: int, edge: np.ndarray) -> None:
+        """Hold neighbour j's newest a_j as sent (an old packet was dropped before: an old value)."""
+        self._held[j] = edge
         self._news.add(j)
-        return True
 
     def _solve(self) -> np.ndarray:
-        """Move t_i (see the module), then x_i = prox(t_i), a_i = 2 x_i - t_i."""
-        if self.ticks and len(self._held) == len(self.neighbours):  # until every robot was heard, t waits
-            if self.params.hub_anderson:
-                if self._news:
-                    self._t = self._view_step()
-                    self._news = set()
-            else:
-                acc = self._a.copy()
-                for j in self.neighbours:
-                    acc = acc + self._held[j]
-                g = self.params.hub_relax * (acc / (len(self.neighbours) + 1) - self._values)
-                self.hub_residual = math.sqrt(float(self._P @ (g * g)))
-                self._t = self._t + g
-        if not self.params.hub_anderson:
-            self._news = set()
+        """Move t_i if a packet brought news (see the module), then x_i = prox(t_i), a_i = 2 x_i - t_i."""
+        if self.ticks and self._news and len(self._held) == len(self.neighbours):  # until all were heard, t waits
+            self._t = self._view_step()
+        self._news = set()
         sol = self._qp.solve(-self._P * self._t)
         x = np.append(sol.x, sol.gamma)
         self._a = 2.0 * x - self._t
@@ -140,7 +128,8 @@ class FreeHubADMM(RelaxedADMM):
     def _view_step(self) -> np.ndarray:
         """Anderson on this robot's view of the whole fleet's state (see the module): the view
         S = (t_j) with t_j = 2 x_j - a_j of the newest packet of j (its own: current), its image
-        F = S + eta (mean_j a_j - x_j); the extrapolation's own block is the new t_i."""
+        F = S + eta (mean_j a_j - x_j); the extrapolation's own block is the new t_i (with no
+        memory, F's own block: the plain relaxed step t_i + eta (m_i - x_i))."""
         me = self.robot_id
         xs = {j: self._their_v[j] for j in self.neighbours}
         As = dict(self._held)

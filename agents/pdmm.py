@@ -204,13 +204,17 @@ class RelaxedADMM:
         if p.edge.shape != (self.dim,) or p.values.shape != (self.dim,):
             raise ValueError(f"robot {j} sent vectors of the wrong length, expected {self.dim}")
         self._last_seq[j] = p.seq
-        a = self.params.alpha
-        self._z[j] = (1.0 - a) * self._z[j] + a * p.edge
+        self._apply_edge(j, p.edge)
         self._their_v[j] = p.values
         self._their_hops[j] = p.hops
         self._heard[j] = self.ticks
         self.applied += 1
         return True
+
+    def _apply_edge(self, j: int, edge: np.ndarray) -> None:
+        """The relaxed update of z_ij from neighbour j's y_ji (the free hub ADMM holds a_j instead)."""
+        a = self.params.alpha
+        self._z[j] = (1.0 - a) * self._z[j] + a * edge
 
     def tick(self) -> list[Packet]:
         """One local update from the newest z's: the packets to send (one per neighbour)."""
@@ -278,18 +282,8 @@ class RelaxedADMM:
 class _NewestValues(RelaxedADMM):
     """A free core that keeps the newest v of each neighbour and ignores the edge vector."""
 
-    def receive(self, p: Packet) -> bool:
-        """Keep the newest v of p.sender (by sequence number); its edge vector is not used."""
-        if not self._fresh(p):
-            return False
-        j = p.sender
-        self._last_seq[j] = p.seq
-        self._their_v[j] = p.values
-        self._their_hops[j] = p.hops
-        self._heard[j] = self.ticks
-        self.applied += 1
-        return True
-
+    def _apply_edge(self, j: int, edge: np.ndarray) -> None:
+        """The edge vector is not used: only the newest v (kept by ``receive``) counts."""
 
 class NewestValueADMM(_NewestValues):
     """Today's edge-form ADMM on whatever neighbour value arrived last (biased; for measurement).
