@@ -69,9 +69,9 @@ class FreeHubParams(RelaxedADMMParams):
     unused) plus the hub's relaxation and acceleration."""
 
     rho: float = 8.0  # measured at loss 0.3, 20 ms, period 5 ms: 5 and 10 slower, 12-20 much slower
-    hub_relax: float = 1.0  # eta in (0, 2): 1 is plain ADMM; smaller damps staleness (ARock's step)
+    hub_relax: float = 1.3  # eta in (0, 2): 1 is plain ADMM; smaller damps staleness (ARock's step)
     hub_anderson: int = 15  # memory of the Anderson acceleration on the robot's view (0: none; 5 and 30 slower)
-    hub_safeguard: float = 2.0  # restart Anderson when the residual exceeds this x its best
+    hub_safeguard: float = 10.0  # restart Anderson when the view's residual exceeds this x its best
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -88,7 +88,7 @@ def target_line(where: str, lockstep: list[float], free: list[float], algorithm:
             f"{'met' if met else 'NOT met'}**: free against lockstep stop, seed by seed (free's best period): {pairs} s.")
 
 
-HUB_NAME = "hub (Anderson 15, rho 8)"
+HUB_NAME = "hub (Anderson 15, rho 8, eta 1.3)"
 
 
 def headline(lines: list[str]) -> None:
@@ -97,7 +97,7 @@ def headline(lines: list[str]) -> None:
               "| seed | mode | algorithm | rounds/ticks | time to stop (s) | time to 1e-3 (s) | error vs exact | converged | frames sent |",
               "|---|---|---|---|---|---|---|---|---|"]
     lock_stop, free_stop = [], []
-    for seed in (0, 1, 2):
+    for seed in (0, 1, 2, 3, 4):  # 3 and 4 held out: the hub was tuned on 0-2
         _, spec, central = scenario(seed)
         spec = dataclasses.replace(spec, seed=seed)
         for name, extra in (("admm (Anderson, default)", {}), ("admm, no acceleration", {"anderson": 0})):
@@ -254,13 +254,13 @@ def hub_study(lines: list[str]) -> None:
               "its arrival):", "",
               "| core | lag 0 | lag 2 |", "|---|---|---|"]
     for name, algorithm, params in (("radmm (alpha 0.9, rho 15)", "radmm", {}),
-                                    ("hub, no acceleration (eta 1, rho 8)", "hub", {"hub_anderson": 0}),
+                                    ("hub, no acceleration (eta 1.3, rho 8)", "hub", {"hub_anderson": 0}),
                                     ("hub, no acceleration, eta 1.9", "hub", {"hub_anderson": 0, "hub_relax": 1.9}),
                                     (HUB_NAME, "hub", {})):
         n0, n2 = (lockstep_ticks(spec, central, algorithm, params, lag) for lag in (0, 2))
         lines.append(f"| {name} | {n0} | {n2} |")
-    lines += ["", "Free sync in-process: each row changes one setting of the default (rho 8, Anderson 15, eta 1, "
-              "period 5 ms).", "",
+    lines += ["", "Free sync in-process: each row changes one setting of the default (rho 8, Anderson 15, eta 1.3, "
+              "safeguard 10, period 5 ms).", "",
               "| setting | ticks | time to 1e-3 (s) | time to stop (s) | stop - 1e-3 (s) | error at stop | restarts |",
               "|---|---|---|---|---|---|---|"]
 
@@ -274,9 +274,11 @@ def hub_study(lines: list[str]) -> None:
 
     row("default, no delay", run_free(spec, central, LinkFaults(loss=0.3), period=0.005, max_virtual_s=60.0, algorithm="hub"))
     for name, kw in [("default", {}), ("no acceleration", {"params": {"hub_anderson": 0}}),
-                     ("no acceleration, eta 1.5", {"params": {"hub_anderson": 0, "hub_relax": 1.5}}),
+                     ("no acceleration, eta 1.0", {"params": {"hub_anderson": 0, "hub_relax": 1.0}}),
                      ("Anderson 5", {"params": {"hub_anderson": 5}}), ("Anderson 30", {"params": {"hub_anderson": 30}}),
-                     ("eta 1.3", {"params": {"hub_relax": 1.3}}), ("rho 5", {"params": {"rho": 5.0}}),
+                     ("eta 1.0", {"params": {"hub_relax": 1.0}}), ("safeguard 2", {"params": {"hub_safeguard": 2.0}}),
+                     ("eta 1.0, safeguard 2", {"params": {"hub_relax": 1.0, "hub_safeguard": 2.0}}),
+                     ("rho 5", {"params": {"rho": 5.0}}),
                      ("rho 15", {"params": {"rho": 15.0}}), ("period 10 ms", {"period": 0.01}),
                      ("period 3 ms", {"period": 0.003}), ("period 2 ms", {"period": 0.002}),
                      ("window 20 ticks", {"params": {"window": 20}})]:
