@@ -28,7 +28,7 @@ consensus problem, one block per robot, reads of bounded staleness: it converges
 enough eta against the largest staleness (their step 1 / (1 + 2 tau / sqrt(N)) for random
 blocks); eta larger than that is a measured choice (benchmarks/free.py), not a theorem.
 
-Acceleration (``hub_anderson`` > 0, the default 15): Anderson on the robot's *view of the whole
+Acceleration (``hub_anderson`` > 0, the default 30): Anderson on the robot's *view of the whole
 fleet*. From the newest packets robot i knows every robot's (x_j, a_j), hence t_j = 2 x_j - a_j:
 a point S = (t_1..t_N) of the fleet's state and, exactly, the Douglas-Rachford image of that point,
 F(S)_j = t_j + eta (mean_k a_k - x_j) -- each x_j is robot j's own prox of its own t_j. So every
@@ -70,7 +70,7 @@ class FreeHubParams(RelaxedADMMParams):
 
     rho: float = 8.0  # measured at loss 0.3, 20 ms, period 5 ms: 5 and 10 slower, 12-20 much slower
     hub_relax: float = 1.3  # eta in (0, 2): 1 is plain ADMM; smaller damps staleness (ARock's step)
-    hub_anderson: int = 15  # memory of the Anderson acceleration on the robot's view (0: none; 5 and 30 slower)
+    hub_anderson: int = 30  # memory of the Anderson acceleration on the robot's view (0: none; 5 and 15 slower)
     hub_safeguard: float = 10.0  # restart Anderson when the view's residual exceeds this x its best
 
     def __post_init__(self) -> None:

@@ -81,14 +81,14 @@ BEFORE_STOP_RULE = ("Before the stop-rule change (change and gap summed together
 
 
 def target_line(where: str, lockstep: list[float], free: list[float], algorithm: str = "hub") -> str:
-    """The issue's target in one line: free (its best period per seed) stops before lockstep, seed by seed?"""
+    """The issue's target in one line: free (the hub at a 5 ms period) stops before lockstep, seed by seed?"""
     met = all(f < lk for f, lk in zip(free, lockstep))
     pairs = ", ".join(f"{f:.2f} vs {lk:.2f}" for f, lk in zip(free, lockstep))
     return (f"**Target ({where}): free ({algorithm}) within 1e-3 in less time than lockstep under loss 0.3 and 20 ms -- "
-            f"{'met' if met else 'NOT met'}**: free against lockstep stop, seed by seed (free's best period): {pairs} s.")
+            f"{'met' if met else 'NOT met'}**: free (5 ms period) against lockstep, time to stop seed by seed: {pairs} s.")
 
 
-HUB_NAME = "hub (Anderson 15, rho 8, eta 1.3)"
+HUB_NAME = "hub (Anderson 30, rho 8, eta 1.3)"
 
 
 def headline(lines: list[str]) -> None:
@@ -97,7 +97,7 @@ def headline(lines: list[str]) -> None:
               "| seed | mode | algorithm | rounds/ticks | time to stop (s) | time to 1e-3 (s) | error vs exact | converged | frames sent |",
               "|---|---|---|---|---|---|---|---|---|"]
     lock_stop, free_stop = [], []
-    for seed in (0, 1, 2, 3, 4):  # 3 and 4 held out: the hub was tuned on 0-2
+    for seed in range(7):  # the hub's eta and safeguard were chosen on 0-2, its memory on 0-4; 5 and 6 held out
         _, spec, central = scenario(seed)
         spec = dataclasses.replace(spec, seed=seed)
         for name, extra in (("admm (Anderson, default)", {}), ("admm, no acceleration", {"anderson": 0})):
@@ -108,7 +108,7 @@ def headline(lines: list[str]) -> None:
         for algorithm, name in (("radmm", "radmm (alpha 0.9, rho 15)"), ("hub", HUB_NAME)):
             for period in (0.01, 0.005):
                 r = run_free(spec, central, f, period=period, max_virtual_s=60.0, algorithm=algorithm)
-                if algorithm == "hub":
+                if algorithm == "hub" and period == 0.005:
                     best.append(r["t"])
                 lines.append(
                     f"| {seed} | free, period {period * 1e3:g} ms | {name} | {r['ticks']} | {r['t']:.2f} | "
@@ -259,7 +259,7 @@ def hub_study(lines: list[str]) -> None:
                                     (HUB_NAME, "hub", {})):
         n0, n2 = (lockstep_ticks(spec, central, algorithm, params, lag) for lag in (0, 2))
         lines.append(f"| {name} | {n0} | {n2} |")
-    lines += ["", "Free sync in-process: each row changes one setting of the default (rho 8, Anderson 15, eta 1.3, "
+    lines += ["", "Free sync in-process: each row changes one setting of the default (rho 8, Anderson 30, eta 1.3, "
               "safeguard 10, period 5 ms).", "",
               "| setting | ticks | time to 1e-3 (s) | time to stop (s) | stop - 1e-3 (s) | error at stop | restarts |",
               "|---|---|---|---|---|---|---|"]
@@ -275,9 +275,10 @@ def hub_study(lines: list[str]) -> None:
     row("default, no delay", run_free(spec, central, LinkFaults(loss=0.3), period=0.005, max_virtual_s=60.0, algorithm="hub"))
     for name, kw in [("default", {}), ("no acceleration", {"params": {"hub_anderson": 0}}),
                      ("no acceleration, eta 1.0", {"params": {"hub_anderson": 0, "hub_relax": 1.0}}),
-                     ("Anderson 5", {"params": {"hub_anderson": 5}}), ("Anderson 30", {"params": {"hub_anderson": 30}}),
+                     ("Anderson 5", {"params": {"hub_anderson": 5}}), ("Anderson 15", {"params": {"hub_anderson": 15}}),
                      ("eta 1.0", {"params": {"hub_relax": 1.0}}), ("safeguard 2", {"params": {"hub_safeguard": 2.0}}),
-                     ("eta 1.0, safeguard 2", {"params": {"hub_relax": 1.0, "hub_safeguard": 2.0}}),
+                     ("Anderson 15, eta 1.0, safeguard 2 (first setting)",
+                      {"params": {"hub_anderson": 15, "hub_relax": 1.0, "hub_safeguard": 2.0}}),
                      ("rho 5", {"params": {"rho": 5.0}}),
                      ("rho 15", {"params": {"rho": 15.0}}), ("period 10 ms", {"period": 0.01}),
                      ("period 3 ms", {"period": 0.003}), ("period 2 ms", {"period": 0.002}),
@@ -307,7 +308,8 @@ def zenoh_side_by_side(lines: list[str]) -> None:
         for sync, period in (("lockstep", 0.01), ("free", 0.01), ("free", 0.005)):
             cell = sweep.cells([0.02], [0.3], [sync], seed=seed, period=period, over="zenoh")[0]
             r = sweep.run_cell(cell)
-            stops.setdefault((sync, seed), []).append(r["stop_s"] if r["converged"] else float("inf"))
+            if sync == "lockstep" or period == 0.005:
+                stops.setdefault((sync, seed), []).append(r["stop_s"] if r["converged"] else float("inf"))
             mode = sync if sync == "lockstep" else f"free hub, period {period * 1e3:g} ms"
             to = r["time_to_claim_s"]
             lines.append(f"| {seed} | {mode} | {r['rounds']} | {'-' if to != to else f'{to:.2f}'} | {r['stop_s']:.2f} | "
