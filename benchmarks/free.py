@@ -192,6 +192,18 @@ def ct_admm(lines: list[str]) -> None:
     print("\n".join(lines[-12:]), flush=True)
 
 
+def study_row(lines: list[str], labels: list[str], r: dict, restarts: bool = False) -> None:
+    """One row of a study table: ticks, time to 1e-3, stop, their difference, the error (and restarts)."""
+    head = " | ".join(labels)
+    if "failed" in r or r["to_claim"] is None:
+        cells = ["-"] * 4 + [r.get("failed", "not within 1e-3")] + (["-"] if restarts else [])
+    else:
+        cells = [str(r["ticks"]), f"{r['to_claim']:.2f}", f"{r['t']:.2f}", f"{r['t'] - r['to_claim']:.2f}",
+                 f"{r['err']:.1e}"] + ([str(r["restarts"])] if restarts else [])
+    lines.append(f"| {head} | " + " | ".join(cells) + " |")
+    print(lines[-1], flush=True)
+
+
 def rate_study(lines: list[str]) -> None:
     """Why free is slower than lockstep: the relaxed ADMM's penalty, relaxation and period."""
     _, spec, central = scenario(0)
@@ -203,12 +215,7 @@ def rate_study(lines: list[str]) -> None:
               "|---|---|---|---|---|---|---|"]
 
     def row(fleet: str, name: str, r: dict) -> None:
-        if "failed" in r or r["to_claim"] is None:
-            lines.append(f"| {fleet} | {name} | - | - | - | - | {r.get('failed', 'not within 1e-3')} |")
-        else:
-            lines.append(f"| {fleet} | {name} | {r['ticks']} | {r['to_claim']:.2f} | {r['t']:.2f} | "
-                         f"{r['t'] - r['to_claim']:.2f} | {r['err']:.1e} |")
-        print(lines[-1], flush=True)
+        study_row(lines, [fleet, name], r)
 
     row("3 complete", "default, no delay", run_free(spec, central, LinkFaults(loss=0.3), max_virtual_s=60.0,
                                                     algorithm="radmm"))
@@ -265,12 +272,7 @@ def hub_study(lines: list[str]) -> None:
               "|---|---|---|---|---|---|---|"]
 
     def row(name: str, r: dict) -> None:
-        if "failed" in r or r["to_claim"] is None:
-            lines.append(f"| {name} | - | - | - | - | {r.get('failed', 'not within 1e-3')} | - |")
-        else:
-            lines.append(f"| {name} | {r['ticks']} | {r['to_claim']:.2f} | {r['t']:.2f} | {r['t'] - r['to_claim']:.2f} | "
-                         f"{r['err']:.1e} | {r['restarts']} |")
-        print(lines[-1], flush=True)
+        study_row(lines, [name], r, restarts=True)
 
     row("default, no delay", run_free(spec, central, LinkFaults(loss=0.3), period=0.005, max_virtual_s=60.0, algorithm="hub"))
     for name, kw in [("default", {}), ("no acceleration", {"params": {"hub_anderson": 0}}),
