@@ -377,7 +377,8 @@ def _simulate_free(args: argparse.Namespace, *, quiet: bool = False) -> RunRepor
     if not central.solved:
         _infeasible(out, world, spec, central)
     console = Console(stderr=True, quiet=quiet)
-    with console.status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms (relaxed ADMM)"):
+    with console.status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms "
+                        f"({_free_extra(args, spec)['free_algorithm']})"):
         try:
             outcome = simulate_free(spec, period=args.period)
         except FleetFailure as exc:

@@ -393,7 +393,8 @@ OPTIONS: tuple[Option, ...] = (
     # issue 13: free-running robots (protocol/free.py, agents/pdmm.py, docs/robustness.md)
     Option("sync", STR, "lockstep", "lockstep: a round waits for every neighbour's exact value (resent until it "
            "arrives); free: every robot ticks each --period on its own clock with the newest values it holds and "
-           "never waits (the relaxed ADMM, on a fixed grid)", group=ALGORITHM, commands=("simulate", "launch"),
+           "never waits (on a fixed grid: the free hub ADMM on a complete graph, else the relaxed ADMM; a --period "
+           "of about a quarter of the one-way delay is fastest)", group=ALGORITHM, commands=("simulate", "launch"),
            section="algorithm", choices=("lockstep", "free"), target=None),
     Option("period", DURATION, 0.01, "free sync: each robot's tick period", group=ALGORITHM,
            commands=("simulate", "launch", "sweep"), section="algorithm", check=positive, target=None),
