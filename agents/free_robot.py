@@ -58,7 +58,7 @@ class FreeRobotShell:
         self.status_stream = status_stream
         self.status_interval_s = float(status_interval_s)
         self._status_at = float("-inf")
-        core = build_free_core(spec, self.me, params, "radmm", period)
+        core = build_free_core(spec, self.me, params, "auto", period)
         self.session = FreeSession(core, fleet=spec.fleet, graph=spec.graph, config_tag=spec.config_tag,
                                    period=period, now=self.clock(), max_wall_s=spec.timing.max_wall_s,
                                    auth=spec.frame_auth(self.me))

@@ -186,13 +186,17 @@ class RelaxedADMM:
         if p.edge.shape != (self.dim,) or p.values.shape != (self.dim,):
             raise ValueError(f"robot {j} sent vectors of the wrong length, expected {self.dim}")
         self._last_seq[j] = p.seq
-        a = self.params.alpha
-        self._z[j] = (1.0 - a) * self._z[j] + a * p.edge
+        self._apply_edge(j, p.edge)
         self._their_v[j] = p.values
         self._their_hops[j] = p.hops
         self._heard[j] = self.ticks
         self.applied += 1
         return True
+
+    def _apply_edge(self, j: int, edge: np.ndarray) -> None:
+        """The relaxed update of z_ij from neighbour j's y_ji (the free hub ADMM holds a_j instead)."""
+        a = self.params.alpha
+        self._z[j] = (1.0 - a) * self._z[j] + a * edge
 
     def tick(self) -> list[Packet]:
         """One local update from the newest z's: the packets to send (one per neighbour)."""
@@ -260,18 +264,8 @@ class RelaxedADMM:
 class _NewestValues(RelaxedADMM):
     """A free core that keeps the newest v of each neighbour and ignores the edge vector."""
 
-    def receive(self, p: Packet) -> bool:
-        """Keep the newest v of p.sender (by sequence number); its edge vector is not used."""
-        if not self._fresh(p):
-            return False
-        j = p.sender
-        self._last_seq[j] = p.seq
-        self._their_v[j] = p.values
-        self._their_hops[j] = p.hops
-        self._heard[j] = self.ticks
-        self.applied += 1
-        return True
-
+    def _apply_edge(self, j: int, edge: np.ndarray) -> None:
+        """The edge vector is not used: only the newest v (kept by ``receive``) counts."""
 
 class NewestValueADMM(_NewestValues):
     """Today's edge-form ADMM on whatever neighbour value arrived last (biased; for measurement).
@@ -327,21 +321,33 @@ class FreeCTADMM(_NewestValues):
         return new
 
 
-FREE_ALGORITHMS = ("radmm", "admm-newest", "ct-admm-free")
+FREE_ALGORITHMS = ("auto", "radmm", "hub", "admm-newest", "ct-admm-free")
 
 
-def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, algorithm: str = "radmm",
+def free_algorithm_for(spec: Any, algorithm: str = "auto") -> str:
+    """``auto``: the free hub ADMM (agents/free_hub.py, Anderson-accelerated) on a complete graph,
+    where every robot hears every robot, the relaxed ADMM on any other graph; a named one as is."""
+    if algorithm != "auto":
+        return algorithm
+    complete = all(len(n) == spec.n_robots - 1 for n in spec.graph.values())
+    return "hub" if spec.n_robots > 1 and complete else "radmm"
+
+
+def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, algorithm: str = "auto",
                     period: float = 0.01) -> Any:
-    """Robot ``rid``'s free-mode core on the spec's grid (a FleetSpec): the relaxed ADMM, or (for
+    """Robot ``rid``'s free-mode core on the spec's grid (a FleetSpec): ``auto`` (`free_algorithm_for`),
+    the free hub ADMM, the relaxed ADMM, or (for
     measurement) today's ADMM fed the newest values (``admm-newest``) or the paper's CT-ADMM
     integrating one ``period`` per tick with held samples (``ct-admm-free``). Here, not in the
     launcher, because the robot process (agents/free_robot.py) builds it too."""
     from agents.ct_admm import CTADMMParams
+    from agents.free_hub import FreeHubADMM, FreeHubParams
 
     if algorithm not in FREE_ALGORITHMS:
         raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
     if not spec.fixed_grid:
         raise ValueError("free sync needs a fixed grid and sigma (--grid and --sigma, or --preset paper)")
+    algorithm = free_algorithm_for(spec, algorithm)
     # the fleet file's tol and diameter hold for every algorithm; its rho and relax are lockstep
     # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
     given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
@@ -350,5 +356,6 @@ def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, a
         kw["relax"] = float(given.get("relax", spec.params.get("relax", 1.95)))
     if algorithm == "ct-admm-free":
         kw["ct_params"] = CTADMMParams(period=period)
-    cls = {"radmm": RelaxedADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
-    return cls(spec.share(rid), RelaxedADMMParams.from_params(given), **kw)
+    cls = {"radmm": RelaxedADMM, "hub": FreeHubADMM, "admm-newest": NewestValueADMM, "ct-admm-free": FreeCTADMM}[algorithm]
+    typed = (FreeHubParams if algorithm == "hub" else RelaxedADMMParams).from_params(given)
+    return cls(spec.share(rid), typed, **kw)

@@ -377,13 +377,14 @@ def _simulate_free(args: argparse.Namespace, *, quiet: bool = False) -> RunRepor
     if not central.solved:
         _infeasible(out, world, spec, central)
     console = Console(stderr=True, quiet=quiet)
-    with console.status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms (relaxed ADMM)"):
+    with console.status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms "
+                        f"({_free_extra(args, spec)['free_algorithm']})"):
         try:
             outcome = simulate_free(spec, period=args.period)
         except FleetFailure as exc:
             return RunReport(EXIT_NOT_CONVERGED, out, spec, world, message=f"the run failed: {exc}")
     spec = dataclasses.replace(spec, algorithm="admm")
-    extra = {"fleet": spec.fleet, "topology": args.topology, **_free_extra(args), "virtual_s": outcome.virtual_s,
+    extra = {"fleet": spec.fleet, "topology": args.topology, **_free_extra(args, spec), "virtual_s": outcome.virtual_s,
              "faults": _fault_dict(spec.faults), "links": outcome.link_stats}
     report = RunReport(1, out, spec, world, robots=outcome.robots)
     report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0, extra=extra,
@@ -392,9 +393,11 @@ def _simulate_free(args: argparse.Namespace, *, quiet: bool = False) -> RunRepor
     return report
 
 
-def _free_extra(args: argparse.Namespace) -> dict[str, Any]:
+def _free_extra(args: argparse.Namespace, spec: Any) -> dict[str, Any]:
     """What result.json says of a free run (simulate and launch alike)."""
-    return {"sync": "free", "period_s": args.period, "free_algorithm": "radmm"}
+    from agents.pdmm import free_algorithm_for
+
+    return {"sync": "free", "period_s": args.period, "free_algorithm": free_algorithm_for(spec)}
 
 
 def _launch_free(args: argparse.Namespace) -> dict[str, Any]:
@@ -533,7 +536,7 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
         "timed_out": outcome.timed_out,
     }
     if free:
-        extra.update(_free_extra(args), virtual_s=outcome.wall_s)
+        extra.update(_free_extra(args, spec), virtual_s=outcome.wall_s)
     report.notes += [f"--crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}"
                      for c in outcome.crashes_not_fired]
     report.notes += [str(r["error"]) for r in outcome.robots if r.get("error")]

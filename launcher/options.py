@@ -393,7 +393,8 @@ OPTIONS: tuple[Option, ...] = (
     # issue 13: free-running robots (protocol/free.py, agents/pdmm.py, docs/robustness.md)
     Option("sync", STR, "lockstep", "lockstep: a round waits for every neighbour's exact value (resent until it "
            "arrives); free: every robot ticks each --period on its own clock with the newest values it holds and "
-           "never waits (the relaxed ADMM, on a fixed grid)", group=ALGORITHM, commands=("simulate", "launch"),
+           "never waits (on a fixed grid: the free hub ADMM on a complete graph, else the relaxed ADMM; a --period "
+           "of about a quarter of the one-way delay is fastest)", group=ALGORITHM, commands=("simulate", "launch"),
            section="algorithm", choices=("lockstep", "free"), target=None),
     Option("period", DURATION, 0.01, "free sync: each robot's tick period", group=ALGORITHM,
            commands=("simulate", "launch", "sweep"), section="algorithm", check=positive, target=None),
@@ -405,7 +406,8 @@ OPTIONS: tuple[Option, ...] = (
            "--over zenoh: 0,0.3)", group=SWEEP,
            commands=("sweep",), metavar="P1,P2,...", check=_probabilities, target=None),
     Option("syncs", STR, "lockstep,free", "sweep: modes, comma-separated: lockstep (today's ADMM, the "
-           "reference), free (the relaxed ADMM), free-newest (today's ADMM fed the newest values: biased) or "
+           "reference), free (as simulate --sync free: the free hub ADMM on a complete graph, else the relaxed ADMM), "
+           "free-radmm (the relaxed ADMM), free-newest (today's ADMM fed the newest values: biased) or "
            "free-ct (CT-ADMM with held samples)", group=SWEEP, commands=("sweep",), metavar="MODES",
            check=_syncs, target=None),
     Option("jobs", INT, None, "sweep: worker processes (default: one per core)", group=SWEEP,

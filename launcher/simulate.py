@@ -248,7 +248,7 @@ def simulate_free(
     period: float = 0.01,
     clock: ClockModel | None = None,
     params: dict[str, Any] | None = None,
-    algorithm: str = "radmm",
+    algorithm: str = "auto",
     max_virtual_s: float | None = None,
     on_tick: TickFn | None = None,
 ) -> FleetOutcome:

@@ -2,7 +2,8 @@
 
 One in-process run (virtual time, deterministic) per cell of delay x loss x sync, on the default
 world and the paper's fixed grid (5x3, sigma 1): lockstep runs today's ADMM (exact rounds, resends),
-free runs the relaxed ADMM (agents/pdmm.py, never waits). Runs go to a process pool (one per core).
+free runs what `simulate --sync free` runs (the free hub ADMM on a complete graph, agents/free_hub.py,
+else the relaxed ADMM, agents/pdmm.py; free-radmm the relaxed ADMM always; never waits). Runs go to a process pool (one per core).
 Each row: the final error of the robots' own answers against the certified central solve, the
 first time after which every robot stayed within 1e-3 of it (robots' virtual seconds), the time
 to stop, the bytes put on the links, and the agreement verdict. Writes sweep.csv and
@@ -27,7 +28,8 @@ import numpy as np
 CLAIM = 1e-3
 #: sweep modes: lockstep (today's ADMM, the reference) and the free cores (launcher/simulate.py);
 #: free-newest and free-ct are the measurements of docs/robustness.md (they may diverge: a row says so)
-MODES = {"lockstep": None, "free": "radmm", "free-newest": "admm-newest", "free-ct": "ct-admm-free"}
+MODES = {"lockstep": None, "free": "auto", "free-radmm": "radmm", "free-newest": "admm-newest",
+         "free-ct": "ct-admm-free"}
 FIELDS = ("sync", "delay_s", "loss", "converged", "error", "time_to_claim_s", "stop_s", "rounds", "bytes_sent",
           "frames_sent", "verdict", "wall_s", "cpu_s", "over")
 #: where a sweep runs: in process (virtual time) or over Zenoh (processes, wall-clock time)

@@ -144,6 +144,7 @@ def test_cli_free_run_converges_and_bad_input_exits_2(tmp_path, capsys):
                  "--loss-burst", "3", "--out", str(out)])
     result = json.loads((out / "result.json").read_text())
     assert code == 0 and result["converged"] and result["sync"] == "free"
+    assert result["free_algorithm"] == "hub"  # the paper preset's fleet is a complete graph
     assert result["metrics"]["function_error"] < BOUND
     assert all(r["frames_rejected"] == 0 for r in result["robots"])  # lingering repeats are not equivocation
     assert result["faults"]["loss_burst"] == 3.0
