@@ -18,6 +18,7 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -118,6 +119,12 @@ def headline(lines: list[str]) -> None:
     lines += ["", BEFORE_STOP_RULE, "", target_line("in-process, virtual seconds", lock_stop, free_stop, "hub")]
 
 
+def _add_row(lines: list[str], row: str) -> None:
+    """Append a table row and show it at once (the runs take minutes)."""
+    lines.append(row)
+    print(row, flush=True)
+
+
 def floor(lines: list[str]) -> None:
     _, spec, central = scenario(0)
     lines += ["", "## Plain ADMM fed the newest values (free, period 10 ms) against the relaxed ADMM", "",
@@ -126,13 +133,12 @@ def floor(lines: list[str]) -> None:
     for loss in (0.0, 0.1, 0.3):
         for delay in (0.0, 0.02):
             f = LinkFaults(loss=loss, delay=delay)
-            cells = []
-            for relax in (1.95, 1.0):
-                r = run_free(spec, central, f, algorithm="admm-newest", params={"relax": relax, "max_ticks": 1500}, max_virtual_s=20.0)
-                cells.append(f"diverged ({r['failed'].split(': ', 1)[0]})" if "failed" in r else f"error {r['err']:.1e} after {r['ticks']} ticks")
+            newest = [run_free(spec, central, f, algorithm="admm-newest", params={"relax": relax, "max_ticks": 1500},
+                               max_virtual_s=20.0) for relax in (1.95, 1.0)]
+            cells = [f"diverged ({r['failed'].split(': ', 1)[0]})" if "failed" in r
+                     else f"error {r['err']:.1e} after {r['ticks']} ticks" for r in newest]
             r = run_free(spec, central, f, max_virtual_s=60.0, algorithm="radmm")
-            lines.append(f"| {loss:g} | {delay * 1e3:g} ms | {cells[0]} | {cells[1]} | {r['err']:.1e}, {r['t']:.2f} s |")
-            print(lines[-1], flush=True)
+            _add_row(lines, f"| {loss:g} | {delay * 1e3:g} ms | {cells[0]} | {cells[1]} | {r['err']:.1e}, {r['t']:.2f} s |")
 
 
 def fault_models(lines: list[str]) -> None:
@@ -148,14 +154,12 @@ def fault_models(lines: list[str]) -> None:
              ("{0} cut from {1,2} 2 s-5 s, 10 ms", LinkFaults(delay=0.01, partitions=(((0,), (1, 2), 2.0, 5.0),)))]
     for name, f in cases:
         lk = run_lockstep(spec, central, f)
-        free_cells = []
-        for kw in ({"algorithm": "radmm"}, {"algorithm": "hub", "period": 0.005}):
-            fr = run_free(spec, central, f, max_virtual_s=60.0, **kw)
-            free_cells.append(f"failed: {fr['failed']}" if "failed" in fr else
-                              f"{fr['t']:.2f}, {fr['to_claim'] if fr['to_claim'] is None else round(fr['to_claim'], 2)}, "
-                              f"{fr['err']:.1e}")
-        lines.append(f"| {name} | {lk['t']:.2f}, {lk['err']:.1e} | {free_cells[0]} | {free_cells[1]} |")
-        print(lines[-1], flush=True)
+        free = [run_free(spec, central, f, max_virtual_s=60.0, **kw)
+                for kw in ({"algorithm": "radmm"}, {"algorithm": "hub", "period": 0.005})]
+        free_cells = [f"failed: {fr['failed']}" if "failed" in fr else
+                      f"{fr['t']:.2f}, {fr['to_claim'] if fr['to_claim'] is None else round(fr['to_claim'], 2)}, {fr['err']:.1e}"
+                      for fr in free]
+        _add_row(lines, f"| {name} | {lk['t']:.2f}, {lk['err']:.1e} | {free_cells[0]} | {free_cells[1]} |")
 
 
 def ct_admm(lines: list[str]) -> None:
@@ -206,15 +210,21 @@ def study_row(lines: list[str], labels: list[str], r: dict, restarts: bool = Fal
     print(lines[-1], flush=True)
 
 
+def _study(lines: list[str], title: str, *head: str) -> tuple[Any, Any, LinkFaults]:
+    """Start a study of seed 0 under loss 0.3 and 20 ms: its heading and table head; the scenario."""
+    _, spec, central = scenario(0)
+    lines += ["", f"## {title}", "", *head]
+    return spec, central, LinkFaults(loss=0.3, delay=0.02)
+
+
 def rate_study(lines: list[str]) -> None:
     """Why free is slower than lockstep: the relaxed ADMM's penalty, relaxation and period."""
-    _, spec, central = scenario(0)
-    f = LinkFaults(loss=0.3, delay=0.02)
-    lines += ["", "## Rate study: penalty, relaxation, period (loss 0.3, 20 ms, seed 0)", "",
-              "Each row changes one setting of the default (rho 15, alpha 0.9, period 10 ms). Zero-delay row: "
-              "the same fleet with loss 0.3 and no delay, for the iteration count without staleness.", "",
-              "| fleet | setting | ticks | time to 1e-3 (s) | time to stop (s) | stop - 1e-3 (s) | error at stop |",
-              "|---|---|---|---|---|---|---|"]
+    spec, central, f = _study(
+        lines, "Rate study: penalty, relaxation, period (loss 0.3, 20 ms, seed 0)",
+        "Each row changes one setting of the default (rho 15, alpha 0.9, period 10 ms). Zero-delay row: "
+        "the same fleet with loss 0.3 and no delay, for the iteration count without staleness.", "",
+        "| fleet | setting | ticks | time to 1e-3 (s) | time to stop (s) | stop - 1e-3 (s) | error at stop |",
+        "|---|---|---|---|---|---|---|")
 
     def row(fleet: str, name: str, r: dict) -> None:
         study_row(lines, [fleet, name], r)
@@ -256,12 +266,9 @@ def lockstep_ticks(spec, central, algorithm: str, params: dict, lag: int = 0, ti
 
 def hub_study(lines: list[str]) -> None:
     """The free hub ADMM (agents/free_hub.py): what its acceleration, penalty and period do."""
-    _, spec, central = scenario(0)
-    f = LinkFaults(loss=0.3, delay=0.02)
-    lines += ["", "## The free hub ADMM: acceleration, penalty, period (loss 0.3, 20 ms, seed 0)", "",
-              "Iterations without a clock (free cores driven in lockstep, no loss; `lag` ticks between a send and "
-              "its arrival):", "",
-              "| core | lag 0 | lag 2 |", "|---|---|---|"]
+    spec, central, f = _study(lines, "The free hub ADMM: acceleration, penalty, period (loss 0.3, 20 ms, seed 0)",
+                              "Iterations without a clock (free cores driven in lockstep, no loss; `lag` ticks between "
+                              "a send and its arrival):", "", "| core | lag 0 | lag 2 |", "|---|---|---|")
     for name, algorithm, params in (("radmm (alpha 0.9, rho 15)", "radmm", {}),
                                     ("hub, no acceleration (eta 1.3, rho 8)", "hub", {"hub_anderson": 0}),
                                     ("hub, no acceleration, eta 1.9", "hub", {"hub_anderson": 0, "hub_relax": 1.9}),
