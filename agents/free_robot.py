@@ -49,7 +49,8 @@ class FreeRobotShell:
 
     def __init__(self, spec: Any, robot_id: int, *, period: float, zenoh_config: dict[str, Any],
                  result_path: Path | None = None, status_stream: TextIO | None = None,
-                 status_interval_s: float = 0.05, params: dict[str, Any] | None = None) -> None:
+                 status_interval_s: float = 0.05, params: dict[str, Any] | None = None,
+                 algorithm: str = "auto") -> None:
         self.spec = spec
         self.me = int(robot_id)
         self.clock = time.monotonic
@@ -58,7 +59,7 @@ class FreeRobotShell:
         self.status_stream = status_stream
         self.status_interval_s = float(status_interval_s)
         self._status_at = float("-inf")
-        core = build_free_core(spec, self.me, params, "auto", period)
+        core = build_free_core(spec, self.me, params, algorithm, period)
         self.session = FreeSession(core, fleet=spec.fleet, graph=spec.graph, config_tag=spec.config_tag,
                                    period=period, now=self.clock(), max_wall_s=spec.timing.max_wall_s,
                                    auth=spec.frame_auth(self.me))
@@ -187,7 +188,7 @@ class FreeRobotShell:
 
 async def run_free_robots(spec: Any, ids: list[int], *, period: float, workdir: Path,
                           zenoh_config: dict[str, Any], status_interval_s: float = 0.05,
-                          shared_session: bool = False) -> dict[int, dict[str, Any] | BaseException]:
+                          shared_session: bool = False, algorithm: str = "auto") -> dict[int, dict[str, Any] | BaseException]:
     """Robots ``ids`` as tasks of this process's loop (one Zenoh session each, or one shared);
     SIGTERM/SIGINT stop them all cleanly, each writing a result saying ``stopped = "signal"``."""
     shells: list[FreeRobotShell] = []
@@ -196,7 +197,7 @@ async def run_free_robots(spec: Any, ids: list[int], *, period: float, workdir: 
         try:
             shells.append(FreeRobotShell(spec, rid, period=period, zenoh_config=zenoh_config,
                                          result_path=Path(workdir) / f"robot-{rid}.json", status_stream=sys.stdout,
-                                         status_interval_s=status_interval_s))
+                                         status_interval_s=status_interval_s, algorithm=algorithm))
         except Exception as exc:  # noqa: BLE001 - this robot only (e.g. its first solve failed)
             log.error("robot %d: cannot start: %s", rid, exc)
             failed[rid] = exc
@@ -224,6 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     finished converged, 1 otherwise, 2 on bad arguments."""
     ap = robot_process_parser("python -m agents.free_robot", main.__doc__, "robot-I.json goes here")
     ap.add_argument("--period", type=float, required=True, help="seconds between two ticks")
+    ap.add_argument("--free-algorithm", default="auto", choices=("auto", "hub", "radmm"),
+                    help="the free algorithm (auto: the hub on a complete graph, else the relaxed ADMM)")
     ap.add_argument("--status-interval", type=float, default=0.05, help="seconds between status lines")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
@@ -240,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     results = asyncio.run(run_free_robots(spec, ids, period=args.period, workdir=args.workdir,
                                           zenoh_config=config, status_interval_s=args.status_interval,
-                                          shared_session=args.shared_session))
+                                          shared_session=args.shared_session, algorithm=args.free_algorithm))
     rows = [res for res in results.values() if not isinstance(res, BaseException)]
     for rid, res in sorted(results.items()):
         why = res if isinstance(res, BaseException) else res.get("error")

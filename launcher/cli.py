@@ -352,9 +352,16 @@ def cmd_launch(args: argparse.Namespace) -> int:
     return _say(run_launch(args), quiet=False)
 
 
+def _free_algorithm(args: argparse.Namespace) -> str:
+    """--free-algorithm (auto where the command has no such flag)."""
+    return getattr(args, "free_algorithm", "auto")
+
+
 def _free_check(args: argparse.Namespace) -> Callable[[Any], None]:
     """What --sync free refuses before anything is written: autogrid (its fleet-wide phases are
-    lockstep), another fixed-grid algorithm, crash injection (a free robot has no checkpoint)."""
+    lockstep), another fixed-grid algorithm, crash injection (a free robot has no checkpoint), the
+    hub on a graph that is not complete."""
+    from agents.pdmm import free_algorithm_for
 
     def check(spec: Any) -> None:
         if args.crash:
@@ -362,6 +369,9 @@ def _free_check(args: argparse.Namespace) -> Callable[[Any], None]:
         if spec.algorithm != "admm":
             raise UsageError(f"--sync free: runs the relaxed ADMM on a fixed grid, not {spec.algorithm}; give "
                              "--preset paper (or --grid and --sigma) and --algorithm admm or auto")
+        if _free_algorithm(args) == "hub" and free_algorithm_for(spec) != "hub":
+            raise UsageError("--free-algorithm hub: the free hub ADMM needs a complete graph (every robot a neighbour "
+                             "of every other); use --topology complete, or --free-algorithm radmm or auto")
 
     return check
 
@@ -380,7 +390,7 @@ def _simulate_free(args: argparse.Namespace, *, quiet: bool = False) -> RunRepor
     with console.status(f"{spec.n_robots} robots, free sync every {args.period * 1e3:g} ms "
                         f"({_free_extra(args, spec)['free_algorithm']})"):
         try:
-            outcome = simulate_free(spec, period=args.period)
+            outcome = simulate_free(spec, period=args.period, algorithm=_free_algorithm(args))
         except FleetFailure as exc:
             return RunReport(EXIT_NOT_CONVERGED, out, spec, world, message=f"the run failed: {exc}")
     spec = dataclasses.replace(spec, algorithm="admm")
@@ -397,14 +407,15 @@ def _free_extra(args: argparse.Namespace, spec: Any) -> dict[str, Any]:
     """What result.json says of a free run (simulate and launch alike)."""
     from agents.pdmm import free_algorithm_for
 
-    return {"sync": "free", "period_s": args.period, "free_algorithm": free_algorithm_for(spec)}
+    return {"sync": "free", "period_s": args.period, "free_algorithm": free_algorithm_for(spec, _free_algorithm(args))}
 
 
 def _launch_free(args: argparse.Namespace) -> dict[str, Any]:
     """`launch --sync free`: launch_fleet's arguments that start free robot processes
     (agents/free_robot.py: each ticks every --period on its own clock, never waits); the rest of
     the launch -- router, fault links, result files, agreement verdict -- is lockstep launch's."""
-    return {"robot_argv": ("-m", "agents.free_robot", "--period", repr(float(args.period)))}
+    return {"robot_argv": ("-m", "agents.free_robot", "--period", repr(float(args.period)),
+                           "--free-algorithm", _free_algorithm(args))}
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:

@@ -398,6 +398,10 @@ OPTIONS: tuple[Option, ...] = (
            section="algorithm", choices=("lockstep", "free"), target=None),
     Option("period", DURATION, 0.01, "free sync: each robot's tick period", group=ALGORITHM,
            commands=("simulate", "launch", "sweep"), section="algorithm", check=positive, target=None),
+    Option("free-algorithm", STR, "auto", "free sync: the algorithm; auto: the free hub ADMM on a complete graph, "
+           "else the relaxed ADMM; hub: the free hub ADMM (needs a complete graph); radmm: the relaxed ADMM",
+           group=ALGORITHM, commands=("simulate", "launch"), section="algorithm", choices=("auto", "hub", "radmm"),
+           target=None),
     # -- sweep (issue 13): delay x loss x sync, in-process ------------------------------------
     Option("delays", STR, None, "sweep: one-way delays, comma-separated (default 0ms,10ms,20ms,50ms; "
            "--over zenoh: 0ms,20ms)", group=SWEEP,

@@ -149,7 +149,10 @@ def test_cli_free_run_converges_and_bad_input_exits_2(tmp_path, capsys):
     assert all(r["frames_rejected"] == 0 for r in result["robots"])  # lingering repeats are not equivocation
     assert result["faults"]["loss_burst"] == 3.0
     for argv, flag in ((["--sync", "free"], "--sync free"), (["--sync", "free", "--preset", "paper", "--crash", "1@5"], "--crash"),
-                       (["--loss", "0.9", "--loss-burst", "2"], "--loss-burst"), (["--partition", "0,1/1@2s-5s"], "--partition")):
+                       (["--loss", "0.9", "--loss-burst", "2"], "--loss-burst"), (["--partition", "0,1/1@2s-5s"], "--partition"),
+                       (["--sync", "free", "--preset", "paper", "--free-algorithm", "pdmm"], "--free-algorithm"),
+                       (["--sync", "free", "--preset", "paper", "--robots", "4", "--topology", "ring", "--free-algorithm", "hub"],
+                        "--free-algorithm hub")):
         with pytest.raises(SystemExit) as exc:
             main(["simulate", *argv, "--out", str(tmp_path / "bad")])
         assert exc.value.code == 2
@@ -196,3 +199,31 @@ def test_free_rows_have_the_session_schema(default_run):
     for row in out.robots:
         assert set(ROW_KEYS) <= set(row)
         assert row_from_file(row_to_file(row))["x"] == row["x"]
+
+
+def test_free_algorithm_option_picks_the_relaxed_admm_on_a_complete_graph(tmp_path):
+    """--free-algorithm radmm overrides auto's hub (simulate; launch passes it to agents/free_robot.py)."""
+    import json
+
+    from launcher.cli import main
+
+    out = tmp_path / "radmm"
+    assert main(["simulate", "--sync", "free", "--preset", "paper", "--free-algorithm", "radmm", "--out", str(out)]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["free_algorithm"] == "radmm" and {r["algorithm"] for r in result["robots"]} == {"radmm"}
+    assert result["converged"] and result["metrics"]["function_error"] < BOUND
+
+
+def test_launch_hands_the_free_algorithm_to_the_robot_processes(capsys):
+    """launch's robot command line carries --free-algorithm; the robot process refuses a bad one (exit 2)."""
+    import argparse
+
+    from agents import free_robot
+    from launcher.cli import _launch_free
+
+    argv = _launch_free(argparse.Namespace(period=0.005, free_algorithm="radmm"))["robot_argv"]
+    assert argv[argv.index("--free-algorithm") + 1] == "radmm"
+    with pytest.raises(SystemExit) as exc:
+        free_robot.main(["--fleet-file", "f.json", "--ids", "0", "--connect", "tcp/127.0.0.1:1", "--workdir", ".",
+                         "--period", "0.01", "--free-algorithm", "pdmm"])
+    assert exc.value.code == 2 and "--free-algorithm" in capsys.readouterr().err

@@ -73,6 +73,8 @@ def test_free_launch_refuses_what_it_cannot_run(tmp_path):
         api.launch(sync="free", preset="paper", crash="1@40", out=str(tmp_path / "crash"))
     with pytest.raises(api.UsageError, match="--sync free"):
         api.launch(sync="free", out=str(tmp_path / "autogrid"))
+    with pytest.raises(api.UsageError, match="--free-algorithm hub"):
+        api.launch(sync="free", preset="paper", robots=4, topology="ring", free_algorithm="hub", out=str(tmp_path / "ring"))
 
 
 def test_a_sweep_over_zenoh_runs_real_processes_and_writes_the_same_columns_plus_over(tmp_path):
