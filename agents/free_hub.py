@@ -64,14 +64,30 @@ from agents.pdmm import Packet, RelaxedADMM, RelaxedADMMParams
 from agents.rounds import RobotShare
 
 
+#: the stop rule's window (RelaxedADMMParams.window) as robot-clock time, clamped to [20, 40] ticks
+HUB_WINDOW_S = 0.2
+
+
+def hub_window(period: float) -> int:
+    """The free hub's stop window in ticks for a tick ``period`` (s): 0.2 s of the robot's own clock,
+    at least 20 and at most 40 ticks (40 at 5 ms and below, 20 at 10 ms and above). Why by time: the
+    window must span the same stretch of the contraction however often a robot ticks; the period is
+    the robot's own setting, so this needs nothing it does not know (not the network's delay).
+    Measured (benchmarks/results/free.md): at 10 ms the 40-tick window waited 0.4 s longer than the
+    20-tick one for errors at the stop that stayed 10 to 100 times below the tolerance."""
+    return min(40, max(20, round(HUB_WINDOW_S / period)))
+
+
 @dataclass(frozen=True)
 class FreeHubParams(RelaxedADMMParams):
     """The relaxed ADMM's settings (rho, gamma_penalty, tol, window, diameter, max_ticks; alpha
     unused) plus the hub's relaxation and acceleration."""
 
     rho: float = 8.0  # measured at loss 0.3, 20 ms, period 5 ms: 5 and 10 slower, 12-20 much slower
-    hub_relax: float = 1.3  # eta in (0, 2): 1 is plain ADMM; smaller damps staleness (ARock's step)
-    hub_anderson: int = 30  # memory of the Anderson acceleration on the robot's view (0: none; 5 and 15 slower)
+    # eta and memory chosen on seeds 0-2 at periods 10 and 5 ms (loss 0.3, 20 ms; the largest ratio to
+    # lockstep's stop time over the six runs; seeds 3-9 held out): benchmarks/results/free.md
+    hub_relax: float = 1.5  # eta in (0, 2): 1 is plain ADMM; smaller damps staleness (ARock's step)
+    hub_anderson: int = 35  # memory of the Anderson acceleration on the robot's view (0: none; 5-25 slower)
     hub_safeguard: float = 10.0  # restart Anderson when the view's residual exceeds this x its best
 
     def __post_init__(self) -> None:

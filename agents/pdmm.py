@@ -341,7 +341,7 @@ def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, a
     integrating one ``period`` per tick with held samples (``ct-admm-free``). Here, not in the
     launcher, because the robot process (agents/free_robot.py) builds it too."""
     from agents.ct_admm import CTADMMParams
-    from agents.free_hub import FreeHubADMM, FreeHubParams
+    from agents.free_hub import FreeHubADMM, FreeHubParams, hub_window
 
     if algorithm not in FREE_ALGORITHMS:
         raise ValueError(f"free sync runs {', '.join(FREE_ALGORITHMS)}, not {algorithm!r}")
@@ -352,6 +352,8 @@ def build_free_core(spec: Any, rid: int, params: dict[str, Any] | None = None, a
     # ADMM's (tuned for it), so the free core keeps its own unless ``params`` names them
     given = {"tol": spec.params.get("tol", 1e-3), "diameter": spec.params.get("diameter", 1), **(params or {})}
     kw: dict[str, Any] = {}
+    if algorithm == "hub":
+        given.setdefault("window", hub_window(period))
     if algorithm == "admm-newest":
         kw["relax"] = float(given.get("relax", spec.params.get("relax", 1.95)))
     if algorithm == "ct-admm-free":

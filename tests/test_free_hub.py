@@ -79,3 +79,16 @@ def test_free_hub_under_loss_and_delay_stops_within_tol_of_the_exact_answer():
     assert all(r["stopped"] == "finished" and r["converged"] for r in out.robots), [r["stopped"] for r in out.robots]
     assert max_function_error(spec, central, out.robots) < BOUND
     assert out.link_stats["dropped"] > 0.2 * out.link_stats["sent"]
+
+
+def test_the_stop_window_spans_robot_clock_time_from_the_period_alone(default_run):
+    """hub_window: 0.2 s of the robot's clock, 20 to 40 ticks; a window given in params wins; the
+    relaxed ADMM keeps its own window. (Stops within tol at 10 ms: test_free.py's loss-and-delay run.)"""
+    from agents.free_hub import hub_window
+
+    _, spec, _ = default_run
+    assert [hub_window(p) for p in (0.002, 0.005, 0.0075, 0.01, 0.05)] == [40, 40, 27, 20, 20]
+    assert build_free_core(spec, 0, {}, "hub", 0.01).params.window == 20
+    assert build_free_core(spec, 0, {}, "hub", 0.005).params.window == 40
+    assert build_free_core(spec, 0, {"window": 33}, "hub", 0.01).params.window == 33
+    assert build_free_core(spec, 0, {}, "radmm", 0.01).params.window == 40
