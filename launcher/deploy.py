@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import networkx as nx
 import numpy as np
 
 from agents.spec import FleetSpec
@@ -131,11 +130,9 @@ def world_from_json(spec: FleetSpec, info: dict[str, Any]) -> World:
     ]
     points = np.vstack([r.points for r in robots])
     bounds = tuple(float(v) for v in info["bounds"]) if info.get("bounds") else scenario.default_bounds(points)
-    graph = nx.Graph()
-    graph.add_nodes_from(spec.robot_ids)
-    graph.add_edges_from((i, j) for i, r in spec.robots.items() for j in r.neighbours)
+    links = {i: tuple(spec.robots[i].neighbours) for i in spec.robot_ids}
     shape = to_shape(info["shape"]) if info.get("shape") else None
-    return World(shape, robots, spec.grid, bounds, graph)  # type: ignore[arg-type]
+    return World(shape, robots, spec.grid, bounds, links)  # type: ignore[arg-type]
 
 
 def _read_result(path: Path, spec: FleetSpec, robot_id: int) -> tuple[dict[str, Any] | None, str | None]:

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import networkx as nx
 import numpy as np
 
 from agents.kernel import GridBasis
 from agents.problem import CentralSolution, solve_central
 from launcher import scenario
+from launcher.topology import components as connected_groups
 from launcher.world import World
 
 SCHEMA_VERSION = 1
@@ -73,7 +73,7 @@ def agreement_verdict(
     rows = {int(r["id"]): r for r in robots}
     graph = _live_links(rows)
     disagreement, worst = _worst_link(graph, rows, pair_error)
-    components = sorted((sorted(int(n) for n in c) for c in nx.connected_components(graph)), key=lambda c: c[0])
+    components = connected_groups(graph)
     connected = len(components) == 1
     failed = [i for i, r in rows.items() if r.get("stopped") in FAILED_STOPS or r.get("error")]
     not_converged = [i for i, r in rows.items() if not _met_stopping_rule(r, len(rows) + len(absent))]
@@ -107,7 +107,7 @@ def agreement_verdict(
         if converged else "; ".join(reasons),
         "agreement": {
             "tol": tol,
-            "disagreement": _num(disagreement) if graph.number_of_edges() else 0.0,
+            "disagreement": _num(disagreement) if worst is not None else 0.0,
             "connected": connected,
             "components": components,
             "failed": failed,
@@ -120,20 +120,31 @@ def agreement_verdict(
     }
 
 
-def _live_links(rows: dict[int, dict[str, Any]]) -> nx.Graph:
-    """The participants, linked i--j where each still lists the other as a neighbour."""
-    graph = nx.Graph()
-    graph.add_nodes_from(rows)
+def _live_links(rows: dict[int, dict[str, Any]]) -> dict[int, dict[int, None]]:
+    """The participants, linked i--j where each still lists the other as a neighbour (adjacency
+    dicts in insertion order, as a networkx graph keeps them: the same link order as before)."""
+    graph: dict[int, dict[int, None]] = {i: {} for i in rows}
     for i, r in rows.items():
         for j in r.get("neighbours") or []:
             j = int(j)
             if j in rows and i in {int(n) for n in rows[j].get("neighbours") or []}:
-                graph.add_edge(i, j)
+                graph[i][j] = None
+                graph[j][i] = None
     return graph
 
 
+def _edges(graph: dict[int, dict[int, None]]) -> list[tuple[int, int]]:
+    """Each link once, in networkx's order (by node, then by insertion)."""
+    seen: set[int] = set()
+    edges = []
+    for i, near in graph.items():
+        edges += [(i, j) for j in near if j not in seen]
+        seen.add(i)
+    return edges
+
+
 def _worst_link(
-    graph: nx.Graph,
+    graph: dict[int, dict[int, None]],
     rows: dict[int, dict[str, Any]],
     pair_error: Callable[[dict[str, Any], dict[str, Any]], float],
 ) -> tuple[float, tuple[int, int] | None]:
@@ -141,7 +152,7 @@ def _worst_link(
     its link, the first one when none disagrees (None without links)."""
     disagreement = 0.0
     worst: tuple[int, int] | None = None
-    for i, j in graph.edges:
+    for i, j in _edges(graph):
         e = max(float(pair_error(rows[i], rows[j])), float(pair_error(rows[j], rows[i])))
         if not np.isfinite(e):
             e = float("inf")

@@ -3,15 +3,22 @@
 Nodes are robot ids. Consensus ADMM only reaches the common solution on a connected graph, so
 a disconnected one is refused here, with the flag to change, rather than discovered later as
 a fleet that never agrees.
+
+The graph is kept as plain adjacency (``links``: each robot's neighbours) on the launch path:
+importing networkx took 0.13-0.14 s of the launcher's start (issue 14); ``build_topology`` and
+``as_graph`` give the networkx graph to whoever wants one, and import it then.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
-import networkx as nx
 import numpy as np
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 TOPOLOGIES = ("complete", "ring", "line", "geometric")
 
@@ -27,37 +34,96 @@ def build_topology(
     positions: np.ndarray | None = None,
     comm_range: float | None = None,
 ) -> nx.Graph:
-    """The communication graph of `kind` over `robot_ids`.
+    """The communication graph of `kind` over `robot_ids` as a networkx graph (see ``links``).
+    When positions are given they are stored as the node attribute "pos" (for plots)."""
+    adjacency, xy = _adjacency(kind, robot_ids, positions, comm_range)
+    return as_graph(adjacency, None if xy is None else dict(zip(adjacency, xy)))
+
+
+def links(
+    kind: str,
+    robot_ids: Sequence[int],
+    *,
+    positions: np.ndarray | None = None,
+    comm_range: float | None = None,
+) -> dict[int, tuple[int, ...]]:
+    """Each robot's neighbours (both sorted) in the graph of `kind` over `robot_ids`.
 
     ring and line follow the order of `robot_ids` (a ring of 2 is one edge, of 3 a triangle);
     geometric links robots at most `comm_range` apart, `positions[i]` belonging to
-    `robot_ids[i]`. `positions` and `comm_range` are ignored by the other kinds. When
-    positions are given they are stored as the node attribute "pos" (for plots).
-    """
+    `robot_ids[i]` (TopologyError if that leaves the fleet disconnected). `positions` and
+    `comm_range` are ignored by the other kinds."""
+    return neighbours(_adjacency(kind, robot_ids, positions, comm_range)[0])
+
+
+def as_graph(adjacency: Mapping[int, Iterable[int]], positions: Mapping[int, np.ndarray] | None = None) -> nx.Graph:
+    """The networkx graph of an adjacency (node attribute "pos": each robot's position).
+    networkx is imported here, off the launch path."""
+    import networkx as nx
+
+    graph = nx.Graph()
+    graph.add_nodes_from(adjacency)
+    graph.add_edges_from((a, b) for a, near in adjacency.items() for b in near)
+    if positions is not None:
+        nx.set_node_attributes(graph, dict(positions), "pos")
+    return graph
+
+
+def _adjacency(
+    kind: str, robot_ids: Sequence[int], positions: np.ndarray | None, comm_range: float | None
+) -> tuple[dict[int, dict[int, None]], np.ndarray | None]:
+    """The graph as adjacency dicts (insertion-ordered, as networkx keeps them) and the checked
+    positions (None when not given and not needed)."""
     if kind not in TOPOLOGIES:
         raise TopologyError(f"--topology: {kind!r} is not one of {', '.join(TOPOLOGIES)}")
     ids = _check_ids(robot_ids)
-    graph = nx.Graph()
-    graph.add_nodes_from(ids)
+    adjacency: dict[int, dict[int, None]] = {robot: {} for robot in ids}
+
+    def link(a: int, b: int) -> None:
+        adjacency[a][b] = None
+        adjacency[b][a] = None
+
     if kind == "complete":
-        graph.add_edges_from((a, b) for i, a in enumerate(ids) for b in ids[i + 1 :])
+        for i, a in enumerate(ids):
+            for b in ids[i + 1 :]:
+                link(a, b)
     elif kind in ("ring", "line"):
-        nx.add_path(graph, ids)
+        for a, b in zip(ids, ids[1:]):
+            link(a, b)
         if kind == "ring" and len(ids) > 2:
-            graph.add_edge(ids[-1], ids[0])
+            link(ids[-1], ids[0])
+    xy = None
     if positions is not None or kind == "geometric":
         xy = _check_positions(kind, ids, positions)
-        nx.set_node_attributes(graph, {robot: xy[i] for i, robot in enumerate(ids)}, "pos")
     if kind == "geometric":
         comm_range = _check_range(comm_range)
         gaps = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
         rows, cols = np.nonzero(np.triu(gaps <= comm_range, k=1))
-        graph.add_edges_from(
-            (ids[i], ids[j]) for i, j in zip(rows.tolist(), cols.tolist(), strict=True)
-        )
-        if not nx.is_connected(graph):
-            raise TopologyError(_disconnected_message(graph, ids, gaps, comm_range))
-    return graph
+        for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
+            link(ids[i], ids[j])
+        if len(components(adjacency)) > 1:
+            raise TopologyError(_disconnected_message(adjacency, ids, gaps, comm_range))
+    return adjacency, xy
+
+
+def components(adjacency: Mapping[int, Iterable[int]]) -> list[list[int]]:
+    """The connected groups of robots, each sorted, ordered by their smallest id."""
+    near = {int(a): [int(b) for b in bs] for a, bs in adjacency.items()}
+    seen: set[int] = set()
+    groups = []
+    for start in near:
+        if start in seen:
+            continue
+        seen.add(start)
+        group, frontier = [start], [start]
+        while frontier:
+            for b in near[frontier.pop()]:
+                if b not in seen:
+                    seen.add(b)
+                    group.append(b)
+                    frontier.append(b)
+        groups.append(sorted(group))
+    return sorted(groups, key=lambda g: g[0])
 
 
 def _check_ids(robot_ids: Sequence[int]) -> list[int]:
@@ -95,14 +161,16 @@ def _check_range(comm_range: float | None) -> float:
 
 
 def _disconnected_message(
-    graph: nx.Graph, ids: list[int], gaps: np.ndarray, comm_range: float
+    adjacency: Mapping[int, Iterable[int]], ids: list[int], gaps: np.ndarray, comm_range: float
 ) -> str:
     """Name the groups that cannot hear each other and the smallest range that joins them.
 
     That range is the longest edge of the minimum spanning tree: below it some group is cut
     off, at it the fleet is connected.
     """
-    groups = sorted(sorted(group) for group in nx.connected_components(graph))
+    import networkx as nx  # a refused fleet only: off the launch path
+
+    groups = sorted(components(adjacency))
     complete = nx.Graph()
     complete.add_weighted_edges_from(
         (ids[i], ids[j], gaps[i, j]) for i in range(len(ids)) for j in range(i + 1, len(ids))
@@ -122,16 +190,37 @@ def _round_up(value: float, digits: int = 3) -> float:
     return math.ceil(value * scale) / scale
 
 
-def neighbours(graph: nx.Graph) -> dict[int, tuple[int, ...]]:
+def _adjacency_of(graph: nx.Graph | Mapping[int, Iterable[int]]) -> dict[int, list[int]]:
+    """A networkx graph's or an adjacency mapping's neighbour lists."""
+    if hasattr(graph, "adj"):
+        return {node: list(graph.adj[node]) for node in graph.nodes}
+    return {int(a): [int(b) for b in bs] for a, bs in graph.items()}
+
+
+def neighbours(graph: nx.Graph | Mapping[int, Iterable[int]]) -> dict[int, tuple[int, ...]]:
     """Each robot's neighbours, both sorted: the lists robots are handed."""
-    return {
-        int(node): tuple(sorted(int(n) for n in graph.neighbors(node)))
-        for node in sorted(graph.nodes)
-    }
+    adjacency = _adjacency_of(graph)
+    return {int(node): tuple(sorted(int(n) for n in adjacency[node])) for node in sorted(adjacency)}
 
 
-def diameter(graph: nx.Graph) -> int:
+def diameter(graph: nx.Graph | Mapping[int, Iterable[int]]) -> int:
     """Most hops between any two robots: how many rounds information needs to cross the fleet."""
-    if graph.number_of_nodes() == 0 or not nx.is_connected(graph):
+    adjacency = _adjacency_of(graph)
+    if not adjacency or len(components(adjacency)) > 1:
         raise TopologyError("the diameter of a disconnected graph is unbounded")
-    return int(nx.diameter(graph))
+    return max(_eccentricity(adjacency, start) for start in adjacency)
+
+
+def _eccentricity(adjacency: Mapping[int, list[int]], start: int) -> int:
+    """Hops from `start` to the robot farthest from it (breadth-first)."""
+    hops = {start: 0}
+    frontier = [start]
+    while frontier:
+        nxt = []
+        for a in frontier:
+            for b in adjacency[a]:
+                if b not in hops:
+                    hops[b] = hops[a] + 1
+                    nxt.append(b)
+        frontier = nxt
+    return max(hops.values())

@@ -22,8 +22,8 @@ from __future__ import annotations
 import dataclasses
 import secrets
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import networkx as nx
 import numpy as np
 from shapely import Polygon
 
@@ -44,6 +44,9 @@ from launcher.options import (  # noqa: F401  (re-exported: Options and the pres
 )
 from protocol.frames import MAX_DIM
 
+if TYPE_CHECKING:
+    import networkx as nx
+
 
 #: the autogrid fleet's budget of grid points (AutoGridParams.max_points)
 DEFAULT_MAX_GRID_POINTS = AutoGridParams().max_points
@@ -61,8 +64,15 @@ class World:
     robots: list[scenario.RobotData]
     grid: np.ndarray  # the fixed grid; autogrid: the start grid, or empty (0, 2)
     bounds: tuple[float, float, float, float]  # the region drawn and rastered for IoU
-    graph: nx.Graph
+    links: dict[int, tuple[int, ...]]  # each robot's neighbours (launcher/topology.py)
     lengths: scenario.WorldLengths | None = None  # the world's lengths used (None: not known, e.g. collect)
+    positions: dict[int, np.ndarray] | None = None  # each robot's position (None: not known)
+
+    @property
+    def graph(self) -> nx.Graph:
+        """The communication graph as a networkx graph (built on demand: networkx stays off the
+        launch path)."""
+        return topology.as_graph(self.links, self.positions)
 
     @property
     def points(self) -> np.ndarray:
@@ -136,10 +146,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         positions = np.array([r.pose for r in robots])
     elif opts.topology == "geometric":  # data from a file has no poses: use each robot's data centroid
         positions = np.array([r.points.mean(axis=0) for r in robots])
-    graph = topology.build_topology(opts.topology, ids, positions=positions, comm_range=lengths.comm_range)
-    neighbours = topology.neighbours(graph)
-
-    diameter = max(1, topology.diameter(graph)) if len(ids) > 1 else 0
+    neighbours = topology.links(opts.topology, ids, positions=positions, comm_range=lengths.comm_range)
+    diameter = max(1, topology.diameter(neighbours)) if len(ids) > 1 else 0
     params = algorithm_params(opts, opts.algorithm, diameter=diameter)
     if opts.algorithm == "ct-admm":
         try:
@@ -168,7 +176,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             f"triangle of a {len(grid) + 1}-square matrix per contribution), more than a frame holds ({MAX_DIM}); "
             "use a coarser --grid or --algorithm admm"
         )
-    return World(shape, robots, grid, bounds, graph, lengths), spec
+    where = None if positions is None else dict(zip(ids, positions))
+    return World(shape, robots, grid, bounds, neighbours, lengths, where), spec
 
 
 def _robots_and_lengths(opts: Options) -> tuple[Polygon | None, list[scenario.RobotData], scenario.WorldLengths]:
