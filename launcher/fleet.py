@@ -53,6 +53,8 @@ from pathlib import Path
 from typing import IO, Any
 
 from agents.spec import FleetSpec
+from launcher.router import EarlyRouter
+from launcher.router import spawn as _spawn
 from launcher.simulate import FleetOutcome
 from protocol.zenoh_config import free_loopback_port, parse_endpoint, router_endpoint, validate_endpoint
 from protocol.session import row_from_file
@@ -73,7 +75,6 @@ __all__ = [
 
 log = logging.getLogger("shapefleet.launch")
 
-ROOT = Path(__file__).resolve().parent.parent
 HOST = "127.0.0.1"
 
 ROUTER_START_TIMEOUT_S = 20.0  # router process up and listening
@@ -225,24 +226,6 @@ def time_bound_s(timing: Any, restarts: int, restart_after: float) -> float:
 # --------------------------------------------------------------------------- processes
 
 
-def _child_env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
-    return env
-
-
-def _spawn(argv: list[str], *, stdout: Any, stderr: Any) -> subprocess.Popen:
-    return subprocess.Popen(
-        argv,
-        cwd=ROOT,
-        env=_child_env(),
-        stdin=subprocess.DEVNULL,
-        stdout=stdout,
-        stderr=stderr,
-        start_new_session=True,  # a terminal Ctrl-C reaches the launcher only; it stops them
-    )
-
-
 def _signal(proc: subprocess.Popen, sig: int) -> None:
     if proc.poll() is None:
         try:
@@ -324,6 +307,17 @@ class _Router:
             self._log.close()
             raise
 
+    @classmethod
+    def adopt(cls, early: EarlyRouter, workdir: Path) -> _Router:
+        """The router the CLI started before its imports (launcher/router.py EarlyRouter): its
+        log goes to ``workdir/router.log`` when it stops."""
+        router = cls.__new__(cls)
+        router.port, router.endpoint, router.proc = early.port, early.endpoint, early.proc
+        router.ready_file, router.log_path, router._log = early.ready_file, early.log_path, early.log
+        router._early, router._final_log = early, workdir / "router.log"
+        early.adopted = True
+        return router
+
     def wait_ready(self, timeout_s: float) -> None:
         """Return once the router listens; LaunchError (port in use, exited, too slow) otherwise."""
         end = time.monotonic() + timeout_s
@@ -345,6 +339,12 @@ class _Router:
             stop_process(self.proc)
         finally:
             self._log.close()
+            early = getattr(self, "_early", None)
+            if early is not None:  # an adopted early router: its log joins the run's
+                early.take_log(self._final_log)
+                early.adopted = False
+                early.discard()
+                self.log_path = self._final_log
 
 
 class _PortInUse(LaunchError):
@@ -354,8 +354,10 @@ class _PortInUse(LaunchError):
 
 
 def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, started: list[int],
-                  meanwhile: Callable[[str], Any] | None = None) -> tuple[_Router, Any]:
-    """Start the router on ``zenoh_port`` (ValueError if taken) or on a free port (retried).
+                  meanwhile: Callable[[str], Any] | None = None,
+                  early: EarlyRouter | None = None) -> tuple[_Router, Any]:
+    """Start the router on ``zenoh_port`` (ValueError if taken) or on a free port (retried);
+    ``early``: a router already started (free port, long enough bound) is taken as the first try.
 
     ``meanwhile(endpoint)`` runs as soon as the router process is spawned, before it listens: the
     robots start then, and import while the router starts (their Zenoh clients retry until it
@@ -363,10 +365,14 @@ def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, star
     """
     attempts = 1 if zenoh_port is not None else ROUTER_PORT_ATTEMPTS
     for attempt in range(attempts):
-        port = zenoh_port if zenoh_port is not None else free_loopback_port(HOST)
-        if zenoh_port is not None and _port_in_use(port):
-            raise ValueError(f"--zenoh-port {port} is in use")
-        router = _Router(port, workdir, lifetime_s)
+        if attempt == 0 and early is not None:
+            router = _Router.adopt(early, workdir)
+            port = router.port
+        else:
+            port = zenoh_port if zenoh_port is not None else free_loopback_port(HOST)
+            if zenoh_port is not None and _port_in_use(port):
+                raise ValueError(f"--zenoh-port {port} is in use")
+            router = _Router(port, workdir, lifetime_s)
         started.append(router.proc.pid)
         extra = None
         try:
@@ -718,6 +724,7 @@ def launch_fleet(
     on_running: Callable[[str], None] | None = None,
     robots_per_process: int | str | None = "auto",
     robot_argv: tuple[str, ...] = ("-m", "agents.robot"),
+    early_router: EarlyRouter | None = None,
 ) -> LaunchOutcome:
     """Run ``spec`` as one process per robot plus a router on 127.0.0.1; see the module doc.
 
@@ -733,6 +740,9 @@ def launch_fleet(
     crash plan always runs alone, so that its SIGKILL takes only it.
     ``robot_argv``: the robot program (``-m module``) and its extra arguments (free sync:
     ``("-m", "agents.free_robot", "--period", "0.01")``).
+    ``early_router``: a router the CLI started before its imports (launcher/router.py): used
+    instead of starting one when it fits (no ``zenoh_port``/``router``, its bound long enough),
+    else stopped.
 
     Returns a :class:`LaunchOutcome` (a ``FleetOutcome``): ``robots`` holds the result of every
     robot that wrote one, sorted by id; a robot dead for good is absent.
@@ -754,7 +764,7 @@ def launch_fleet(
                                        run.started, run.console, per_process, robot_argv))
 
     try:  # also when the router or a robot fails to start: our signal handlers are put back
-        run.start(zenoh_port, router, start_robots)
+        run.start(zenoh_port, router, start_robots, early_router)
         if on_running is not None:
             on_running(run.endpoint)
         run.supervise()
@@ -825,11 +835,16 @@ class _LaunchRun:
         self.timeline["robots_started"] = time.monotonic()
         return robots
 
-    def start(self, zenoh_port: int | None, router: str | None, start_robots: Callable[[str], _Fleet]) -> None:
+    def start(self, zenoh_port: int | None, router: str | None, start_robots: Callable[[str], _Fleet],
+              early: EarlyRouter | None = None) -> None:
         """Our own router (the robots start while it comes up) or the given one, then the robots."""
+        if early is not None and (router is not None or zenoh_port is not None or early.proc.poll() is not None
+                                  or early.bound_s < self._router_lifetime_s()):
+            early.discard()
+            early = None
         if router is None:
             self.own_router, self.fleet = _start_router(zenoh_port, self.workdir, self._router_lifetime_s(),
-                                                        self.started, meanwhile=start_robots)
+                                                        self.started, meanwhile=start_robots, early=early)
             self.endpoint, self.port = self.own_router.endpoint, self.own_router.port
         else:
             self.endpoint, self.port = router, parse_endpoint(router)[2]

@@ -13,15 +13,113 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
+import subprocess
 import sys
+import tempfile
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
-from protocol.zenoh_config import TLSFiles, router_config, router_endpoint
+from protocol.zenoh_config import TLSFiles, free_loopback_port, router_config, router_endpoint
 
-__all__ = ["run_router", "write_json_atomic", "main"]
+__all__ = ["run_router", "write_json_atomic", "main", "EarlyRouter", "spawn", "child_env", "ROOT"]
+
+ROOT = Path(__file__).resolve().parent.parent
+HOST = "127.0.0.1"
+#: an early router's own lifetime bound (it also ends when the launcher that started it is gone);
+#: a launch that needs a longer-lived router starts its own instead
+EARLY_ROUTER_BOUND_S = 3600.0
+
+
+def child_env() -> dict[str, str]:
+    """The environment of a process the launcher starts: the project importable from ROOT."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+def spawn(argv: list[str], *, stdout: Any, stderr: Any) -> subprocess.Popen:
+    """Start a router or robot process of the launcher."""
+    return subprocess.Popen(
+        argv,
+        cwd=ROOT,
+        env=child_env(),
+        stdin=subprocess.DEVNULL,
+        stdout=stdout,
+        stderr=stderr,
+        start_new_session=True,  # a terminal Ctrl-C reaches the launcher only; it stops them
+    )
+
+
+class EarlyRouter:
+    """The router of a `shapefleet launch`, started before the launcher's own imports.
+
+    The command line says at once that a router will be needed; started first, its interpreter
+    and ``import zenoh`` (~0.2 s of CPU) run on the core the launcher's single-threaded imports
+    and world leave free, instead of beside the robots' start (issue 14). Its log and ready file
+    wait in a temporary folder until launch_fleet adopts it (launcher/fleet.py ``_Router.adopt``);
+    a run that ends before (bad input, --help) stops it by its PID and removes the folder.
+    It ends by itself when its launcher is gone (``--parent-pid``) or after EARLY_ROUTER_BOUND_S.
+    """
+
+    def __init__(self) -> None:
+        self.port = free_loopback_port(HOST)
+        self.endpoint = router_endpoint(self.port, HOST)
+        self.bound_s = EARLY_ROUTER_BOUND_S
+        self.folder = Path(tempfile.mkdtemp(prefix="shapefleet-router-"))
+        self.ready_file = self.folder / "router.ready.json"
+        self.log_path = self.folder / "router.log"
+        self.adopted = False
+        self.log = open(self.log_path, "ab")
+        argv = [sys.executable, "-m", "launcher.router", "--port", str(self.port), "--host", HOST,
+                "--ready-file", str(self.ready_file), "--max-wall-s", f"{self.bound_s:.0f}",
+                "--parent-pid", str(os.getpid())]
+        try:
+            self.proc = spawn(argv, stdout=self.log, stderr=subprocess.STDOUT)
+        except BaseException:
+            self.discard()
+            raise
+
+    @classmethod
+    def for_command_line(cls, argv: Sequence[str]) -> EarlyRouter | None:
+        """An early router when ``argv`` (the program's) is a plain ``launch`` that starts its own
+        router on a free port: not with --zenoh-port or --config (they may name the port), not
+        for --help."""
+        args = list(argv[1:])
+        if not args or args[0] != "launch":
+            return None
+        if any(a in ("-h", "--help") or a.split("=")[0] in ("--zenoh-port", "--config") for a in args):
+            return None
+        try:
+            return cls()
+        except OSError:  # no port, no temporary folder: launch_fleet starts its router as always
+            return None
+
+    def take_log(self, into: Path) -> None:
+        """Append what the router wrote so far to ``into`` (the run's router.log); later output
+        follows in the same file."""
+        if not self.log.closed:
+            self.log.flush()
+        with open(into, "ab") as out, open(self.log_path, "rb") as early:
+            shutil.copyfileobj(early, out)
+
+    def discard(self) -> None:
+        """Stop the router by its PID if nobody adopted it, and remove its folder."""
+        proc = getattr(self, "proc", None)
+        if proc is not None and not self.adopted and proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(3.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+        if not self.adopted:
+            self.log.close()
+            shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def write_json_atomic(path: Path, obj: object) -> None:
@@ -45,6 +143,7 @@ def run_router(
     loopback_only: bool = True,
     tls: TLSFiles | None = None,
     peers: list[str] | None = None,
+    parent_pid: int | None = None,
 ) -> None:
     """Open a Zenoh router listening on ``tcp/host:port``; run until SIGTERM/SIGINT; close.
 
@@ -53,7 +152,8 @@ def run_router(
     ``loopback_only=False`` lets ``host`` be a LAN address (multi-host deployments); ``tls``
     listens on ``tls/host:port`` instead (see protocol.zenoh_config.TLSFiles). ``peers``: other
     routers to link to (``tcp/host:port``), e.g. one router per host with the robots split between
-    them (docs/scaling.md, "Beyond one host").
+    them (docs/scaling.md, "Beyond one host"). ``parent_pid``: end when that process is no
+    longer this one's parent (the launcher that started it is gone).
     """
     import zenoh
 
@@ -78,6 +178,8 @@ def run_router(
         print(json.dumps(info), file=stream, flush=True)
         deadline = None if max_wall_s is None else time.monotonic() + max_wall_s
         while not stop.is_set():
+            if parent_pid is not None and os.getppid() != parent_pid:
+                break
             timeout = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
             if timeout <= 0:
                 break
@@ -103,10 +205,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-wall-s", type=float, default=None)
     ap.add_argument("--connect", action="append", default=[], help="another router to link to (repeatable)")
     ap.add_argument("--allow-remote", action="store_true", help="listen / connect beyond loopback")
+    ap.add_argument("--parent-pid", type=int, default=None, help="end when this process is no longer the parent")
     args = ap.parse_args(argv)
     try:
         run_router(args.port, host=args.host, ready_file=args.ready_file, max_wall_s=args.max_wall_s,
-                   loopback_only=not args.allow_remote, peers=args.connect)
+                   loopback_only=not args.allow_remote, peers=args.connect, parent_pid=args.parent_pid)
     except ValueError as exc:
         print(f"router: {exc}", file=sys.stderr)
         return 2
