@@ -1,0 +1,51 @@
+"""`shapefleet launch` starts its router before its imports (launcher/router.py EarlyRouter):
+a launch refused for bad input leaves neither that router nor its folder behind, and an early
+router whose launcher is gone ends by itself."""
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from launcher.router import EarlyRouter, child_env
+from protocol.zenoh_config import free_loopback_port
+
+from .conftest import processes_with
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_bad_input_stops_the_early_router_and_removes_its_folder(tmp_path):
+    env = {**child_env(), "TMPDIR": str(tmp_path)}  # the early router's folder (tempfile.mkdtemp) goes here
+    proc = subprocess.run([sys.executable, "-m", "launcher.cli", "launch", "--preset", "paper", "--robots", "0",
+                           "--out", str(tmp_path / "run")], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "--robots" in proc.stderr
+    assert processes_with(str(tmp_path)) == []
+    assert not list(tmp_path.glob("shapefleet-router-*"))
+
+
+def test_an_early_router_is_only_for_a_plain_launch():
+    assert EarlyRouter.for_command_line(["shapefleet", "simulate", "--preset", "paper"]) is None
+    assert EarlyRouter.for_command_line(["shapefleet", "launch", "--zenoh-port", "7447"]) is None
+    assert EarlyRouter.for_command_line(["shapefleet", "launch", "--config=s.toml"]) is None
+    assert EarlyRouter.for_command_line(["shapefleet", "launch", "-h"]) is None
+
+
+def test_a_router_ends_when_its_parent_is_gone(tmp_path):
+    ready, log = tmp_path / "ready.json", tmp_path / "router.log"
+    # the shell starts the router as its child and exits at once: the router is orphaned
+    script = (f"{sys.executable} -m launcher.router --port {free_loopback_port()} --ready-file {ready} "
+              f"--max-wall-s 30 --parent-pid $$ > {log} 2>&1 &")
+    subprocess.run(["sh", "-c", script], cwd=ROOT, env=child_env(), timeout=10, check=True)
+    end = time.monotonic() + 20
+    while processes_with(str(ready)) and time.monotonic() < end:
+        time.sleep(0.05)
+    left = processes_with(str(ready))
+    for pid in left:  # never leave it running, even when the test fails
+        os.kill(pid, 9)
+    assert left == []
+    said = log.read_text()
+    assert '"router": "ready"' in said and '"router": "closed"' in said, said  # it ran, then ended by itself
