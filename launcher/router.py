@@ -66,7 +66,7 @@ class EarlyRouter:
     It ends by itself when its launcher is gone (``--parent-pid``) or after EARLY_ROUTER_BOUND_S.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, run_folder: str | None = None) -> None:
         self.port = free_loopback_port(HOST)
         self.endpoint = router_endpoint(self.port, HOST)
         self.bound_s = EARLY_ROUTER_BOUND_S
@@ -78,6 +78,8 @@ class EarlyRouter:
         argv = [sys.executable, "-m", "launcher.router", "--port", str(self.port), "--host", HOST,
                 "--ready-file", str(self.ready_file), "--max-wall-s", f"{self.bound_s:.0f}",
                 "--parent-pid", str(os.getpid())]
+        if run_folder:  # in its command line, as a router started by launch_fleet has (ps, tests)
+            argv += ["--run-folder", run_folder]
         try:
             self.proc = spawn(argv, stdout=self.log, stderr=subprocess.STDOUT)
         except BaseException:
@@ -94,8 +96,14 @@ class EarlyRouter:
             return None
         if any(a in ("-h", "--help") or a.split("=")[0] in ("--zenoh-port", "--config") for a in args):
             return None
+        out = None
+        for i, a in enumerate(args):
+            if a == "--out" and i + 1 < len(args):
+                out = args[i + 1]
+            elif a.startswith("--out="):
+                out = a.split("=", 1)[1]
         try:
-            return cls()
+            return cls(out)
         except OSError:  # no port, no temporary folder: launch_fleet starts its router as always
             return None
 
@@ -206,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--connect", action="append", default=[], help="another router to link to (repeatable)")
     ap.add_argument("--allow-remote", action="store_true", help="listen / connect beyond loopback")
     ap.add_argument("--parent-pid", type=int, default=None, help="end when this process is no longer the parent")
+    ap.add_argument("--run-folder", default=None, help="the run this router serves (for ps; not read)")
     args = ap.parse_args(argv)
     try:
         run_router(args.port, host=args.host, ready_file=args.ready_file, max_wall_s=args.max_wall_s,

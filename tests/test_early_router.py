@@ -24,7 +24,7 @@ def test_bad_input_stops_the_early_router_and_removes_its_folder(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.count("\n") == 1 and "--robots" in proc.stderr
     assert processes_with(str(tmp_path)) == []
-    assert not list(tmp_path.glob("shapefleet-router-*"))
+    assert not list(tmp_path.glob("shapefleet-router-*")) and not (tmp_path / "run").exists()
 
 
 def test_an_early_router_is_only_for_a_plain_launch():
