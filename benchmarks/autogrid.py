@@ -103,7 +103,7 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None):
     core = cores[0]
     grid, c, gamma = core.function()
     same = all(np.array_equal(k.function()[0], grid) and np.array_equal(k.function()[1], c) for k in cores)
-    basis = GridBasis(grid, core.sigma)
+    basis = core._basis  # the final grid at its widths (one or two: AutoGridParams.narrow_ratio)
     central = solve_central(basis, world.points, world.labels, None if core.margin == "hard" else params.soft_C)
     err = basis.function_error(c, gamma, central.c, central.gamma) if central.solved else float("nan")
     x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
@@ -160,7 +160,7 @@ OUTLINE_SWEEP = (2, 3, 4, 6, 8, 12, 16, 24, 32)  # SVC's sigma candidates for th
 
 
 def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tuple[float, ...] | None = None,
-                    free_space: int | None = None) -> dict:
+                    free_space: int | None = None, narrow_ratio: float | None = None) -> dict:
     """One complex outline with the defaults of `simulate --shape-file path --robots 5 --points 40`
     (the spec's own autogrid parameters), against SVC with sigma by 5-fold CV and the oracle."""
     free = {} if free_space is None else {"free_space": free_space}
@@ -168,12 +168,14 @@ def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tupl
     params = spec.autogrid_params
     if divisors is not None:  # an experiment: other sigma candidates, everything else simulate's defaults
         params = dataclasses.replace(params, validate_divisors=divisors)
+    if narrow_ratio is not None:  # an experiment: another width of the refined points
+        params = dataclasses.replace(params, narrow_ratio=narrow_ratio)
     started = time.perf_counter()
     cores = run_fleet(world, spec, params)
     wall = time.perf_counter() - started
     core = cores[0]
     grid, c, gamma = core.function()
-    basis = GridBasis(grid, core.sigma)
+    basis = core._basis  # the final grid at its widths (one or two: AutoGridParams.narrow_ratio)
     central = solve_central(basis, world.points, world.labels, None if core.margin == "hard" else params.soft_C)
     err = basis.function_error(c, gamma, central.c, central.gamma) if central.solved else float("nan")
     x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
@@ -226,11 +228,13 @@ def main() -> None:
     ap.add_argument("--outlines", nargs="*", default=None, help="issue 15: these outline CSVs (simulate defaults)")
     ap.add_argument("--divisors", default="", help="with --outlines: sigma candidates diag/d, e.g. 4,6,8,12,16,24")
     ap.add_argument("--free-space", type=int, default=None, help="free-space samples per kept ray (default: simulate's)")
+    ap.add_argument("--narrow-ratio", type=float, default=None,
+                    help="width of the refined points = sigma / this (default: the spec's AutoGridParams.narrow_ratio)")
     args = ap.parse_args()
     if args.outlines is not None:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             divisors = tuple(float(d) for d in args.divisors.split(",")) if args.divisors else None
-            futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space) for path in args.outlines]
+            futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space, args.narrow_ratio) for path in args.outlines]
             rows = []
             for future in futures:
                 rows.append(future.result())
@@ -239,6 +243,8 @@ def main() -> None:
         return
     robots, points = (3, 20) if args.quick else (6, 40)
     params_kw = {"tol": 1e-3, "max_points": 200}
+    if args.narrow_ratio is not None:
+        params_kw["narrow_ratio"] = args.narrow_ratio
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         wanted = [w for w in args.shapes.split(",") if w]
         shapes = [(n, k) for n, k in SHAPES if not wanted or n.split()[0] in wanted]
