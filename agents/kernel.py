@@ -17,8 +17,8 @@ import numpy as np
 RCOND = 1e-10
 
 
-def gaussian_kernel(a: np.ndarray, b: np.ndarray, sigma: float) -> np.ndarray:
-    """k(a_i, b_j) = exp(-|a_i - b_j|^2 / (2 sigma^2)) for every pair of rows."""
+def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a_i - b_j|^2 for every pair of rows (clipped at 0 against round-off)."""
     a = np.atleast_2d(np.asarray(a, dtype=float))
     b = np.atleast_2d(np.asarray(b, dtype=float))
     sq = (
@@ -27,20 +27,17 @@ def gaussian_kernel(a: np.ndarray, b: np.ndarray, sigma: float) -> np.ndarray:
         - 2.0 * a @ b.T
     )
     np.maximum(sq, 0.0, out=sq)
-    return np.exp(-sq / (2.0 * sigma * sigma))
+    return sq
+
+
+def gaussian_kernel(a: np.ndarray, b: np.ndarray, sigma: float) -> np.ndarray:
+    """k(a_i, b_j) = exp(-|a_i - b_j|^2 / (2 sigma^2)) for every pair of rows."""
+    return np.exp(-_squared_distances(a, b) / (2.0 * sigma * sigma))
 
 
 def width_kernel(a: np.ndarray, b: np.ndarray, widths: np.ndarray) -> np.ndarray:
     """k_j(a_i, b_j) = exp(-|a_i - b_j|^2 / (2 widths_j^2)): column j at its own width."""
-    a = np.atleast_2d(np.asarray(a, dtype=float))
-    b = np.atleast_2d(np.asarray(b, dtype=float))
-    sq = (
-        np.sum(a * a, axis=1)[:, None]
-        + np.sum(b * b, axis=1)[None, :]
-        - 2.0 * a @ b.T
-    )
-    np.maximum(sq, 0.0, out=sq)
-    return np.exp(-sq / (2.0 * np.asarray(widths, dtype=float)[None, :] ** 2))
+    return np.exp(-_squared_distances(a, b) / (2.0 * np.asarray(widths, dtype=float)[None, :] ** 2))
 
 
 def padded_bounds(points: np.ndarray, pad: float, min_pad: float) -> tuple[float, float, float, float]:
