@@ -52,6 +52,7 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     lattice_box,
     near_data_marks,
     refine_grid,
+    grid_widths,
     scale_from_bounds,
 )
 from agents.autogrid_state import load_state, save_state
@@ -429,7 +430,8 @@ class AdaptiveGridCore(RoundCore):
 
     def _set_grid(self, grid: np.ndarray) -> None:
         self.grid = grid
-        self._basis = GridBasis(grid, self.sigma)
+        widths = grid_widths(grid, self._box, self._h0, self.sigma, self.params, self._start_grid)
+        self._basis = GridBasis(grid, self.sigma, widths=widths)
         self._features = self._basis.features(self._points) if len(self._points) else np.zeros((0, len(grid)))
 
     def _note(self, **fields: Any) -> None:
@@ -561,6 +563,8 @@ class AdaptiveGridCore(RoundCore):
             grid, c, gamma = self.function()
             out.update(grid=grid.tolist(), x=self._final[:-1].tolist(), c=c.tolist(), gamma=gamma,
                        grid_rank=self._basis.rank)
+            if self._basis.widths is not None:  # the kernel width of every grid point (two widths)
+                out["widths"] = self._basis.widths.tolist()
         return out
 
     # -- checkpoint (agents/autogrid_state.py) --------------------------------------------------

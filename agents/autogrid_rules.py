@@ -72,12 +72,19 @@ class AutoGridParams:
     # frames carry w beside v (agents/admm.py), so every ADMM slot has room for both
     hub_frames: bool = False
     early_drop: bool = True  # end the sweep once a perfect candidate decides it (autogrid_sweep.py)
+    # a model beyond one width (issue 15): the level-0 lattice's kernels have width sigma, the
+    # points refinement adds near the boundary sigma / narrow_ratio (1: one width everywhere, the
+    # default: 3 helps the 11 benchmark shapes at 200-240 points but costs the 60-point default
+    # run 0.06 IoU, see benchmarks/results/autogrid.md)
+    narrow_ratio: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
             raise ValueError(f"diameter must be in [0, 52] (flag bits carried as exact floats), got {self.diameter}")
         if self.max_points < 4:
             raise ValueError(f"max_points must be at least 4, got {self.max_points}")
+        if not (math.isfinite(self.narrow_ratio) and self.narrow_ratio >= 1):
+            raise ValueError(f"narrow_ratio must be a number >= 1, got {self.narrow_ratio!r}")
         for name in ("sigma_divisor", "spacing_ratio", "min_spacing", "near_data", "band", "rho", "tol", "soft_C"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -233,6 +240,25 @@ def finest_level(h0: float, sigma: float, params: AutoGridParams) -> int:
     return level
 
 
+def grid_widths(
+    grid: np.ndarray, box: tuple[float, float, float, float], h0: float, sigma: float, params: AutoGridParams,
+    wide_points: np.ndarray | None = None,
+) -> np.ndarray | None:
+    """The kernel width of every grid point: sigma on the level-0 lattice (and on `wide_points`,
+    a given start grid), sigma / narrow_ratio on the points refinement added near the boundary.
+    None when every point has width sigma (one width: the paper's model). A pure function of the
+    grid and agreed numbers, so every robot and the central reference derive the same widths."""
+    if params.narrow_ratio == 1.0:
+        return None
+    wide = lattice(box, h0, 0)
+    if wide_points is not None and len(wide_points):
+        wide = np.vstack([wide, wide_points])
+    on = min_distance(grid, wide) < 0.25 * h0 / 2**params.max_level
+    if on.all():
+        return None
+    return np.where(on, sigma, sigma / params.narrow_ratio)
+
+
 def near_data_marks(points: np.ndarray, nodes: np.ndarray, radius: float) -> np.ndarray:
     """1.0 at the nodes with one of `points` within `radius`, else 0.0 (a robot's own marks)."""
     if len(points) == 0 or len(nodes) == 0:
@@ -267,7 +293,9 @@ def refine_grid(
     if room <= 0:
         return grid, level
     coarse, coarse_shape = lattice(box, h0, 0, with_shape=True)
-    for lv in range(max(level, 1), finest_level(h0, basis.sigma, params) + 1):
+    narrow = basis.sigma / params.narrow_ratio  # the width of the points added here
+    old_widths = np.full(len(grid), basis.sigma) if basis.widths is None else basis.widths
+    for lv in range(max(level, 1), finest_level(h0, narrow, params) + 1):
         nodes, shape = lattice(box, h0, lv, with_shape=True)
         near = min_distance(nodes, grid) < 0.25 * h0 / 2**lv
         if allowed is not None and len(allowed) == len(coarse):
@@ -278,7 +306,8 @@ def refine_grid(
             continue
         order = pick[np.lexsort((pick, np.abs(f[pick])))][:room]
         new = np.vstack([grid, nodes[np.sort(order)]])
-        if GridBasis(new, basis.sigma).rank < len(new):
+        widths = np.concatenate([old_widths, np.full(len(order), narrow)])
+        if GridBasis(new, basis.sigma, widths=widths).rank < len(new):
             return grid, level
         return new, lv
     return grid, level

@@ -36,6 +36,8 @@ class GridKernelSVC:
     grid: explicit (M, 2) grid points; otherwise a `grid_shape` lattice over the data's bounding
     box widened by `pad` of its size on each side (cell centres, as `shapefleet --grid`).
     C: None for the hard margin (the paper), a positive penalty for a soft margin.
+    widths: optional kernel width per grid point (autogrid's two-width model, its result's
+    "widths"): points of one width span one RKHS, f is the sum (agents.kernel.GridBasis).
     """
 
     def __init__(
@@ -45,12 +47,14 @@ class GridKernelSVC:
         sigma: float = 1.0,
         C: float | None = None,
         pad: float = 0.15,
+        widths: np.ndarray | None = None,
     ) -> None:
         self.grid = grid
         self.grid_shape = grid_shape
         self.sigma = sigma
         self.C = C
         self.pad = pad
+        self.widths = widths
 
     def fit(self, X: object, y: object) -> GridKernelSVC:
         """Solve the centralized QP; InfeasibleError (a ValueError) if no grid function separates."""
@@ -65,7 +69,7 @@ class GridKernelSVC:
         if self.C is not None and not (np.isfinite(self.C) and self.C > 0):
             raise ValueError(f"C must be None (hard margin) or a positive number, got {self.C!r}")
         self.grid_ = self._grid(X)
-        self.basis_ = GridBasis(self.grid_, self.sigma)
+        self.basis_ = GridBasis(self.grid_, self.sigma, widths=self.widths)
         solution = solve_central(self.basis_, X, y.astype(int), self.C)
         if not solution.solved:
             raise InfeasibleError(solution.message)

@@ -17,8 +17,8 @@ import numpy as np
 RCOND = 1e-10
 
 
-def gaussian_kernel(a: np.ndarray, b: np.ndarray, sigma: float) -> np.ndarray:
-    """k(a_i, b_j) = exp(-|a_i - b_j|^2 / (2 sigma^2)) for every pair of rows."""
+def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a_i - b_j|^2 for every pair of rows (clipped at 0 against round-off)."""
     a = np.atleast_2d(np.asarray(a, dtype=float))
     b = np.atleast_2d(np.asarray(b, dtype=float))
     sq = (
@@ -27,7 +27,17 @@ def gaussian_kernel(a: np.ndarray, b: np.ndarray, sigma: float) -> np.ndarray:
         - 2.0 * a @ b.T
     )
     np.maximum(sq, 0.0, out=sq)
-    return np.exp(-sq / (2.0 * sigma * sigma))
+    return sq
+
+
+def gaussian_kernel(a: np.ndarray, b: np.ndarray, sigma: float) -> np.ndarray:
+    """k(a_i, b_j) = exp(-|a_i - b_j|^2 / (2 sigma^2)) for every pair of rows."""
+    return np.exp(-_squared_distances(a, b) / (2.0 * sigma * sigma))
+
+
+def width_kernel(a: np.ndarray, b: np.ndarray, widths: np.ndarray) -> np.ndarray:
+    """k_j(a_i, b_j) = exp(-|a_i - b_j|^2 / (2 widths_j^2)): column j at its own width."""
+    return np.exp(-_squared_distances(a, b) / (2.0 * np.asarray(widths, dtype=float)[None, :] ** 2))
 
 
 def padded_bounds(points: np.ndarray, pad: float, min_pad: float) -> tuple[float, float, float, float]:
@@ -54,7 +64,13 @@ def lattice(nx: int, ny: int, bounds: tuple[float, float, float, float]) -> np.n
 class GridBasis:
     """The function space spanned by kernels on the shared grid, with its preconditioning."""
 
-    def __init__(self, grid: np.ndarray, sigma: float, rcond: float = RCOND) -> None:
+    def __init__(
+        self, grid: np.ndarray, sigma: float, rcond: float = RCOND, widths: np.ndarray | None = None
+    ) -> None:
+        """`widths` (one per grid point, optional): a kernel width per point. Points of one width
+        span one RKHS; points of different widths span different ones, and f is their sum with
+        the sum of the squared norms (K_G block-diagonal by width): a model beyond one width
+        (coarse points wide, refined points near the boundary narrow). None: every point sigma."""
         grid = np.asarray(grid, dtype=float)
         if grid.ndim != 2 or grid.shape[1] != 2 or len(grid) == 0:
             raise ValueError(f"grid must be an (M, 2) array of points, got shape {grid.shape}")
@@ -64,7 +80,18 @@ class GridBasis:
             raise ValueError(f"sigma must be a positive number, got {sigma!r}")
         self.grid = grid
         self.sigma = float(sigma)
-        self.gram = gaussian_kernel(grid, grid, sigma)
+        self.widths: np.ndarray | None = None
+        if widths is not None:
+            widths = np.asarray(widths, dtype=float)
+            if widths.shape != (len(grid),) or not np.all(np.isfinite(widths) & (widths > 0)):
+                raise ValueError(f"widths must be {len(grid)} positive numbers, one per grid point")
+            if np.all(widths == self.sigma):
+                widths = None
+        self.widths = widths
+        if widths is None:
+            self.gram = gaussian_kernel(grid, grid, sigma)
+        else:
+            self.gram = width_kernel(grid, grid, widths) * (widths[:, None] == widths[None, :])
         eigval, eigvec = np.linalg.eigh(self.gram)
         keep = eigval > rcond * eigval[-1]
         u, lam = eigvec[:, keep], eigval[keep]
@@ -80,7 +107,9 @@ class GridBasis:
         return len(self.grid)
 
     def kernel_to_grid(self, points: np.ndarray) -> np.ndarray:
-        """k(points, G): (n, M)."""
+        """k(points, G): (n, M) (column j at grid point j's width)."""
+        if self.widths is not None:
+            return width_kernel(points, self.grid, self.widths)
         return gaussian_kernel(points, self.grid, self.sigma)
 
     def features(self, points: np.ndarray) -> np.ndarray:

@@ -18,6 +18,8 @@ Frames go through the real codec in lock-step (no faults). Writes benchmarks/res
     .venv/bin/python benchmarks/autogrid.py --outlines benchmarks/outlines/gear_mm.csv [...]
         # issue 15: the complex outlines as a new user runs them (simulate --shape-file X
         # --robots 5 --points 40, every other flag at its default) against SVC
+    .venv/bin/python benchmarks/autogrid.py --emulate-widths [--shapes blob,letter_e]
+        # issue 15: central emulation of the width per grid level (r = 1, 2, 3) on the 11 shapes
 """
 
 from __future__ import annotations
@@ -84,7 +86,7 @@ def error_vs_central(world, core, params):
     """The fleet's basis and its function error against the central solve on the same grid and
     margin (nan when the central solve fails)."""
     grid, c, gamma = core.function()
-    basis = GridBasis(grid, core.sigma)
+    basis = core._basis  # the final grid at its widths (one or two: AutoGridParams.narrow_ratio)
     central = solve_central(basis, world.points, world.labels, None if core.margin == "hard" else params.soft_C)
     return basis, basis.function_error(c, gamma, central.c, central.gamma) if central.solved else float("nan")
 
@@ -164,7 +166,7 @@ OUTLINE_SWEEP = (2, 3, 4, 6, 8, 12, 16, 24, 32)  # SVC's sigma candidates for th
 
 
 def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tuple[float, ...] | None = None,
-                    free_space: int | None = None) -> dict:
+                    free_space: int | None = None, narrow_ratio: float | None = None) -> dict:
     """One complex outline with the defaults of `simulate --shape-file path --robots 5 --points 40`
     (the spec's own autogrid parameters), against SVC with sigma by 5-fold CV and the oracle."""
     free = {} if free_space is None else {"free_space": free_space}
@@ -172,6 +174,8 @@ def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tupl
     params = spec.autogrid_params
     if divisors is not None:  # an experiment: other sigma candidates, everything else simulate's defaults
         params = dataclasses.replace(params, validate_divisors=divisors)
+    if narrow_ratio is not None:  # an experiment: another width of the refined points
+        params = dataclasses.replace(params, narrow_ratio=narrow_ratio)
     started = time.perf_counter()
     cores = run_fleet(world, spec, params)
     wall = time.perf_counter() - started
@@ -217,6 +221,97 @@ def outline_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+OUTLINES = [(n, {"shape_file": str(ROOT / f"benchmarks/outlines/{n}.csv")})
+            for n in ("letter_e", "digit_3", "wrench_mm", "gear_mm", "fork_mm")]
+
+
+def _fold_sets(spec, params, fold):
+    """(training points, labels, held-out points, labels) of all robots for one sweep fold."""
+    from agents.autogrid_rules import holdout_units
+    from agents.autogrid_sweep import held_mask
+
+    parts = [(r.points, r.labels, held_mask(holdout_units(r.points, r.labels), fold, params))
+             for r in spec.robots.values()]
+    return (np.vstack([p[~m] for p, _, m in parts]), np.concatenate([lab[~m] for _, lab, m in parts]),
+            np.vstack([p[m] for p, _, m in parts]), np.concatenate([lab[m] for _, lab, m in parts]))
+
+
+def _central_sweep_choice(spec, params, bounds, diag):
+    """Today's sigma rule on exact central soft solves per candidate and fold (the sweep emulated)."""
+    from agents.autogrid_rules import choose_sigma, coarse_lattice, solid_on_raster
+
+    records = []
+    for d in params.validate_divisors:
+        sigma = diag / d
+        box, _, grid = coarse_lattice(bounds, sigma, params.spacing_ratio, params.sweep_slot(d))
+        basis = GridBasis(grid, sigma)
+        errors, solid = 0, True
+        for fold in range(params.validate_folds):
+            tp, tl, hp, hl = _fold_sets(spec, params, fold)
+            sol = solve_central(basis, tp, tl, params.soft_C)
+            errors += int(np.sum(hl * basis.decision(hp, sol.c, sol.gamma) <= 0))
+            solid &= solid_on_raster(basis, sol.c, sol.gamma, box, params.solid_raster)
+        records.append({"divisor": d, "sigma": sigma, "errors": errors, "held_out": 0, "solid": solid})
+    return choose_sigma(records, diag, params)[0]
+
+
+def central_final_model(points, labels, params, bounds, sigma):
+    """The fleet's final phase solved centrally: level-0 lattice, hard margin (soft if infeasible),
+    `refine_grid` while it helps (the fleet's rules), each refined point at sigma / narrow_ratio."""
+    import math
+
+    from agents.autogrid_rules import coarse_lattice, lattice, near_data_marks, refine_grid
+
+    box, h0, grid = coarse_lattice(bounds, sigma, params.spacing_ratio, params.max_points)
+    allowed = near_data_marks(points, lattice(box, h0, 0), params.near_data * sigma + h0 / math.sqrt(2)) > 0
+    basis, level, best = GridBasis(grid, sigma), 0, None
+    sol = solve_central(basis, points, labels, None)
+    hard = sol.solved
+    sol = sol if hard else solve_central(basis, points, labels, params.soft_C)
+    for _ in range(params.max_refinements):
+        norm2 = float(sol.x @ sol.x)
+        if hard:
+            if best is not None and norm2 > (1 - params.improve_tol) * best:
+                break
+            best = norm2 if best is None else min(best, norm2)
+        min_new = math.ceil(params.min_growth * len(basis.grid)) if hard else 1
+        new, level = refine_grid(basis.grid, basis, sol.c, sol.gamma, box, h0, level, params, allowed, max(1, min_new))
+        if len(new) == len(basis.grid):
+            break
+        old = np.full(len(basis.grid), sigma) if basis.widths is None else basis.widths
+        widths = np.concatenate([old, np.full(len(new) - len(old), sigma / params.narrow_ratio)])
+        basis = GridBasis(new, sigma, widths=widths)
+        sol = solve_central(basis, points, labels, None)
+        hard = sol.solved
+        sol = sol if hard else solve_central(basis, points, labels, params.soft_C)
+    return basis, sol
+
+
+def emulate_widths(name: str, kwargs: dict, robots: int, ratios=(1.0, 2.0, 3.0)) -> dict:
+    """One shape: the sigma today's rule picks (emulated), the IoU of the final model at each
+    width ratio r, and its held-out errors (the same pipeline per fold, folds summed)."""
+    world, spec = build_world(Options(fleet_id="bench", robots=robots, points=40, **kwargs))
+    params = AutoGridParams(diameter=spec.params["diameter"])
+    lo, hi = world.points.min(axis=0), world.points.max(axis=0)
+    bounds, diag = (lo[0], hi[0], lo[1], hi[1]), float(np.hypot(*(hi - lo)))
+    sigma = _central_sweep_choice(spec, params, bounds, diag)
+    x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
+    pad = 0.2 * max(x1 - x0, y1 - y0)
+    box = (x0 - pad, x1 + pad, y0 - pad, y1 + pad)
+    row = {"name": name, "divisor": diag / sigma, "svc": svc_iou(world, box, sigma)}
+    for r in ratios:
+        p = dataclasses.replace(params, narrow_ratio=r)
+        basis, sol = central_final_model(world.points, world.labels, p, bounds, sigma)
+        row[("iou", r)] = scenario.iou_on_raster(world.shape, lambda q: basis.decision(q, sol.c, sol.gamma) < 0, box)
+        errors = 0
+        for fold in range(params.validate_folds):
+            tp, tl, hp, hl = _fold_sets(spec, params, fold)
+            b, s = central_final_model(tp, tl, p, bounds, sigma)
+            errors += int(np.sum(hl * b.decision(hp, s.c, s.gamma) <= 0))
+        row[("held", r)] = errors
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="3 robots x 20 points")
@@ -226,11 +321,24 @@ def main() -> None:
     ap.add_argument("--outlines", nargs="*", default=None, help="issue 15: these outline CSVs (simulate defaults)")
     ap.add_argument("--divisors", default="", help="with --outlines: sigma candidates diag/d, e.g. 4,6,8,12,16,24")
     ap.add_argument("--free-space", type=int, default=None, help="free-space samples per kept ray (default: simulate's)")
+    ap.add_argument("--narrow-ratio", type=float, default=None,
+                    help="width of the refined points = sigma / this (default: the spec's AutoGridParams.narrow_ratio)")
+    ap.add_argument("--emulate-widths", action="store_true", help="issue 15: central emulation of the two-width model")
     args = ap.parse_args()
+    if args.emulate_widths:
+        wanted = [w for w in args.shapes.split(",") if w]
+        todo = [(n, k, 6) for n, k in SHAPES] + [(n, k, 5) for n, k in OUTLINES]
+        todo = [t for t in todo if not wanted or t[0].split()[0] in wanted]
+        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            for row in pool.map(emulate_widths, *zip(*todo)):
+                print(f"{row['name']}: diag/{row['divisor']:.3g} SVC {row['svc']:.3f} "
+                      + " ".join(f"r={r:g}: IoU {row[('iou', r)]:.3f} held-out errors {row[('held', r)]}"
+                                 for r in (1.0, 2.0, 3.0)), flush=True)
+        return
     if args.outlines is not None:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             divisors = tuple(float(d) for d in args.divisors.split(",")) if args.divisors else None
-            futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space) for path in args.outlines]
+            futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space, args.narrow_ratio) for path in args.outlines]
             rows = []
             for future in futures:
                 rows.append(future.result())
@@ -239,6 +347,8 @@ def main() -> None:
         return
     robots, points = (3, 20) if args.quick else (6, 40)
     params_kw = {"tol": 1e-3, "max_points": 200}
+    if args.narrow_ratio is not None:
+        params_kw["narrow_ratio"] = args.narrow_ratio
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         wanted = [w for w in args.shapes.split(",") if w]
         shapes = [(n, k) for n, k in SHAPES if not wanted or n.split()[0] in wanted]

@@ -359,6 +359,9 @@ OPTIONS: tuple[Option, ...] = (
            metavar="NAME", check=_preset),
     Option("max-grid-points", INT, FROM_PARAMS, "autogrid: budget of grid points, at least 4; frames grow with it",
            group=MODEL, section="model", metavar="N", check=_max_grid_points, feeds={"autogrid": "max_points"}),
+    Option("narrow-ratio", FLOAT, FROM_PARAMS, "autogrid: the points refinement adds near the boundary have "
+           "kernel width sigma / this, the level-0 lattice's sigma (issue 15: a width per grid level); 1 (default): "
+           "one width", group=MODEL, section="model", check=at_least(1), feeds={"autogrid": "narrow_ratio"}),
     Option("topology", STR, "complete", " | ".join(TOPOLOGIES), group=ALGORITHM, section="algorithm",
            choices=TOPOLOGIES, metavar="TOPOLOGY"),
     Option("comm-range", FLOAT, None, f"link robots within this distance (geometric topology; default 12 "

@@ -332,15 +332,16 @@ def autogrid_references(
     """Per robot id with a function: the central solve of (points, labels) on its final grid and
     sigma, with its margin's penalty. Robots that agree share one solve. The solve is exact only
     when K_G keeps full numerical rank (basis.rank == M): `reference_exact` says so."""
-    solved: dict[tuple[bytes, float, float | None], Reference] = {}
+    solved: dict[tuple[bytes, float, float | None, bytes | None], Reference] = {}
     out: dict[int, Reference] = {}
     for r in robots:
         if not has_function(r):
             continue
         grid = np.asarray(r["grid"], dtype=float).reshape(-1, 2)
-        key = (grid.tobytes(), float(r["sigma"]), robot_C(r, C, soft_C))
+        widths = None if r.get("widths") is None else np.asarray(r["widths"], dtype=float)
+        key = (grid.tobytes(), float(r["sigma"]), robot_C(r, C, soft_C), None if widths is None else widths.tobytes())
         if key not in solved:
-            basis = GridBasis(grid, float(r["sigma"]))
+            basis = GridBasis(grid, float(r["sigma"]), widths=widths)
             solved[key] = Reference(basis, solve_central(basis, points, labels, key[2]), key[2])
         out[int(r["id"])] = solved[key]
     return out

@@ -733,3 +733,27 @@ def test_sweep_raster_kernel_kept_gives_the_basis_bits():
         for _ in range(2):
             c, gamma = rng.normal(size=basis.size), float(rng.normal())
             assert kept.decision(points, c, gamma).tobytes() == basis.decision(points, c, gamma).tobytes()
+
+
+def test_two_widths_refined_points_narrow_exact_against_the_central_reference():
+    """narrow_ratio (issue 15): the level-0 lattice keeps sigma, the points refinement adds get
+    sigma / narrow_ratio; every robot agrees bit for bit and the fleet meets the central solve of
+    the same two-width model (GridKernelSVC with the result's widths)."""
+    from agents.estimator import GridKernelSVC
+
+    world, spec = build_world(Options(fleet_id="t"))
+    params = fast_params(spec, narrow_ratio=3.0, max_points=50, tol=1e-3)
+    cores = run_fleet(make_cores(robots_of(spec), params))
+    first = cores[0]
+    grid, c, gamma = first.function()
+    assert all(np.array_equal(k.function()[1], c) and k.function()[2] == gamma for k in cores[1:])
+    res = first.result()
+    widths = np.asarray(res["widths"])
+    coarse = lattice(first._box, first._h0, 0)
+    on = np.sqrt(((grid[:, None] - coarse[None]) ** 2).sum(-1)).min(axis=1) < 1e-9
+    assert on.any() and (~on).any()
+    assert np.all(widths[on] == first.sigma) and np.allclose(widths[~on], first.sigma / 3.0, rtol=1e-15)
+    assert res["grid_rank"] == len(grid) and first.margin == "hard"
+    ref = GridKernelSVC(grid=grid, sigma=first.sigma, widths=widths).fit(world.points, world.labels)
+    assert first._basis.function_error(c, gamma, ref.coef_, ref.intercept_) < 1e-3
+    assert np.all(ref.predict(world.points) == world.labels)

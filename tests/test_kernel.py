@@ -67,3 +67,24 @@ def test_bad_grids_are_refused(grid):
 def test_bad_sigma_refused():
     with pytest.raises(ValueError, match="sigma"):
         GridBasis(lattice(2), 0.0)
+
+
+def test_a_width_per_point_spans_the_sum_of_two_spaces():
+    """widths: points of one width span one RKHS, f is the sum (K_G block-diagonal by width);
+    equal widths are the one-width basis bit for bit."""
+    grid = lattice(4)
+    same = GridBasis(grid, 0.8, widths=np.full(len(grid), 0.8))
+    plain = GridBasis(grid, 0.8)
+    assert same.widths is None and np.array_equal(same.gram, plain.gram) and np.array_equal(same.inv_sqrt, plain.inv_sqrt)
+    widths = np.where(np.arange(len(grid)) < 8, 0.8, 0.4)
+    two = GridBasis(grid, 0.8, widths=widths)
+    assert np.array_equal(two.gram[:8, :8], gaussian_kernel(grid[:8], grid[:8], 0.8))
+    assert np.array_equal(two.gram[8:, 8:], gaussian_kernel(grid[8:], grid[8:], 0.4))
+    assert not two.gram[:8, 8:].any() and not two.gram[8:, :8].any()
+    pts = np.array([[0.3, -0.2], [1.1, 0.7]])
+    c = np.linspace(-1.0, 1.0, len(grid))
+    expected = gaussian_kernel(pts, grid[:8], 0.8) @ c[:8] + gaussian_kernel(pts, grid[8:], 0.4) @ c[8:] + 0.5
+    assert np.allclose(two.decision(pts, c, 0.5), expected, rtol=0, atol=1e-14)
+    assert np.isclose(two.rkhs_norm(c) ** 2, c @ two.gram @ c)
+    with pytest.raises(ValueError, match="widths"):
+        GridBasis(grid, 0.8, widths=np.zeros(len(grid)))

@@ -52,6 +52,8 @@ def sample(option: Option) -> tuple[list[str], object]:
         return [option.flag], True
     if option.kind == LIST:
         return [option.flag, _TEXT[option.name]], [_TEXT[option.name]]
+    if option.name == "narrow-ratio":  # at least 1
+        return [option.flag, "3"], 3.0
     if option.kind in _BY_KIND:
         text, toml = _BY_KIND[option.kind]
         return [option.flag, text], toml
@@ -197,7 +199,8 @@ def test_flags_reach_the_typed_params_of_the_fleet_file(algorithm):
     words = ["--algorithm", algorithm]
     expected = {}
     for option, param in fed:
-        value = {"relax": "1.5", "max-grid-points": "120", "ct-period": "20ms", "ct-step": "2ms"}.get(option.name)
+        value = {"relax": "1.5", "max-grid-points": "120", "ct-period": "20ms", "ct-step": "2ms",
+                 "narrow-ratio": "3"}.get(option.name)
         text = value or {INT: "900", FLOAT: "0.002", DURATION: "4s"}[option.kind]
         words += [option.flag, text]
         expected[param] = option.parse(text)
