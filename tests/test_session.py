@@ -389,3 +389,30 @@ def test_a_fleet_sends_one_frame_per_robot_and_round_without_loss_and_the_same_a
     by_id = {r["id"]: r for r in lossy}
     for r in clean:
         assert by_id[r["id"]]["x"] == r["x"] and by_id[r["id"]]["gamma"] == r["gamma"]
+
+
+def test_repeats_of_our_round_are_answered_once_per_half_interval_a_robot_behind_every_time():
+    """Issue 14: a neighbour repeating the round we are at gets a fast resend of ours, but its next
+    repeat within half a periodic interval waits (each answer is itself a repeat to every robot at
+    our round: answered every time, 16 robots stormed). One round behind is still answered."""
+    b = session(1, (0,))
+    fb0 = frames(b, 0.0)[0]
+    b.receive(0, frames(session(0, (1,)), 0.0)[0], 0.0)
+    assert b.advance(0.0)
+    fb1, fb1_again, fb1_third = frames(b, 0.0)[0], frames(b, 0.1)[0], frames(b, 0.2)[0]
+    c = session(2, (0,))
+    fc0, fc0_again = frames(c, 0.0)[0], frames(c, 0.1)[0]
+    a = session(0, (1, 2))  # at round 1 it waits for robot 2's round 1
+    frames(a, 0.0)
+    a.receive(1, fb0, 0.0)
+    a.receive(2, fc0, 0.0)
+    assert a.advance(0.0) and a.core.round == 1 and len(frames(a, 0.0)) == 1
+    a.receive(1, fb1, 0.01)
+    a.receive(1, fb1_again, 0.02)  # b repeats our round: the fast resend
+    assert frames(a, 0.02) == []
+    fast = a.next_deadline()
+    assert fast < 0.1 and len(frames(a, fast)) == 1
+    a.receive(1, fb1_third, 0.03)  # again, 5 ms after our answer: no second fast resend
+    assert frames(a, 0.03) == [] and a.next_deadline() == pytest.approx(fast + 0.1)
+    a.receive(2, fc0_again, 0.04)  # robot 2 repeats round 0, one behind us: fast resend
+    assert frames(a, 0.04) == [] and a.next_deadline() == pytest.approx(fast + 0.025)
