@@ -60,31 +60,28 @@ def test_parse_duration_accepts(text, seconds):
     assert parse_duration(text, flag="--delay") == pytest.approx(seconds, rel=1e-15)
 
 
-@pytest.mark.parametrize(
-    ("parse", "flag", "text", "why"),
-    [
-        (parse_duration, "--jitter", "20 parsecs", "is not a duration (use e.g. 20ms or 0.5s)"),
-        (parse_duration, "--jitter", "-5ms", "is negative"),
-        (parse_duration, "--jitter", "20", "has no unit"),
-        (parse_duration, "--jitter", "nan", "is not a duration"),
-        (parse_duration, "--jitter", "nanms", "is not a duration"),
-        (parse_duration, "--jitter", "infs", "is not a duration"),
-        (parse_duration, "--jitter", "1e400s", "is not a finite duration"),
-        (parse_duration, "--jitter", "", "is not a duration"),
-        (parse_duration, "--jitter", "ms", "is not a duration"),
-        (parse_duration, "--jitter", "20 ms s", "is not a duration"),
-        (parse_duration, "--jitter", "20MS", "is not a duration"),
-        (parse_probability, "--loss", "1.5", "is outside [0, 1]"),
-        (parse_probability, "--loss", "101%", "is outside [0, 1]"),
-        (parse_probability, "--loss", "-0.1", "is outside [0, 1]"),
-        (parse_probability, "--loss", "-5%", "is outside [0, 1]"),
-        (parse_probability, "--loss", "nan", "is not a probability"),
-        (parse_probability, "--loss", "inf", "is not a probability"),
-        (parse_probability, "--loss", "a lot", "is not a probability"),
-        (parse_probability, "--loss", "", "is not a probability"),
-        (parse_probability, "--loss", "30%%", "is not a probability"),
-    ],
-)
+# Rejected text, grouped by the verdict that follows the flag and the quoted text.
+DURATION_REJECTIONS = {
+    "is not a duration (use e.g. 20ms or 0.5s)": ["20 parsecs"],
+    "is negative": ["-5ms"],
+    "has no unit": ["20"],
+    "is not a finite duration": ["1e400s"],
+    "is not a duration": ["nan", "nanms", "infs", "", "ms", "20 ms s", "20MS"],
+}
+PROBABILITY_REJECTIONS = {
+    "is outside [0, 1]": ["1.5", "101%", "-0.1", "-5%"],
+    "is not a probability": ["nan", "inf", "a lot", "", "30%%"],
+}
+REJECTIONS = [
+    (parse, flag, text, why)
+    for parse, flag, table in ((parse_duration, "--jitter", DURATION_REJECTIONS),
+                               (parse_probability, "--loss", PROBABILITY_REJECTIONS))
+    for why, texts in table.items()
+    for text in texts
+]
+
+
+@pytest.mark.parametrize(("parse", "flag", "text", "why"), REJECTIONS)
 def test_parsers_reject_naming_the_flag_and_the_text(parse, flag, text, why):
     with pytest.raises(ValueError) as err:
         parse(text, flag=flag)
