@@ -363,6 +363,9 @@ def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, star
     robots start then, and import while the router starts (their Zenoh clients retry until it
     listens). What it returns is handed back; if this port fails, its ``abandon()`` is called.
     """
+    if early is not None and early.bound_s < lifetime_s:  # it would end by itself mid-run (--max-wall)
+        early.discard()
+        early = None
     attempts = 1 if zenoh_port is not None else ROUTER_PORT_ATTEMPTS
     for attempt in range(attempts):
         if attempt == 0 and early is not None:

@@ -49,3 +49,25 @@ def test_a_router_ends_when_its_parent_is_gone(tmp_path):
     assert left == []
     said = log.read_text()
     assert '"router": "ready"' in said and '"router": "closed"' in said, said  # it ran, then ended by itself
+
+
+
+def test_an_early_router_bound_shorter_than_the_run_is_not_adopted(tmp_path):
+    """A launch whose bound outlasts the early router's (a long --max-wall) starts a router of its
+    own: the early one would end by itself in the middle of the run, so it is stopped instead."""
+    from launcher.fleet import _start_router
+
+    early = EarlyRouter(str(tmp_path))
+    early.bound_s = 10.0  # shorter than the run's 60 s below
+    router = None
+    try:
+        router, _ = _start_router(None, tmp_path, 60.0, started=[], early=early)
+        assert router.proc.pid != early.proc.pid and not early.adopted
+        assert early.proc.poll() is not None and not early.folder.exists()  # stopped by its PID, folder gone
+    finally:
+        for proc in [early.proc] + ([router.proc] if router is not None else []):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+        if router is not None:
+            router.stop()
