@@ -106,7 +106,6 @@ class SessionTiming:
         return cls(retransmit, dead, wall, linger, give_up)
 
 
-
 class _SeenFrames:
     """One sender's recent frames, seq -> round, with what `receive` asks of them each frame --
     the newest seq and whether a round is among them -- kept up to date instead of scanned
@@ -140,6 +139,7 @@ class _SeenFrames:
             self.per_round[rnd] = left
         else:
             del self.per_round[rnd]
+
 
 class RobotSession:
     """One robot's protocol state around its core; see the module doc for the rules."""
