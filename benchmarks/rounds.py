@@ -24,6 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.admm import ADMMParams  # noqa: E402
+from agents.relay_hub import RelayHubADMM  # noqa: E402
 from protocol.frames import encode_state  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
 from agents.spec import build_core  # noqa: E402
@@ -48,6 +49,13 @@ BEFORE = {
 }
 
 SCENARIOS = FLEETS
+
+
+def form_name(core: object) -> str:
+    """Which ADMM form a robot runs: the relay hub, the hub form (complete graphs) or the edge form."""
+    if isinstance(core, RelayHubADMM):
+        return "relay hub + Anderson"
+    return "hub + Anderson" if getattr(core, "_hub", None) is not None else "edge"
 
 
 def measure(kwargs: dict, max_rounds: int) -> dict:
@@ -83,7 +91,7 @@ def measure(kwargs: dict, max_rounds: int) -> dict:
         "converged": all(c.converged for c in cores),
         "error": error(),
         "ms": 1e3 * compute / max(rounds * len(cores), 1),
-        "form": "hub + Anderson" if cores[0]._hub is not None else "edge",
+        "form": form_name(cores[0]),
         "rank": f"{b.rank}/{b.size}",
         "bytes": sum(sent.values()) / len(sent),
     }
