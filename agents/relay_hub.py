@@ -57,6 +57,7 @@ from agents.messages import StateUpdate
 from agents.allreduce import _bfs, check_graph
 from agents.problem import MarginQP, SolverError
 from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gaps, to_bytes
+from protocol.frames import MAX_DIM
 
 #: the frame budget: N vectors of M + 1 floats, at most 16 (M + 1)
 RELAY_MAX_ROBOTS = 16
@@ -77,12 +78,14 @@ _SHARED: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 SHARED_KEPT = 64
 
 
-def relay_form(params: ADMMParams, graph: Mapping[int, Sequence[int]]) -> bool:
-    """True when a fleet's ADMM runs the relay hub: a connected sparse graph of 3 to 16 robots,
-    Anderson on (anderson > 0) and `relay` set (the default). Complete graphs keep the hub form."""
+def relay_form(params: ADMMParams, graph: Mapping[int, Sequence[int]], dim: int) -> bool:
+    """True when a fleet's ADMM runs the relay hub: a sparse graph of 3 to 16 robots, Anderson on
+    (anderson > 0), `relay` set (the default) and N frames of (x, gamma) (`dim` floats each) within
+    a frame's MAX_DIM. Complete graphs keep the hub form, the others the edge form."""
     n = len(graph)
     complete = all(len(set(nbrs)) == n - 1 for nbrs in graph.values())
-    return bool(params.relay and params.anderson > 0 and 2 < n <= RELAY_MAX_ROBOTS and not complete)
+    fits = n * dim <= MAX_DIM
+    return bool(params.relay and params.anderson > 0 and 2 < n <= RELAY_MAX_ROBOTS and not complete and fits)
 
 
 def hop_table(graph: Mapping[int, Sequence[int]]) -> dict[int, dict[int, int]]:

@@ -175,7 +175,7 @@ class FleetSpec:
             return frame_size(len(self.grid) + 1, self.graph, self.algorithm_params)
         if self.algorithm == "admm" and self._hub_form(self.algorithm_params):
             return 2 * (len(self.grid) + 1)  # the hub form sends [v; w] (agents/admm.py)
-        if self.algorithm == "admm" and relay_form(self.algorithm_params, self.graph):
+        if self.algorithm == "admm" and relay_form(self.algorithm_params, self.graph, len(self.grid) + 1):
             return self.n_robots * (len(self.grid) + 1)  # a relayed a per robot (agents/relay_hub.py)
         return len(self.grid) + 1
 
@@ -337,7 +337,7 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
         return DistributedNewton(share, params, graph=spec.graph, keep_trace=keep_trace)
     if spec.algorithm == "ct-admm":
         return ContinuousTimeADMM(share, params, keep_trace=keep_trace)
-    if relay_form(params, spec.graph):  # a sparse graph of <= 16 robots: the relay hub
+    if relay_form(params, spec.graph, share.dim):  # a sparse graph of <= 16 robots: the relay hub
         return RelayHubADMM(share, params, graph=spec.graph, keep_trace=keep_trace)
     return ConsensusADMM(share, params, keep_trace=keep_trace)
 

@@ -10,6 +10,7 @@ from agents.admm import ADMMParams
 from agents.problem import SolverError
 from agents.relay_hub import RELAY_MAX_ROBOTS, RelayHubADMM, relay_form
 from agents.spec import build_core, restore_core
+from protocol.frames import MAX_DIM
 
 from .conftest import make_run, max_function_error, run_to_end, step_all
 
@@ -23,11 +24,12 @@ def test_relay_form_is_chosen_for_sparse_fleets_up_to_16_robots():
     ring = {i: ((i - 1) % 8, (i + 1) % 8) for i in range(8)}
     complete = {i: tuple(j for j in range(4) if j != i) for i in range(4)}
     big_ring = {i: ((i - 1) % (RELAY_MAX_ROBOTS + 1), (i + 1) % (RELAY_MAX_ROBOTS + 1)) for i in range(RELAY_MAX_ROBOTS + 1)}
-    assert relay_form(ADMMParams(), ring)
-    assert not relay_form(ADMMParams(relay=False), ring)
-    assert not relay_form(ADMMParams(anderson=0), ring)  # anderson 0: the plain edge form everywhere
-    assert not relay_form(ADMMParams(), complete)  # complete graphs: the hub form
-    assert not relay_form(ADMMParams(), big_ring)  # the frame budget: at most 16 relayed vectors
+    assert relay_form(ADMMParams(), ring, 16)
+    assert not relay_form(ADMMParams(relay=False), ring, 16)
+    assert not relay_form(ADMMParams(anderson=0), ring, 16)  # anderson 0: the plain edge form everywhere
+    assert not relay_form(ADMMParams(), complete, 16)  # complete graphs: the hub form
+    assert not relay_form(ADMMParams(), big_ring, 16)  # the frame budget: at most 16 relayed vectors
+    assert not relay_form(ADMMParams(), ring, MAX_DIM // 8 + 1)  # 8 relayed vectors beyond a frame's size
 
 
 def test_a_line_reaches_the_exact_optimum_with_identical_copies(monkeypatch):
