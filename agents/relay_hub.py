@@ -67,8 +67,10 @@ RELAY_RELAX = 1.5
 RELAY_SAFEGUARD = 10.0
 #: Tikhonov regularisation of Anderson's least squares, relative to the mean diagonal
 RELAY_REG = 3e-3
-#: the stop test must pass this many rounds in a row (see `_fleet_step`)
+#: the stop test -- RELAY_STOP_MARGIN x the edge form's estimate below tol -- must pass this many
+#: rounds in a row (see `_fleet_step`)
 RELAY_HOLD = 40
+RELAY_STOP_MARGIN = 2.0
 
 
 #: fleet steps taken lately in this process, by the digest of a copy's token and the step's inputs:
@@ -252,11 +254,13 @@ class RelayHubADMM(RoundCore):
         self.residual = max(float(np.max(gaps[:n])), 0.0 if self._prev_mean is None else float(gaps[-1]))
         self._prev_mean = mean
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW:]
-        # the edge form's estimate (window maxima), held RELAY_HOLD rounds in a row: a delayed
+        # twice the edge form's estimate (window maxima), held RELAY_HOLD rounds in a row: a delayed
         # Anderson can sit on a plateau where the fleet agrees and barely moves, the residual ~70x
-        # below the error (measured: 8-ring seed 2, error 1.1e-3 for 600 rounds at residual 1.6e-5);
-        # without the hold both the hub's and the edge form's rule stopped it there, above tol
-        self._held = self._held + 1 if error_estimate(self._residuals) < self.params.tol else 0
+        # below the error (measured: 8-ring seed 2, error 1.1e-3 for 600 rounds at residual 1.6e-5,
+        # the estimate 2e-4..7e-4 for 40 rounds on end); the hub's and the edge form's rules, and the
+        # latter held 40 rounds, all stopped it there, above tol (docs/algorithm.md)
+        estimate = RELAY_STOP_MARGIN * error_estimate(self._residuals)
+        self._held = self._held + 1 if estimate < self.params.tol else 0
         return self._held >= RELAY_HOLD
 
     # -- Anderson -------------------------------------------------------------------------------
@@ -322,7 +326,7 @@ class RelayHubADMM(RoundCore):
                         "(run the edge form, params relay = false, to continue with the survivors)")
 
     def status(self) -> dict[str, Any]:
-        return {**super().status(), "error_estimate": error_estimate(self._residuals)}
+        return {**super().status(), "error_estimate": RELAY_STOP_MARGIN * error_estimate(self._residuals)}
 
     # -- checkpoint -----------------------------------------------------------------------------
     def _save_state(self) -> dict[str, Any]:
