@@ -37,6 +37,11 @@ point -- as it can in the edge form by sending a wrong own value; a garbled fram
 is refused by the round protocol (`RoundCore.receive`), and a non-finite relayed value makes the
 step fail as a local solve would (the session stops the robot with the reason, no traceback).
 
+Stop: every copy computes the fleet's residual of round k - D (the x_l's spread around their mean,
+the mean's move); twice the edge form's estimate r / (1 - rate) must stay below tol for RELAY_HOLD
+rounds in a row (a delayed Anderson can sit on a plateau the plain estimate passes, see
+docs/algorithm.md), then the stop flags flood as in every round-based core.
+
 A robot that dies for good cannot be dropped consistently (its relays are gone and the delays of
 every path through it change): the relay robots then stop, not converged, with that reason; the
 edge form (`relay = False` in the fleet's params) keeps its survivors' answer. No I/O, no clock.
@@ -53,8 +58,8 @@ from typing import Any
 import numpy as np
 
 from agents.admm import RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, error_estimate, shared_step
-from agents.messages import StateUpdate
 from agents.allreduce import _bfs, check_graph
+from agents.messages import StateUpdate
 from agents.problem import MarginQP, SolverError
 from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gaps, to_bytes
 from protocol.frames import MAX_DIM

@@ -12,7 +12,8 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
     .venv/bin/python benchmarks/rounds.py            # the full table (a few minutes)
     .venv/bin/python benchmarks/rounds.py --quick    # the paper's setting only
     .venv/bin/python benchmarks/rounds.py --stop-check  # the stopping rule on sparse fleets, every
-                                                        # built-in shape x seeds 0-2 (~10 minutes)
+                                                        # built-in shape x seeds 0-2 (~10 minutes);
+                                                        # the relay hub, or with --edge the edge form
 """
 
 from __future__ import annotations
@@ -60,8 +61,9 @@ def form_name(core: object) -> str:
     return "hub + Anderson" if getattr(core, "_hub", None) is not None else "edge"
 
 
-def measure(kwargs: dict, max_rounds: int) -> dict:
+def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
     world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
+    spec.params["relay"] = relay  # False: sparse fleets run the edge form
     central = solve_central(spec.basis, world.points, world.labels, spec.C)
     b = spec.basis
     assert central.solved and b.rank == b.size, f"reference truncated: rank {b.rank} of {b.size}"
@@ -131,7 +133,7 @@ STOP_CHECK_FLEETS = [("ring", 6), ("line", 4)]
 STOP_CHECK_SEEDS = (0, 1, 2)
 
 
-def stop_check(max_rounds: int) -> list[str]:
+def stop_check(max_rounds: int, relay: bool) -> list[str]:
     """Error at the stop vs the exact central QP on sparse fleets over shapes and seeds.
 
     The stopping rule must never stop a fleet above tol; its margin there (error at stop / tol)
@@ -144,7 +146,8 @@ def stop_check(max_rounds: int) -> list[str]:
         "",
         "## The stopping rule on sparse fleets: error at stop, every built-in shape x seeds 0-2",
         "",
-        f"`benchmarks/rounds.py --stop-check`: the paper's preset (grid 5x3, sigma 1), edge form, tol {tol:g}, "
+        f"`benchmarks/rounds.py --stop-check{'' if relay else ' --edge'}`: the paper's preset (grid 5x3, sigma 1), "
+        f"{'relay hub (agents/relay_hub.py)' if relay else 'edge form'}, tol {tol:g}, "
         f"round cap {max_rounds}. 'safe' = stopped by the rule with the error vs the exact central QP <= tol "
         "('cap' = the round cap ended the run: not converged, no stop to judge).",
         "",
@@ -159,7 +162,7 @@ def stop_check(max_rounds: int) -> list[str]:
         seen.add(SHAPES[shape])
         for topology, robots in STOP_CHECK_FLEETS:
             for seed in STOP_CHECK_SEEDS:
-                r = measure({"shape": shape, "robots": robots, "topology": topology, "seed": seed}, max_rounds)
+                r = measure({"shape": shape, "robots": robots, "topology": topology, "seed": seed}, max_rounds, relay=relay)
                 first = r["first"] if r["first"] is not None else ">" + str(r["stop"])
                 ratio = f"{r['stop'] / r['first']:.2f}" if r["first"] else "-"
                 verdict = ("yes" if r["error"] <= tol else "NO") if r["converged"] else "cap"
@@ -176,12 +179,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="only the paper's setting")
     ap.add_argument("--max-rounds", type=int, default=5000)
+    ap.add_argument("--edge", action="store_true",
+                    help="with --stop-check: the edge form (rounds-stop.md) instead of the relay hub (rounds-stop-relay.md)")
     ap.add_argument("--stop-check", action="store_true",
                     help="only the stopping rule's error at stop on sparse fleets (shapes x seeds)")
     args = ap.parse_args()
     if args.stop_check:
-        body = stop_check(args.max_rounds)
-        write_results("rounds-stop.md", "# Decentralized ADMM: the stopping rule on sparse fleets\n" + "\n".join(body) + "\n")
+        body = stop_check(args.max_rounds, relay=not args.edge)
+        write_results("rounds-stop.md" if args.edge else "rounds-stop-relay.md",
+                      "# Decentralized ADMM: the stopping rule on sparse fleets\n" + "\n".join(body) + "\n")
         return
     rows = SCENARIOS[:1] if args.quick else SCENARIOS
     d = resolve_options(Options(preset="paper"))
