@@ -40,7 +40,7 @@ import math
 import operator
 import threading
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -64,6 +64,7 @@ class ADMMParams:
     diameter: int = 1
     anderson: int = 30  # memory of the Anderson acceleration on a complete graph (0: plain ADMM)
     safeguard: float = 2.0  # restart Anderson when the fixed-point residual exceeds this x its best
+    relay: bool = True  # sparse graphs of <= 16 robots run the relay hub (agents/relay_hub.py); False: edge form
 
     def __post_init__(self) -> None:
         check_positive(self, "rho", "gamma_penalty")
@@ -403,6 +404,24 @@ class _Hub:
                              b"" if self.s is None else self.s, *self.hist_s, b"|", *self.hist_f)
 
 
+def shared_step(cache: OrderedDict[bytes, Any], key: bytes, compute: Callable[[], Any], kept: int) -> tuple[Any, bool]:
+    """The value of a step every copy of a replicated state takes alike, computed once per process:
+    (the cached value, True) when a copy already took the step with this key (the digest of its
+    state and inputs), else (compute(), False), kept among the last ``kept`` steps (0: no sharing)."""
+    with _SHARED_LOCK:
+        done = cache.get(key)
+        if done is not None:
+            cache.move_to_end(key)
+            return done, True
+    done = compute()
+    with _SHARED_LOCK:
+        if kept > 0:
+            cache[key] = done
+        while len(cache) > kept:
+            cache.popitem(last=False)
+    return done, False
+
+
 def _digest(*parts: bytes | np.ndarray) -> bytes:
     """A 20-byte digest of byte strings and contiguous arrays (their raw bytes)."""
     h = hashlib.blake2b(digest_size=20)
@@ -605,32 +624,26 @@ class ConsensusADMM(RoundCore):
         prev = self._prev_mean
         key = _digest(hub.token, b"w" if ws is not None else b"-", b"p" if prev is not None else b"-",
                       b"" if prev is None else prev, np.concatenate(values), b"" if ws is None else np.concatenate(ws))
-        with _SHARED_LOCK:
-            done = _SHARED_STEPS.get(key)
-            if done is not None:
-                _SHARED_STEPS.move_to_end(key)
-        if done is None:
+
+        def compute() -> tuple[Any, ...]:
             if ws is None:
-                ws = values if hub.s is None else [hub.message(i, v) for i, v in zip(hub.ids, values)]
+                shares = values if hub.s is None else [hub.message(i, v) for i, v in zip(hub.ids, values)]
                 synced = True
             else:
-                synced = hub.s is None or hub.synced(values, ws)
+                shares, synced = ws, hub.s is None or hub.synced(values, ws)
             if hub.s is None:
-                hub.start(ws)
+                hub.start(shares)
             else:
-                hub.step(ws, synced)
+                hub.step(shares, synced)
             mean = hub._mean(values)
             # primal: the v's spread around their mean; dual: the mean's move since last round
             gaps = relative_gaps(mean, np.array(values if prev is None else values + [prev]))
             primal = float(np.max(gaps[: len(values)]))
             dual = 0.0 if prev is None else float(gaps[-1])
-            done = (hub.snapshot(), mean, max(primal, dual))
-            with _SHARED_LOCK:
-                if SHARED_STEPS_KEPT > 0:
-                    _SHARED_STEPS[key] = done
-                while len(_SHARED_STEPS) > SHARED_STEPS_KEPT:
-                    _SHARED_STEPS.popitem(last=False)
-        else:
+            return (hub.snapshot(), mean, max(primal, dual))
+
+        done, adopted = shared_step(_SHARED_STEPS, key, compute, SHARED_STEPS_KEPT)
+        if adopted:
             hub.adopt(done[0])
         hub.token = key
         return done[1], done[2]

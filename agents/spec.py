@@ -21,6 +21,7 @@ from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.extension import load_algorithm
 from agents.kernel import GridBasis
 from agents.newton import DistributedNewton, NewtonParams, frame_size
+from agents.relay_hub import RelayHubADMM, relay_form
 from agents.params import params_from
 from agents.rounds import RobotShare
 from protocol.auth import FLEET_SECRET_BYTES, FrameAuth, new_fleet_secret
@@ -174,6 +175,8 @@ class FleetSpec:
             return frame_size(len(self.grid) + 1, self.graph, self.algorithm_params)
         if self.algorithm == "admm" and self._hub_form(self.algorithm_params):
             return 2 * (len(self.grid) + 1)  # the hub form sends [v; w] (agents/admm.py)
+        if self.algorithm == "admm" and relay_form(self.algorithm_params, self.graph, len(self.grid) + 1):
+            return self.n_robots * (len(self.grid) + 1)  # a relayed a per robot (agents/relay_hub.py)
         return len(self.grid) + 1
 
     @cached_property
@@ -310,7 +313,7 @@ class FleetSpec:
             raise ValueError(f"{path}: not a valid fleet file ({exc})") from None
 
 
-Core = ConsensusADMM | ContinuousTimeADMM | AdaptiveGridCore | DistributedNewton  # or a user's RoundCore
+Core = ConsensusADMM | RelayHubADMM | ContinuousTimeADMM | AdaptiveGridCore | DistributedNewton  # or a user's RoundCore
 
 
 def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Core:
@@ -334,6 +337,8 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
         return DistributedNewton(share, params, graph=spec.graph, keep_trace=keep_trace)
     if spec.algorithm == "ct-admm":
         return ContinuousTimeADMM(share, params, keep_trace=keep_trace)
+    if relay_form(params, spec.graph, share.dim):  # a sparse graph of <= 16 robots: the relay hub
+        return RelayHubADMM(share, params, graph=spec.graph, keep_trace=keep_trace)
     return ConsensusADMM(share, params, keep_trace=keep_trace)
 
 

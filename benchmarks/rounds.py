@@ -12,7 +12,8 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
     .venv/bin/python benchmarks/rounds.py            # the full table (a few minutes)
     .venv/bin/python benchmarks/rounds.py --quick    # the paper's setting only
     .venv/bin/python benchmarks/rounds.py --stop-check  # the stopping rule on sparse fleets, every
-                                                        # built-in shape x seeds 0-2 (~10 minutes)
+                                                        # built-in shape x seeds 0-2 (~10 minutes);
+                                                        # the relay hub, or with --edge the edge form
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.admm import ADMMParams  # noqa: E402
+from agents.relay_hub import (  # noqa: E402
+    RELAY_HOLD, RELAY_MAX_ROBOTS, RELAY_REG, RELAY_RELAX, RELAY_SAFEGUARD, RELAY_STOP_MARGIN, RelayHubADMM,
+)
 from protocol.frames import encode_state  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
 from agents.spec import build_core  # noqa: E402
@@ -50,8 +54,16 @@ BEFORE = {
 SCENARIOS = FLEETS
 
 
-def measure(kwargs: dict, max_rounds: int) -> dict:
+def form_name(core: object) -> str:
+    """Which ADMM form a robot runs: the relay hub, the hub form (complete graphs) or the edge form."""
+    if isinstance(core, RelayHubADMM):
+        return "relay hub + Anderson"
+    return "hub + Anderson" if getattr(core, "_hub", None) is not None else "edge"
+
+
+def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
     world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
+    spec.params["relay"] = relay  # False: sparse fleets run the edge form
     central = solve_central(spec.basis, world.points, world.labels, spec.C)
     b = spec.basis
     assert central.solved and b.rank == b.size, f"reference truncated: rank {b.rank} of {b.size}"
@@ -83,7 +95,7 @@ def measure(kwargs: dict, max_rounds: int) -> dict:
         "converged": all(c.converged for c in cores),
         "error": error(),
         "ms": 1e3 * compute / max(rounds * len(cores), 1),
-        "form": "hub + Anderson" if cores[0]._hub is not None else "edge",
+        "form": form_name(cores[0]),
         "rank": f"{b.rank}/{b.size}",
         "bytes": sum(sent.values()) / len(sent),
     }
@@ -121,7 +133,7 @@ STOP_CHECK_FLEETS = [("ring", 6), ("line", 4)]
 STOP_CHECK_SEEDS = (0, 1, 2)
 
 
-def stop_check(max_rounds: int) -> list[str]:
+def stop_check(max_rounds: int, relay: bool) -> list[str]:
     """Error at the stop vs the exact central QP on sparse fleets over shapes and seeds.
 
     The stopping rule must never stop a fleet above tol; its margin there (error at stop / tol)
@@ -134,7 +146,8 @@ def stop_check(max_rounds: int) -> list[str]:
         "",
         "## The stopping rule on sparse fleets: error at stop, every built-in shape x seeds 0-2",
         "",
-        f"`benchmarks/rounds.py --stop-check`: the paper's preset (grid 5x3, sigma 1), edge form, tol {tol:g}, "
+        f"`benchmarks/rounds.py --stop-check{'' if relay else ' --edge'}`: the paper's preset (grid 5x3, sigma 1), "
+        f"{'relay hub (agents/relay_hub.py)' if relay else 'edge form'}, tol {tol:g}, "
         f"round cap {max_rounds}. 'safe' = stopped by the rule with the error vs the exact central QP <= tol "
         "('cap' = the round cap ended the run: not converged, no stop to judge).",
         "",
@@ -149,7 +162,7 @@ def stop_check(max_rounds: int) -> list[str]:
         seen.add(SHAPES[shape])
         for topology, robots in STOP_CHECK_FLEETS:
             for seed in STOP_CHECK_SEEDS:
-                r = measure({"shape": shape, "robots": robots, "topology": topology, "seed": seed}, max_rounds)
+                r = measure({"shape": shape, "robots": robots, "topology": topology, "seed": seed}, max_rounds, relay=relay)
                 first = r["first"] if r["first"] is not None else ">" + str(r["stop"])
                 ratio = f"{r['stop'] / r['first']:.2f}" if r["first"] else "-"
                 verdict = ("yes" if r["error"] <= tol else "NO") if r["converged"] else "cap"
@@ -166,12 +179,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="only the paper's setting")
     ap.add_argument("--max-rounds", type=int, default=5000)
+    ap.add_argument("--edge", action="store_true",
+                    help="with --stop-check: the edge form (rounds-stop.md) instead of the relay hub (rounds-stop-relay.md)")
     ap.add_argument("--stop-check", action="store_true",
                     help="only the stopping rule's error at stop on sparse fleets (shapes x seeds)")
     args = ap.parse_args()
     if args.stop_check:
-        body = stop_check(args.max_rounds)
-        write_results("rounds-stop.md", "# Decentralized ADMM: the stopping rule on sparse fleets\n" + "\n".join(body) + "\n")
+        body = stop_check(args.max_rounds, relay=not args.edge)
+        write_results("rounds-stop.md" if args.edge else "rounds-stop-relay.md",
+                      "# Decentralized ADMM: the stopping rule on sparse fleets\n" + "\n".join(body) + "\n")
         return
     rows = SCENARIOS[:1] if args.quick else SCENARIOS
     d = resolve_options(Options(preset="paper"))
@@ -179,15 +195,20 @@ def main() -> None:
     lines = [
         f"Defaults: rho {d.rho}, over-relaxation {d.relax}, tol {d.tol:g} (estimated error), grid {d.grid}, "
         f"sigma {d.sigma}, {d.points} points per robot, LiDAR offset {REFERENCE_LENGTHS['offset']:g} x the outline's scale (1 for the built-in shapes; the paper's preset, admm); "
-        f"Anderson memory {p.anderson}, safeguard {p.safeguard:g} (complete graphs). Errors are against the exact "
+        f"Anderson memory {p.anderson}, safeguard {p.safeguard:g} (complete graphs); sparse fleets of <= "
+        f"{RELAY_MAX_ROBOTS} robots run the relay hub (agents/relay_hub.py: rho {p.rho:g}, memory {p.anderson}, "
+        f"relaxation {RELAY_RELAX:g}, safeguard {RELAY_SAFEGUARD:g}, regularisation {RELAY_REG:g}, stop test "
+        f"{RELAY_STOP_MARGIN:g} x the edge form's estimate below tol for {RELAY_HOLD} rounds in a row). Errors are against the exact "
         "central QP (the grid's kernel matrix has full rank: column 'rank' = GridBasis.rank / M).",
-        "Before (in brackets): main at commit 347b007, same scenarios, same data; the ADMM is unchanged, so rounds "
-        "and errors are the same bits. ms per robot-round measured on a shared 2-core machine under heavy load "
-        "(load average 8-12 from five parallel sessions; main's figures under another load): not comparable "
-        "across runs. "
+        "Before (in brackets): main at commit 347b007, same scenarios, same data (complete graphs: the same hub "
+        "form, the same bits; sparse graphs: the edge form, which the relay hub replaces). ms per robot-round "
+        "measured on a shared 2-core machine under load (four parallel sessions; main's figures under another "
+        "load): not comparable across runs; in process the relay hub's fleet step is computed once and shared "
+        "by the robots of the process (as the hub's), so its ms per robot-round is mostly the robot's own QP. "
         "Bytes: each robot's encoded frames, published once per round (no loss, so no resends).",
         "Targets (issue 10): paper setting <= 120 rounds at stop (stretch 60); 8-robot ring <= 600; 16 robots, "
-        "ring and geometric, <= 1000. Sparse graphs run the plain edge form: those targets are not met.",
+        "ring and geometric, <= 1000. The relay hub meets the 16-robot geometric target; the 8-ring (<= 600) and "
+        "the 16-ring (<= 1000) are not met (figures below).",
         "",
         "| scenario | form | rounds to 1e-3 (before) | rounds at stop (before) | converged | error at stop (before) "
         "| rank | ms per robot-round (before) | bytes per robot |",

@@ -81,4 +81,6 @@ def test_fixed_grid_algorithms_need_grid_and_sigma(auto):
     # the paper's fleet is complete: the hub form's frames carry [v; w], 2 x (15 + 1) floats
     assert paper.algorithm == "admm" and paper.sigma == 1.0 and paper.dim == 32
     _, ring, _ = make_run(robots=4, topology="ring")
+    assert ring.dim == 4 * 16  # the relay hub sends a relayed a per robot (agents/relay_hub.py)
+    ring.params["relay"] = False
     assert ring.dim == 16  # the edge form sends v alone

@@ -1,0 +1,372 @@
+"""Relay hub: the accelerated hub form of consensus ADMM on a sparse graph, one robot's sans-IO core.
+
+Why it exists: on a complete graph every robot hears every robot, so each runs the fleet's hub
+ADMM with Anderson acceleration (agents/admm.py ``_Hub``), 2-5 times fewer rounds than the edge
+form. On a sparse graph the edge form was the only exact choice. Here every robot *relays*: its
+frame carries, for every robot l of the fleet, the newest a_l it holds, so robot i holds a_l with a
+delay of d(i, l) hops (deterministic in lockstep). Every robot then runs one identical copy of the
+whole fleet's Douglas-Rachford (hub ADMM) state, stepped with the values of round k - D (D the
+graph's diameter, which every robot holds from every robot):
+
+    fleet state S = (t_1 .. t_N)             t_l: robot l's proximal centre (z - u_l in hub terms)
+    x_l = argmin f_l(v) + 1/2 (v - t_l)' P (v - t_l)      (robot l's own QP; only l computes it)
+    a_l = 2 x_l - t_l                        (the one vector robot l publishes, relayed by all)
+    F(S)_l = t_l + eta (mean_j a_j - x_l)    (the relaxed Douglas-Rachford map, eta = RELAY_RELAX)
+    S^(k+1) = Anderson(F(S^(k+1-D)), history of (S^j, F(S^j)))    (type-II, safeguarded)
+
+Every copy knows every t_l (it computed S), so x_l = (a_l + t_l) / 2 needs only the relayed a_l:
+frames carry N vectors of M + 1 floats (N <= RELAY_MAX_ROBOTS = 16: the frame budget of 16 (M + 1)).
+Robot i keeps its own block t_i of the copy's S and solves its own QP at it.
+
+Exact: each pair (S^j, F(S^j)) is an exact evaluation of the one fleet map F (every x_l is robot
+l's own prox of its own t_l), Anderson's result is an affine combination of such evaluations, and
+at a fixed point F(S) = S: mean_j a_j = x_l for every l, so all x_l equal one z, sum_l t_l = N z and
+0 in sum_l (df_l(z) + P (z - t_l)) = sum_l df_l(z): the centralized optimum (as agents/free_hub.py
+argues for the free hub). The delay changes the path, not the fixed point.
+
+Bit-identical copies: every operation that mixes robots is elementwise in robot-id order or exactly
+rounded (admm.py's ``_pairwise_sum`` and ``_solve_spd``), so every robot's copy of S is the same
+bits on any machine -- which is what lets robot i take t_l from its own copy instead of the frame.
+
+What the frames reveal: a_l of every robot reaches every robot (relayed through the graph), not only
+the neighbours' values as in the edge form. a_l is a function-space vector (M + 1 floats), never a
+point or a feature row; but a robot learns every other robot's iterates, a privacy change versus the
+paper (where a robot sees its neighbours' values only). A compromised neighbour can forge the a_l
+it relays (the frames are authenticated per edge, not end to end), and so steer the fleet to a wrong
+point -- as it can in the edge form by sending a wrong own value; a garbled frame of the wrong size
+is refused by the round protocol (`RoundCore.receive`), and a non-finite relayed value makes the
+step fail as a local solve would (the session stops the robot with the reason, no traceback).
+
+Stop: every copy computes the fleet's residual of round k - D (the x_l's spread around their mean,
+the mean's move); twice the edge form's estimate r / (1 - rate) must stay below tol for RELAY_HOLD
+rounds in a row (a delayed Anderson can sit on a plateau the plain estimate passes, see
+docs/algorithm.md), then the stop flags flood as in every round-based core.
+
+A robot that dies for good cannot be dropped consistently (its relays are gone and the delays of
+every path through it change): the relay robots then stop, not converged, with that reason; the
+edge form (`relay = False` in the fleet's params) keeps its survivors' answer. No I/O, no clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from agents.admm import RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, error_estimate, shared_step
+from agents.allreduce import _bfs, check_graph
+from agents.messages import StateUpdate
+from agents.problem import MarginQP, SolverError
+from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gaps, to_bytes
+from protocol.frames import MAX_DIM
+
+#: the frame budget: N vectors of M + 1 floats, at most 16 (M + 1)
+RELAY_MAX_ROBOTS = 16
+#: relaxation eta of the Douglas-Rachford map (1: plain ADMM)
+RELAY_RELAX = 1.5
+#: restart Anderson when the residual exceeds this x its best since the last restart
+RELAY_SAFEGUARD = 10.0
+#: Tikhonov regularisation of Anderson's least squares, relative to the mean diagonal
+RELAY_REG = 3e-3
+#: the stop test -- RELAY_STOP_MARGIN x the edge form's estimate below tol -- must pass this many
+#: rounds in a row (see `_fleet_step`)
+RELAY_HOLD = 40
+RELAY_STOP_MARGIN = 2.0
+
+
+#: fleet steps taken lately in this process, by the digest of a copy's token and the step's inputs:
+#: every robot's copy takes the identical step, so the robots of one process (the in-process fleet)
+#: compute it once and adopt it (the same bits); a step no longer here is computed again
+_SHARED: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
+SHARED_KEPT = 64
+
+
+def relay_form(params: ADMMParams, graph: Mapping[int, Sequence[int]], dim: int) -> bool:
+    """True when a fleet's ADMM runs the relay hub: a sparse graph of 3 to 16 robots, Anderson on
+    (anderson > 0), `relay` set (the default) and N frames of (x, gamma) (`dim` floats each) within
+    a frame's MAX_DIM. Complete graphs keep the hub form, the others the edge form."""
+    n = len(graph)
+    complete = all(len(set(nbrs)) == n - 1 for nbrs in graph.values())
+    fits = n * dim <= MAX_DIM
+    return bool(params.relay and params.anderson > 0 and 2 < n <= RELAY_MAX_ROBOTS and not complete and fits)
+
+
+def hop_table(graph: Mapping[int, Sequence[int]]) -> dict[int, dict[int, int]]:
+    """Hop distance between every two robots (breadth-first from each)."""
+    return {i: _bfs(graph, i)[0] for i in graph}
+
+
+class RelayHubADMM(RoundCore):
+    """One robot of the relay hub (see the module); the round protocol's interface."""
+
+    algorithm = "admm"
+
+    def __init__(self, share: RobotShare, params: ADMMParams, *, graph: Mapping[int, Sequence[int]],
+                 keep_trace: bool = True) -> None:
+        check_graph(graph)
+        me = share.robot_id
+        if tuple(sorted(graph.get(me, ()))) != tuple(share.neighbours):
+            raise ValueError(f"robot {me}: neighbours {share.neighbours} differ from the graph's {graph.get(me)}")
+        if len(graph) > RELAY_MAX_ROBOTS:
+            raise ValueError(f"the relay hub carries at most {RELAY_MAX_ROBOTS} robots per frame, not {len(graph)}")
+        super().__init__(me, share.neighbours, share.dim, diameter=params.diameter, round_cap=params.max_rounds,
+                         keep_trace=keep_trace)
+        self.params = params
+        self.ids = tuple(sorted(graph))
+        self.n = n = len(self.ids)
+        self._k = self.ids.index(me)
+        hops = hop_table(graph)
+        self.delay = max(max(d.values()) for d in hops.values())  # D: every a_l is here after D rounds
+        self._dist = hops[me]
+        # slot l of my frame at round r holds a_l of round r - d(me, l); I read robot l's value from
+        # the neighbour nearest to l (ties: lowest id), whose frame of round r holds round r - d(j, l)
+        self._route = {l: min(self.neighbours, key=lambda j: (hops[j][l], j)) for l in self.ids if l != me}
+        self._route_hops = {l: hops[j][l] for l, j in self._route.items()}
+        self.frame_dim = n * self.dim
+        self._P = np.full(self.dim, params.rho)
+        self._P[-1] *= params.gamma_penalty
+        self._w = np.tile(np.sqrt(self._P), n)  # Anderson's residual weights (the P-norm)
+        self._memory = params.anderson
+        self._qp = MarginQP(share.features, share.labels, x_weight=1.0 / n, prox_weight=self._P, C=share.C)
+        self._broken: str | None = None
+        # the shared fleet state by round (rounds k - D .. k), the relayed a's by robot and round
+        self._S: dict[int, np.ndarray] = {}
+        self._a: dict[int, dict[int, np.ndarray]] = {l: {} for l in self.ids}
+        self._forget()
+        # digest of everything the copy's state follows from (see _SHARED); the data enter by S^0
+        self._token = _digest(repr((self.ids, self.dim, self.delay, params.rho, params.gamma_penalty, params.tol,
+                                    self._memory, RELAY_RELAX, RELAY_SAFEGUARD, RELAY_REG)).encode())
+        self._residuals: list[float] = []
+        self._held = 0  # consecutive rounds the stop test passed
+        self._prev_mean: np.ndarray | None = None
+        self._frame = np.zeros(self.frame_dim)
+        self._prev_frame: np.ndarray | None = None
+        # round 0: the robot's own max-margin solution, published as a with t = a = x (the start
+        # S^0 = every robot's own solution, known to every copy from the relayed a's themselves)
+        self._qp.set_prox(np.zeros(self.dim))
+        try:
+            own = self._solve(np.zeros(self.dim))
+        finally:
+            self._qp.set_prox(self._P)
+        self._values = own
+        self._a[me][0] = own
+        self._frame = self._make_frame()
+        self._record()
+
+    # -- frames ---------------------------------------------------------------------------------
+    def _make_frame(self) -> np.ndarray:
+        """Slot l: the newest a_l held, of round `round - d(me, l)` (zeros until it arrived)."""
+        frame = np.zeros(self.frame_dim)
+        d = self.dim
+        for k, l in enumerate(self.ids):
+            a = self._a[l].get(self.round - self._dist[l])
+            if a is not None:
+                frame[k * d:(k + 1) * d] = a
+        return frame
+
+    def outgoing(self) -> StateUpdate:
+        """The relay frame (every robot's newest a) instead of v; last round's frame piggybacked."""
+        up = super().outgoing()
+        return replace(up, values=self._frame.copy(),
+                       prev_values=None if self._prev_frame is None else self._prev_frame.copy())
+
+    # -- one round ------------------------------------------------------------------------------
+    def _step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
+        if self._broken is not None:
+            raise SolverError(self._broken)
+        k, d, D = self.round, self.dim, self.delay
+        for l, j in self._route.items():  # round k's frames: a_l of round k - d(j, l) = k + 1 - d(me, l)
+            stamp = k - self._route_hops[l]
+            if stamp >= 0:
+                a = theirs[j][self.ids.index(l) * d:(self.ids.index(l) + 1) * d]
+                if not np.all(np.isfinite(a)):
+                    raise SolverError(f"robot {j} relayed a non-finite value of robot {l}")
+                self._a[l][stamp] = a.copy()
+        below = False
+        j = k + 1 - D
+        if j >= 0:  # every a_l of round j is here: F(S^j), Anderson -> S^(k+1)
+            A = np.array([self._a[l][j] for l in self.ids])
+            below = self._shared_step(self._state(j), A)
+            t = self._S[k + 1][self._k * d:(self._k + 1) * d]
+        else:  # the first round's values are still on their way: t stays t^0 = the own solution
+            t = self._a[self.robot_id][0]
+        x = self._solve(t)
+        self._a[self.robot_id][k + 1] = 2.0 * x - t
+        self._prune(k + 1 - D)
+        return x, below
+
+    def advance(self) -> StateUpdate:
+        """The round protocol's advance, then this round's relay frame."""
+        self._prev_frame = self._frame
+        super().advance()
+        self._frame = self._make_frame()
+        return self.outgoing()
+
+    def _state(self, j: int) -> np.ndarray:
+        """S^j; S^0 is every robot's own solution, which round 0 published as a (t = a = x), and
+        S stayed S^0 until the first step (round D)."""
+        if j < self.delay:
+            if 0 not in self._S:
+                self._S[0] = np.concatenate([self._a[l][0] for l in self.ids])
+            return self._S[0]
+        return self._S[j]
+
+    def _snapshot(self) -> tuple[Any, ...]:
+        """The copy's state after a step (arrays are never changed in place: copies may share them)."""
+        return (list(self._hist_F), list(self._hist_g), self._dg, self._df, self._gram, self._best,
+                self._S[self.round + 1], self.residual, list(self._residuals), self._prev_mean, self._held)
+
+    def _shared_step(self, S: np.ndarray, A: np.ndarray) -> bool:
+        """`_fleet_step`, taken once per process: a copy with the same token and inputs adopts it."""
+        key = _digest(self._token, S, A.ravel())
+
+        def compute() -> tuple[Any, ...]:
+            below = self._fleet_step(S, A)
+            return (self._snapshot(), below)
+
+        (snap, below), adopted = shared_step(_SHARED, key, compute, SHARED_KEPT)
+        if adopted:
+            (hist_F, hist_g, self._dg, self._df, self._gram, self._best, S_new, self.residual,
+             residuals, self._prev_mean, self._held) = snap
+            self._hist_F, self._hist_g, self._residuals = list(hist_F), list(hist_g), list(residuals)
+            self._S[self.round + 1] = S_new
+        self._token = key
+        return below
+
+    def _fleet_step(self, S: np.ndarray, A: np.ndarray) -> bool:
+        """F at S (x_l = (a_l + t_l) / 2), type-II Anderson, S^(k+1); returns the stop test."""
+        d, n = self.dim, self.n
+        T = S.reshape(n, d)
+        X = 0.5 * (A + T)
+        m = np.add.reduce(A, axis=0) / n  # row after row in id order: the same bits on every copy
+        G = (RELAY_RELAX * (m - X)).ravel()
+        F = S + G
+        g = G * self._w
+        res = math.sqrt(float(_pairwise_sum((g * g)[:, None])[0]))
+        if res > RELAY_SAFEGUARD * self._best:
+            self._forget()
+        self._best = min(self._best, res)
+        self._push(S, F, g)
+        self._S[self.round + 1] = self._extrapolate(F) if len(self._dg) else F
+        # stop test on the fleet's residual: the x's spread around their mean, the mean's move
+        mean = np.add.reduce(X, axis=0) / n
+        rows = np.vstack([X] if self._prev_mean is None else [X, self._prev_mean[None, :]])
+        gaps = relative_gaps(mean, rows)
+        self.residual = max(float(np.max(gaps[:n])), 0.0 if self._prev_mean is None else float(gaps[-1]))
+        self._prev_mean = mean
+        self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW:]
+        # twice the edge form's estimate (window maxima), held RELAY_HOLD rounds in a row: a delayed
+        # Anderson can sit on a plateau where the fleet agrees and barely moves, the residual ~70x
+        # below the error (measured: 8-ring seed 2, error 1.1e-3 for 600 rounds at residual 1.6e-5,
+        # the estimate 2e-4..7e-4 for 40 rounds on end); the hub's and the edge form's rules, and the
+        # latter held 40 rounds, all stopped it there, above tol (docs/algorithm.md)
+        estimate = RELAY_STOP_MARGIN * error_estimate(self._residuals)
+        self._held = self._held + 1 if estimate < self.params.tol else 0
+        return self._held >= RELAY_HOLD
+
+    # -- Anderson -------------------------------------------------------------------------------
+    def _forget(self) -> None:
+        self._hist_F: list[np.ndarray] = []
+        self._hist_g: list[np.ndarray] = []
+        self._dg = np.zeros((0, 0))
+        self._df = np.zeros((0, 0))
+        self._gram = np.zeros((0, 0))
+        self._best = math.inf
+
+    def _push(self, S: np.ndarray, F: np.ndarray, g: np.ndarray) -> None:
+        """Add the pair (S, F) (weighted residual g): a row of differences and its Gram row."""
+        if self._hist_g:
+            m = len(self._dg)
+            dg = g - self._hist_g[-1]
+            dgs = np.vstack([self._dg, dg[None, :]]) if m else dg[None, :]
+            dfs = np.vstack([self._df, (F - self._hist_F[-1])[None, :]]) if m else (F - self._hist_F[-1])[None, :]
+            row = _pairwise_sum(np.ascontiguousarray((dgs * dg).T))  # dg_i . dg, exactly rounded
+            gram = np.empty((m + 1, m + 1))
+            gram[:m, :m] = self._gram
+            gram[m, :] = gram[:, m] = row
+            self._dg, self._df, self._gram = dgs, dfs, gram
+            if m + 1 > self._memory:
+                self._dg, self._df = self._dg[1:], self._df[1:]
+                self._gram = self._gram[1:, 1:].copy()
+        self._hist_g = (self._hist_g + [g])[-2:]
+        self._hist_F = (self._hist_F + [F])[-2:]
+
+    def _extrapolate(self, F: np.ndarray) -> np.ndarray:
+        """F minus the combination of past steps that best cancels the residual (regularised)."""
+        m = len(self._dg)
+        rhs = _pairwise_sum(np.ascontiguousarray((self._dg * self._hist_g[-1]).T))
+        H = self._gram.copy()
+        scale = math.fsum(np.diag(H).tolist()) / m
+        H[np.diag_indices(m)] += RELAY_REG * max(scale, 1e-300)
+        try:
+            coef = _solve_spd(H, rhs)
+        except np.linalg.LinAlgError:
+            return F
+        terms = np.empty((m + 1, len(F)))
+        terms[0] = F
+        np.multiply(coef[:, None], self._df, out=terms[1:])
+        return np.subtract.reduce(terms, axis=0)
+
+    # -- internals ------------------------------------------------------------------------------
+    def _solve(self, t: np.ndarray) -> np.ndarray:
+        sol = self._qp.solve(-self._P * t)
+        return np.append(sol.x, sol.gamma)
+
+    def _prune(self, oldest: int) -> None:
+        """Keep rounds >= oldest (the next step reads round oldest + 1; the frames read newer)."""
+        for held in self._a.values():
+            for r in [r for r in held if r < oldest]:
+                if r != 0:
+                    del held[r]
+        for r in [r for r in self._S if r < oldest and r != 0]:
+            del self._S[r]
+
+    def _forget_edge(self, j: int) -> None:
+        """A neighbour died for good: the relay cannot continue exactly (see the module)."""
+        self._broken = (f"robot {j} died: the relay hub cannot drop a robot consistently "
+                        "(run the edge form, params relay = false, to continue with the survivors)")
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "error_estimate": RELAY_STOP_MARGIN * error_estimate(self._residuals)}
+
+    # -- checkpoint -----------------------------------------------------------------------------
+    def _save_state(self) -> dict[str, Any]:
+        return {
+            "S": [[r, to_bytes(s)] for r, s in sorted(self._S.items())],
+            "a": [[l, r, to_bytes(a)] for l, held in sorted(self._a.items()) for r, a in sorted(held.items())],
+            "hist_F": [to_bytes(f) for f in self._hist_F],
+            "hist_g": [to_bytes(g) for g in self._hist_g],
+            "dg": [to_bytes(r) for r in self._dg],
+            "df": [to_bytes(r) for r in self._df],
+            "gram": [to_bytes(r) for r in self._gram],
+            "best": self._best,
+            "residuals": list(self._residuals),
+            "held": self._held,
+            "prev_mean": to_bytes(self._prev_mean),
+            "frame": to_bytes(self._frame),
+            "prev_frame": to_bytes(self._prev_frame),
+            "broken": self._broken,
+            "token": self._token,
+        }
+
+    def _load_state(self, state: dict[str, Any]) -> None:
+        self._S = {int(r): from_bytes(s) for r, s in state["S"]}
+        self._a = {l: {} for l in self.ids}
+        for l, r, a in state["a"]:
+            self._a[int(l)][int(r)] = from_bytes(a)
+        self._hist_F = [from_bytes(f) for f in state["hist_F"]]
+        self._hist_g = [from_bytes(g) for g in state["hist_g"]]
+        rows = lambda key: np.array([from_bytes(r) for r in state[key]]) if state[key] else np.zeros((0, 0))  # noqa: E731
+        self._dg, self._df, self._gram = rows("dg"), rows("df"), rows("gram")
+        self._best = float(state["best"])
+        self._residuals = [float(r) for r in state["residuals"]]
+        self._held = int(state["held"])
+        self._prev_mean = from_bytes(state["prev_mean"])
+        self._frame = from_bytes(state["frame"])
+        self._prev_frame = from_bytes(state["prev_frame"])
+        self._broken = state["broken"]
+        self._token = bytes(state["token"])
