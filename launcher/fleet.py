@@ -215,6 +215,22 @@ def fleet_timing(spec: FleetSpec, crashes: list[CrashPlan], *, restart: bool, re
     return dataclasses.replace(timing, dead_after_s=dead)
 
 
+def spec_for_run(spec: FleetSpec, crashes: list[CrashPlan], *, restart: bool, restart_after: float) -> FleetSpec:
+    """The spec the robots of a run are given (the same in `simulate` and `launch`): the timing of
+    `fleet_timing`, and without restarts the edge form on sparse fleets.
+
+    Why: a robot that dies for good cannot be dropped by the relay hub (agents/relay_hub.py: its
+    relays are gone), so its survivors would stop without an answer; the edge form's survivors drop
+    it and finish on their own data, which is what ``--no-restart`` promises. A fleet file's explicit
+    ``relay`` wins; complete graphs (the hub form drops the dead) are unaffected."""
+    timing = fleet_timing(spec, crashes, restart=restart, restart_after=restart_after)
+    if timing is not spec.timing:
+        spec = dataclasses.replace(spec, timing=timing)
+    if not restart and spec.algorithm == "admm" and "relay" not in spec.params:
+        spec = dataclasses.replace(spec, params={**spec.params, "relay": False})
+    return spec
+
+
 def time_bound_s(timing: Any, restarts: int, restart_after: float) -> float:
     """The launcher's overall bound: every robot's own ``max_wall_s`` plus start-up, restarts,
     linger and a margin. Past it every robot still running is stopped (SIGTERM: it writes a
@@ -754,8 +770,8 @@ def launch_fleet(
     per_process = choose_robots_per_process(spec.n_robots, robots_per_process)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    timing = fleet_timing(spec, crashes, restart=restart, restart_after=restart_after)
-    run_spec = dataclasses.replace(spec, timing=timing) if timing is not spec.timing else spec
+    run_spec = spec_for_run(spec, crashes, restart=restart, restart_after=restart_after)
+    timing = run_spec.timing
     fleet_file = workdir / "fleet.json"
     run_spec.save(fleet_file)
     run = _LaunchRun(spec, workdir, time_bound_s(timing, len(crashes) if restart else 0, restart_after),

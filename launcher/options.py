@@ -469,7 +469,8 @@ OPTIONS: tuple[Option, ...] = (
            commands=CRASH_COMMANDS, section="launch", metavar="ID@ROUND", check=_crash, target=None),
     Option("restart-after", FLOAT, 1.0, "seconds before a crashed robot restarts from its checkpoint",
            group=PROCESSES, commands=CRASH_COMMANDS, section="launch", check=_non_negative, target=None),
-    Option("no-restart", FLAG, False, "leave crashed robots dead: the others finish without them",
+    Option("no-restart", FLAG, False, "leave crashed robots dead: the others finish without them "
+           "(sparse fleets then run the edge form, which can drop a dead robot)",
            group=PROCESSES, commands=CRASH_COMMANDS, section="launch", target=None, show_default=False),
     Option("zenoh-port", INT, None, "the router's loopback port (default: a free one)", group=PROCESSES,
            commands=("launch",), section="launch", check=_port, target=None),

@@ -123,11 +123,10 @@ def simulate_fleet(
     """
     started = time.perf_counter()
     plan = _Crashes({}, restart, restart_after)
-    if crashes:
-        from launcher.fleet import fleet_timing  # the same dead_after_s as launch (lazy: fleet imports us)
+    from launcher.fleet import spec_for_run  # the same dead_after_s and form as launch (lazy: fleet imports us)
 
-        spec = dataclasses.replace(spec, timing=fleet_timing(spec, list(crashes), restart=restart,
-                                                             restart_after=restart_after))
+    spec = spec_for_run(spec, list(crashes or []), restart=restart, restart_after=restart_after)
+    if crashes:
         for c in sorted(crashes, key=lambda c: (c.robot, c.round)):
             plan.plans.setdefault(int(c.robot), []).append(int(c.round))
     sessions = _sessions(spec, max_virtual_s)

@@ -65,6 +65,24 @@ def test_simulate_permanent_loss_survivors_solve_their_data(run):
     assert 2.5 <= out.virtual_s < 6.0
 
 
+def test_without_restarts_a_sparse_fleet_runs_the_edge_form_and_its_survivors_finish():
+    """The relay hub (sparse fleets' default) cannot drop a robot dead for good: without restarts the
+    run gives the robots the edge form (launcher.fleet.spec_for_run, as `launch` does), whose
+    survivors of a 4-ring drop the dead one and end on the exact answer of their own data."""
+    world, spec, _ = make_run(fleet_id="crash-ring", timing=TIMING, robots=4, topology="ring")
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, 40)], restart=False)
+    assert [r["id"] for r in out.robots] == [0, 2, 3]
+    assert all(r["converged"] and r["neighbours_dropped"] == [1] for r in out.robots if r["id"] in (0, 2))
+    assert all(r["converged"] for r in out.robots)
+    kept = [r for r in world.robots if r.id != 1]
+    ref = solve_central(spec.basis, np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept]), spec.C)
+    assert max_function_error(spec, ref, out.robots) < 1e-3
+    # with restarts (the default) the same fleet runs the relay hub, whose frames relay all four robots
+    relayed = simulate_fleet(spec).robots
+    per_frame = [r["bytes_sent"] / (r["rounds"] + 1) for r in (relayed[0], out.robots[0])]
+    assert all(r["converged"] for r in relayed) and per_frame[0] > 2 * per_frame[1]  # 1164 against 482 B
+
+
 def test_a_crash_that_cannot_fire_is_reported(run):
     _, spec, _ = run
     out = simulate_fleet(spec, crashes=[CrashPlan(1, 4000)], restart=True)
