@@ -569,17 +569,22 @@ def _cli() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "launcher.cli"]
 
 
-def _shapefleet(*args: str, timeout: float) -> subprocess.CompletedProcess:
+def _shapefleet(*args: str, timeout: float, **env: str) -> subprocess.CompletedProcess:
     return subprocess.run([*_cli(), *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
-                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
+                          env=dict(os.environ, PYTHONPATH=str(ROOT), **env))
 
 
 @bound(60)
 def test_cli_launch_end_to_end(tmp_path):
     out = tmp_path / "run"
     proc = _shapefleet("launch", "--preset", "paper", "--out", str(out), "--tol", "1e-3", "--loss", "0.2",
-                       "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50)
+                       "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50,
+                       SHAPEFLEET_PROFILE="1")
     assert proc.returncode == 0, proc.stderr
+    # robots 0 and 2 ran in a robot process the program started before its imports and handed
+    # their arguments to (launcher/router.py EarlyRobots; robot 1, planned to crash, runs alone)
+    for i in (0, 2):
+        assert "adopted" in json.loads((out / "fleet" / f"robot-{i}.json.profile.json").read_text())["marks"], i
     for name in ("result.json", "data.csv", "shapes.png", "convergence.png", "fleet/fleet.json"):
         assert (out / name).stat().st_size > 0, name
     result = json.loads((out / "result.json").read_text())
