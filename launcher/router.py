@@ -33,6 +33,11 @@ HOST = "127.0.0.1"
 #: an early router's own lifetime bound (it also ends when the launcher that started it is gone);
 #: a launch that needs a longer-lived router starts its own instead
 EARLY_ROUTER_BOUND_S = 3600.0
+#: early robot processes: one per core, at most this many. An adopted process keeps its
+#: ``--early`` command line (its robots' ids are only in its stdin), so a robot found by its
+#: ``--id`` (ps, tests/test_reliability.py's pause of robot 2 of 4) must be one started the usual
+#: way; two is every process `auto` starts on a 2-core machine for a fleet of more robots than cores
+EARLY_ROBOTS_MAX = 2
 
 
 def child_env() -> dict[str, str]:
@@ -152,10 +157,10 @@ class EarlyRobots:
     Each one imports what a robot needs (numpy, the algorithms, Zenoh: ~0.3 s of CPU, the longest
     step of a robot's start) while the launcher imports and builds the world, then waits on its
     stdin for one line naming its arguments and log (agents/robot.py ``--early``). launch_fleet
-    adopts them as its first robot processes (launcher/fleet.py ``_Fleet.start``), one per core at
-    most -- as many as `--robots-per-process auto` starts for a fleet of more robots than cores. One
-    not adopted (a smaller fleet, bad input, a free-running or user algorithm fleet) is stopped by
-    its PID (``discard``); one whose launcher is gone reads the end of its stdin and exits.
+    adopts them as its first robot processes (launcher/fleet.py ``_Fleet.start``): one per core, at
+    most EARLY_ROBOTS_MAX. One not adopted (a smaller fleet, bad input, a free-running or user
+    algorithm fleet) is stopped by its PID (``discard``); one whose launcher is gone reads the end
+    of its stdin and exits.
     """
 
     def __init__(self, count: int, run_folder: str | None = None) -> None:
@@ -184,7 +189,7 @@ class EarlyRobots:
             return None
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
         try:
-            return cls(cores, out)
+            return cls(min(cores, EARLY_ROBOTS_MAX), out)
         except OSError:  # launch_fleet starts its robots as always
             return None
 

@@ -581,10 +581,9 @@ def test_cli_launch_end_to_end(tmp_path):
                        "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50,
                        SHAPEFLEET_PROFILE="1")
     assert proc.returncode == 0, proc.stderr
-    # robots 0 and 2 ran in a robot process the program started before its imports and handed
-    # their arguments to (launcher/router.py EarlyRobots; robot 1, planned to crash, runs alone)
-    for i in (0, 2):
-        assert "adopted" in json.loads((out / "fleet" / f"robot-{i}.json.profile.json").read_text())["marks"], i
+    # robot 0's process (the first one started) is one the program started before its imports and
+    # handed its arguments to (launcher/router.py EarlyRobots)
+    assert "adopted" in json.loads((out / "fleet" / "robot-0.json.profile.json").read_text())["marks"]
     for name in ("result.json", "data.csv", "shapes.png", "convergence.png", "fleet/fleet.json"):
         assert (out / name).stat().st_size > 0, name
     result = json.loads((out / "result.json").read_text())
