@@ -33,10 +33,11 @@ HOST = "127.0.0.1"
 #: an early router's own lifetime bound (it also ends when the launcher that started it is gone);
 #: a launch that needs a longer-lived router starts its own instead
 EARLY_ROUTER_BOUND_S = 3600.0
-#: early robot processes: one per core, at most this many. An adopted process keeps its
-#: ``--early`` command line (its robots' ids are only in its stdin), so a robot found by its
-#: ``--id`` (ps, tests/test_reliability.py's pause of robot 2 of 4) must be one started the usual
-#: way; two is every process `auto` starts on a 2-core machine for a fleet of more robots than cores
+#: early robot processes: one per core, at most this many; launch_fleet adopts them only when they
+#: are all its robot processes (else robots would start a second apart). An adopted process keeps its
+#: ``--early`` command line (its robots' ids are only in its stdin): a fleet whose robots are found
+#: by their ``--id`` (ps, tests/test_reliability.py's pause of robot 2 of 4) has more processes than
+#: this and starts them the usual way; two is what `auto` starts for 3 or 5+ robots on 2 cores
 EARLY_ROBOTS_MAX = 2
 
 
@@ -157,8 +158,8 @@ class EarlyRobots:
     Each one imports what a robot needs (numpy, the algorithms, Zenoh: ~0.3 s of CPU, the longest
     step of a robot's start) while the launcher imports and builds the world, then waits on its
     stdin for one line naming its arguments and log (agents/robot.py ``--early``). launch_fleet
-    adopts them as its first robot processes (launcher/fleet.py ``_Fleet.start``): one per core, at
-    most EARLY_ROBOTS_MAX. One not adopted (a smaller fleet, bad input, a free-running or user
+    adopts them as its robot processes (launcher/fleet.py ``_Fleet.start_all``) when there are as
+    many as it needs (one per core, at most EARLY_ROBOTS_MAX), else none of them. One not adopted (a smaller fleet, bad input, a free-running or user
     algorithm fleet) is stopped by its PID (``discard``); one whose launcher is gone reads the end
     of its stdin and exits.
     """
