@@ -152,6 +152,49 @@ def table(rows: list[Row], bare: float | None = None) -> str:
     return "\n".join(lines)
 
 
+def cli_launch(tree: Path, env: dict[str, str] | None = None) -> dict:
+    """``python -m launcher.cli launch --preset paper`` from ``tree`` (another checkout, e.g. main
+    exported with ``git archive``), timed from outside: wall seconds from the command's start to its
+    end (pictures, result.json and every process stopped included), CPU seconds of it and of every
+    process it started, rounds and the error against the exact solve."""
+    import resource
+    import subprocess
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="shapefleet-cli-") as tmp:
+        t = time.perf_counter()
+        out = subprocess.run([sys.executable, "-m", "launcher.cli", "launch", "--preset", "paper", "--out", tmp],
+                             cwd=tree, capture_output=True, text=True, timeout=300,
+                             env={**os.environ, "PYTHONPATH": str(tree), **(env or {})})
+        wall = time.perf_counter() - t
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        if out.returncode != 0:
+            raise RuntimeError(f"launch in {tree} failed: {out.stderr.strip()[-500:]}")
+        res = json.loads((Path(tmp) / "result.json").read_text())
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {"wall_s": wall, "cpu_s": cpu, "rounds": res["rounds"], "error": res["metrics"]["function_error"],
+            "load": load}
+
+
+def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -> str:
+    """The whole `launch --preset paper` command, the trees alternating run by run (same minutes)."""
+    lines = ["| tree | wall s (each run) | median | CPU s, all processes (each run) | median | load | rounds, error |",
+             "|---|---|---:|---|---:|---|---|"]
+    got: dict[str, list[dict]] = {label: [] for label, _t, _e in trees}
+    for _ in range(runs):
+        for label, tree, env in trees:
+            got[label].append(cli_launch(tree, env))
+    for label, runs_ in got.items():
+        walls, cpus = [r["wall_s"] for r in runs_], [r["cpu_s"] for r in runs_]
+        outcomes = ", ".join(sorted({f"{r['rounds']} rounds, {r['error']:.6e}" for r in runs_}))
+        lines.append(f"| {label} | {', '.join(f'{w:.2f}' for w in walls)} | **{statistics.median(walls):.2f}** "
+                     f"| {', '.join(f'{c:.2f}' for c in cpus)} | {statistics.median(cpus):.2f} "
+                     f"| {min(r['load'] for r in runs_):.1f}-{max(r['load'] for r in runs_):.1f} "
+                     f"| {outcomes} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="3,8,16", help="fleet sizes for the fixed-rounds runs (default 3,8,16)")
@@ -163,7 +206,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--large", type=int, default=32, help="robots of the geometric-graph convergence run (0: skip)")
     ap.add_argument("--quick", action="store_true", help="N = 3, 8 and 100 rounds; skip the loss 0.5 and large runs")
     ap.add_argument("--no-write", action="store_true", help=f"do not write {RESULTS.relative_to(ROOT)}")
+    ap.add_argument("--launch-runs", type=int, default=0,
+                    help="only time the whole `launch --preset paper` command this many times (with --base: "
+                         "alternating with another checkout), print the table and stop")
+    ap.add_argument("--base", type=Path, default=None, help="with --launch-runs: a checkout to compare against")
     args = ap.parse_args(argv)
+    if args.launch_runs:
+        trees = ([("base", args.base.resolve(), {})] if args.base else []) + [("this tree", ROOT, {})]
+        print(cli_launch_table(trees, args.launch_runs))
+        return 0
     sizes = [3, 8] if args.quick else [int(s) for s in args.sizes.split(",")]
     rounds = 100 if args.quick else args.rounds
     from benchmarks.round_cost import bare_exchange

@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from agents.spec import FleetSpec
-from launcher.router import EarlyRouter
+from launcher.router import EarlyRobots, EarlyRouter
 from launcher.router import spawn as _spawn
 from launcher.simulate import FleetOutcome
 from protocol.zenoh_config import free_loopback_port, parse_endpoint, router_endpoint, validate_endpoint
@@ -89,8 +89,8 @@ ROUTER_RESTARTS = 5  # a router that keeps dying is a machine problem: give up a
 # 129 robots, counted double for the launcher's pipes, logs and the router's share)
 ROBOTS_PER_CORE = 8
 ROBOT_MEMORY_MB = 50.0
-# robots per process (robots_per_process "auto"): one process per robot up to this many robots per
-# core, else one process per core; status lines from a robot without a crash plan at most this often
+# robots per process (robots_per_process "auto"): one process per robot while they spread evenly
+# over the cores, up to this many per core, else one process per core; status lines from a robot without a crash plan at most this often
 AUTO_SOLO_PER_CORE = 2
 STATUS_INTERVAL_S = 0.05
 # robots sharing a process share one Zenoh session (own publisher, key, subscriptions, token each)
@@ -461,10 +461,15 @@ def _read_lines(stream: IO[bytes], key: int, gen: int, events: queue.SimpleQueue
 def choose_robots_per_process(n_robots: int, setting: int | str | None = "auto", cores: int | None = None) -> int:
     """How many robots share one process: ``setting`` if a number, else chosen from the cores.
 
-    One process per robot while the fleet is at most ``AUTO_SOLO_PER_CORE`` robots per core
-    (process isolation; the rounds are fastest so); beyond, the robots are spread over one process
-    per core -- an interpreter per robot costs ~25 MB and a scheduler slot, and past a few
-    processes per core the rounds crawl (measured: 16 processes on 2 cores 115 ms/round).
+    One process per robot while every core gets the same number of them, at most
+    ``AUTO_SOLO_PER_CORE`` (n <= cores, or n a multiple of the cores up to 2 per core: process
+    isolation, and the rounds are fastest so); otherwise one process per core. A lockstep round
+    waits for the slowest robot, so processes spread unevenly (3 on 2 cores: one core time-slices
+    two robots while the other runs one) make every round wait on the doubled core, and each extra
+    interpreter costs ~0.3 s of start-up CPU and ~25 MB. Measured (results/round_cost.md, issue
+    14): 3 robots on 2 cores as 2 + 1 robots per process, against 3 processes, fleet CPU per round
+    -30 %, launch -0.4 s, rounds no slower; 16 processes on 2 cores 115 ms/round against 12 ms
+    for 2 processes of 8.
     """
     if setting not in (None, "auto"):
         k = int(setting)
@@ -472,7 +477,7 @@ def choose_robots_per_process(n_robots: int, setting: int | str | None = "auto",
             raise ValueError(f"--robots-per-process: {setting!r} must be at least 1 or 'auto'")
         return k
     cores = cores or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-    if n_robots <= AUTO_SOLO_PER_CORE * cores:
+    if n_robots <= cores or (n_robots <= AUTO_SOLO_PER_CORE * cores and n_robots % cores == 0):
         return 1
     return -(-n_robots // cores)
 
@@ -491,8 +496,9 @@ class _Fleet:
     def __init__(self, spec: FleetSpec, workdir: Path, fleet_file: Path, endpoint: str,
                  crashes: list[CrashPlan], restart: bool, restart_after: float,
                  started: list[int], console: Any | None, per_process: int = 1,
-                 robot_argv: tuple[str, ...] = ("-m", "agents.robot")) -> None:
+                 robot_argv: tuple[str, ...] = ("-m", "agents.robot"), early: EarlyRobots | None = None) -> None:
         self.spec = spec
+        self.early = early  # robot processes already started, waiting for their arguments
         self.restart = restart
         self.restart_after = restart_after
         self.events: queue.SimpleQueue = queue.SimpleQueue()
@@ -548,7 +554,10 @@ class _Fleet:
         plans = self.robots[p.ids[0]].crashes if len(p.ids) == 1 and p.ids[0] in self.robots else []
         if plans:  # the robot dies at the planned round itself; the launcher restarts it
             argv += ["--crash-at", str(plans[0].round)]
-        p.proc = _spawn(argv, stdout=subprocess.PIPE, stderr=p.log_fh)
+        adopted = None
+        if p.proc is None and self.early is not None:  # a first start: an early process if one waits
+            adopted = self.early.take(argv[3:], p.log_path)  # after [python, -m, agents.robot]
+        p.proc = adopted or _spawn(argv, stdout=subprocess.PIPE, stderr=p.log_fh)
         self.started.append(p.proc.pid)
         p.killed = False
         p.exit_code = None
@@ -559,6 +568,10 @@ class _Fleet:
         p.reader.start()
 
     def start_all(self) -> None:
+        if self.early is not None and len(self.early.procs) < len(self.procs):
+            # every robot process an early one, or none: robots that start a second before their
+            # neighbours count them dead after a short --dead-after (seen: 2 early of 4 processes)
+            self.early = None
         for p in self.procs:
             self.start(p)
 
@@ -744,6 +757,7 @@ def launch_fleet(
     robots_per_process: int | str | None = "auto",
     robot_argv: tuple[str, ...] = ("-m", "agents.robot"),
     early_router: EarlyRouter | None = None,
+    early_robots: EarlyRobots | None = None,
 ) -> LaunchOutcome:
     """Run ``spec`` as one process per robot plus a router on 127.0.0.1; see the module doc.
 
@@ -762,6 +776,8 @@ def launch_fleet(
     ``early_router``: a router the CLI started before its imports (launcher/router.py): used
     instead of starting one when it fits (no ``zenoh_port``/``router``, its bound long enough),
     else stopped.
+    ``early_robots``: robot processes the CLI started before its imports (launcher/router.py),
+    adopted as the first robot processes of a ``-m agents.robot`` fleet; the others are stopped.
 
     Returns a :class:`LaunchOutcome` (a ``FleetOutcome``): ``robots`` holds the result of every
     robot that wrote one, sorted by id; a robot dead for good is absent.
@@ -778,9 +794,15 @@ def launch_fleet(
                      progress and sys.stdout.isatty())
     run.catch_stop_signals()
 
+    early = early_robots if tuple(robot_argv) == ("-m", "agents.robot") else None
+
     def start_robots(endpoint: str) -> _Fleet:
-        return run.start_robots(_Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
-                                       run.started, run.console, per_process, robot_argv))
+        try:
+            return run.start_robots(_Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
+                                           run.started, run.console, per_process, robot_argv, early))
+        finally:
+            if early_robots is not None:
+                early_robots.discard()  # those not adopted (a port retry starts its robots anew)
 
     try:  # also when the router or a robot fails to start: our signal handlers are put back
         run.start(zenoh_port, router, start_robots, early_router)

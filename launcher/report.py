@@ -546,6 +546,26 @@ _MATHTEXT_LABEL = re.compile(r"\$\\mathdefault\{(-?)(.*)\}\$")
 _POWER = re.compile(r"\^\{(-?\d+)\}")
 
 
+def preload_pictures() -> None:
+    """Import matplotlib's figure and Agg canvas in a daemon thread, now, for pictures drawn later.
+
+    `launch` calls it when its fleet starts: the launcher then only waits for its robots, and the
+    import (~0.3-0.5 s of CPU, a third of the pictures' time) runs while they do instead of after
+    them. The first ``_figure`` call that needs the modules waits for the import on Python's own
+    module locks (nothing to join); a failed import fails again there, in the drawing thread."""
+    import threading
+
+    def load() -> None:
+        try:
+            import matplotlib.backends.backend_agg  # noqa: F401
+            import matplotlib.figure  # noqa: F401
+            import matplotlib.ticker  # noqa: F401
+        except Exception:  # noqa: BLE001 - reported by the drawing's own import
+            pass
+
+    threading.Thread(target=load, name="preload-pictures", daemon=True).start()
+
+
 def _figure(size: tuple[float, float], rect: tuple[float, float, float, float]) -> tuple[Any, Any]:
     """A figure on the Agg canvas with one axes at ``rect``.
 

@@ -1,6 +1,7 @@
-"""`shapefleet launch` starts its router before its imports (launcher/router.py EarlyRouter):
-a launch refused for bad input leaves neither that router nor its folder behind, and an early
-router whose launcher is gone ends by itself."""
+"""`shapefleet launch` starts its router and its first robot processes before its imports
+(launcher/router.py EarlyRouter, EarlyRobots): a launch refused for bad input leaves neither behind
+(nor the router's folder), an early router whose launcher is gone ends by itself, and an early robot
+runs with the arguments and log its launcher hands it."""
 
 import os
 import subprocess
@@ -8,7 +9,9 @@ import sys
 import time
 from pathlib import Path
 
-from launcher.router import EarlyRouter, child_env
+import pytest
+
+from launcher.router import EarlyRobots, EarlyRouter, child_env
 from protocol.zenoh_config import free_loopback_port
 
 from .conftest import processes_with
@@ -27,11 +30,11 @@ def test_bad_input_stops_the_early_router_and_removes_its_folder(tmp_path):
     assert not list(tmp_path.glob("shapefleet-router-*")) and not (tmp_path / "run").exists()
 
 
-def test_an_early_router_is_only_for_a_plain_launch():
-    assert EarlyRouter.for_command_line(["shapefleet", "simulate", "--preset", "paper"]) is None
-    assert EarlyRouter.for_command_line(["shapefleet", "launch", "--zenoh-port", "7447"]) is None
-    assert EarlyRouter.for_command_line(["shapefleet", "launch", "--config=s.toml"]) is None
-    assert EarlyRouter.for_command_line(["shapefleet", "launch", "-h"]) is None
+@pytest.mark.parametrize("early", [EarlyRouter, EarlyRobots])
+def test_an_early_router_or_robot_is_only_for_a_plain_launch(early):
+    for args in (["simulate", "--preset", "paper"], ["launch", "--zenoh-port", "7447"], ["launch", "--config=s.toml"],
+                 ["launch", "-h"]):
+        assert early.for_command_line(["shapefleet", *args]) is None, args
 
 
 def test_a_router_ends_when_its_parent_is_gone(tmp_path):
@@ -71,3 +74,40 @@ def test_an_early_router_bound_shorter_than_the_run_is_not_adopted(tmp_path):
                 proc.wait(10)
         if router is not None:
             router.stop()
+
+
+# ----------------------------------------------------------------------------- early robots
+
+
+def test_no_early_robots_for_a_free_running_fleet():  # another robot program (agents/free_robot.py)
+    assert EarlyRobots.for_command_line(["shapefleet", "launch", "--sync", "free"]) is None
+    assert EarlyRobots.for_command_line(["shapefleet", "launch", "--sync=free"]) is None
+
+
+def test_an_early_robot_runs_with_the_arguments_and_log_it_is_handed(tmp_path):
+    """The launcher's line gives the robot its arguments and its log: a fleet file that is not
+    there is the robot's usual one-line refusal (exit 2), written to the log it was handed."""
+    early, proc = EarlyRobots(1, str(tmp_path)), None
+    try:
+        log = tmp_path / "robot-0.log"
+        proc = early.take(["--fleet-file", str(tmp_path / "nowhere.json"), "--id", "0", "--connect",
+                           "tcp/127.0.0.1:7447", "--workdir", str(tmp_path)], log)
+        assert proc is not None and early.take([], log) is None  # one process, handed once
+        assert proc.wait(30) == 2
+        said = log.read_text()
+        assert said.count("\n") == 1 and "nowhere.json" in said, said
+    finally:
+        early.discard()
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        if proc is not None:
+            proc.stdout.close()
+
+
+def test_early_robots_not_adopted_are_stopped_by_pid(tmp_path):
+    early = EarlyRobots(2, str(tmp_path))
+    procs = list(early.procs)
+    assert len(procs) == 2 and processes_with(str(tmp_path))  # waiting, named by their run folder
+    early.discard()
+    assert all(p.returncode is not None for p in procs) and processes_with(str(tmp_path)) == []

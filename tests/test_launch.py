@@ -569,17 +569,27 @@ def _cli() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "launcher.cli"]
 
 
-def _shapefleet(*args: str, timeout: float) -> subprocess.CompletedProcess:
+def _shapefleet(*args: str, timeout: float, **env: str) -> subprocess.CompletedProcess:
     return subprocess.run([*_cli(), *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
-                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
+                          env=dict(os.environ, PYTHONPATH=str(ROOT), **env))
 
 
 @bound(60)
 def test_cli_launch_end_to_end(tmp_path):
     out = tmp_path / "run"
     proc = _shapefleet("launch", "--preset", "paper", "--out", str(out), "--tol", "1e-3", "--loss", "0.2",
-                       "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50)
+                       "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50,
+                       SHAPEFLEET_PROFILE="1")
     assert proc.returncode == 0, proc.stderr
+    # robot 0's process is one the program started before its imports and handed its arguments to
+    # (launcher/router.py EarlyRobots) when there were enough of those for every robot process
+    from launcher.fleet import _groups, choose_robots_per_process
+    from launcher.router import EARLY_ROBOTS_MAX
+
+    procs = len(_groups([0, 1, 2], choose_robots_per_process(3), {1}))  # robot 1 (a crash plan) alone
+    early = min(len(os.sched_getaffinity(0)), EARLY_ROBOTS_MAX)
+    marks = json.loads((out / "fleet" / "robot-0.json.profile.json").read_text())["marks"]
+    assert ("adopted" in marks) == (procs <= early), (procs, early)
     for name in ("result.json", "data.csv", "shapes.png", "convergence.png", "fleet/fleet.json"):
         assert (out / name).stat().st_size > 0, name
     result = json.loads((out / "result.json").read_text())

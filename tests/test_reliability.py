@@ -257,7 +257,7 @@ def test_sigterm_and_sighup_stop_every_child_and_write_a_partial_result(tmp_path
     try:
         _wait_for(lambda: _round_of(out, 0) >= 5, 30, "round 5")
         children = [p for p in processes_with(str(out)) if p != proc.pid]
-        assert len(children) >= 4  # router + 3 robots
+        assert len(children) >= 3  # router + the robot processes (3 robots on 2 cores: 2 processes, `auto`)
         os.kill(proc.pid, getattr(signal, sig))
         err = _finish(proc, 20)
     finally:
