@@ -72,6 +72,10 @@ class AutoGridParams:
     # frames carry w beside v (agents/admm.py), so every ADMM slot has room for both
     hub_frames: bool = False
     early_drop: bool = True  # end the sweep once a perfect candidate decides it (autogrid_sweep.py)
+    # which candidate wins a tie of held-out errors: "smaller" sigma (the default: it follows the
+    # outline more closely) or "larger" (issue 15: with narrow refined kernels, narrow_ratio > 1,
+    # the wide width only has to fill the interior, so the smoothest width the data allow)
+    sigma_ties: str = "smaller"
     # a model beyond one width (issue 15): the level-0 lattice's kernels have width sigma, the
     # points refinement adds near the boundary sigma / narrow_ratio (1: one width everywhere, the
     # default: 3 helps the 11 benchmark shapes at 200-240 points but costs the 60-point default
@@ -99,6 +103,8 @@ class AutoGridParams:
             raise ValueError("holdout_every must be >= 2 and validate_rounds >= 1")
         if not 1 <= self.validate_folds <= self.holdout_every:
             raise ValueError(f"validate_folds must be in [1, holdout_every], got {self.validate_folds}")
+        if self.sigma_ties not in ("smaller", "larger"):
+            raise ValueError(f"sigma_ties must be 'smaller' or 'larger', got {self.sigma_ties!r}")
         if self.solid_raster < 8:
             raise ValueError(f"solid_raster must be at least 8, got {self.solid_raster}")
         if not 0 < self.relax < 2:
@@ -349,12 +355,14 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
        and a too-narrow kernel betrays itself by holes and islands where there are no data.
        If no candidate is solid, keep them all.
     2. Among those, the fewest held-out errors; ties -> the smaller sigma (it follows the outline
-       more closely; step 1 guards against the narrow widths that break the region up).
+       more closely; step 1 guards against the narrow widths that break the region up), or with
+       ``params.sigma_ties == "larger"`` the larger one (`tie_sign`).
     Returns (sigma, reason in words).
     """
     solid = [r for r in records if r["solid"]]
     pool = solid or records
-    best = min(pool, key=lambda r: (r["errors"], r["sigma"]))
+    sign = tie_sign(params)
+    best = min(pool, key=lambda r: (r["errors"], sign * r["sigma"]))
     held = best["held_out"]
     ties = [r for r in pool if r["errors"] == best["errors"]]
     table = ", ".join(
@@ -366,7 +374,7 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
         + (f"of the {len(solid)} candidates whose inside region is one solid piece (no holes, no islands), "
            if solid else "no candidate gave a solid inside region; of all candidates, ")
         + f"fewest held-out errors ({best['errors']}/{held})"
-        + (f" (tied with {len(ties) - 1}, the smaller sigma wins)" if len(ties) > 1 else "")
+        + (f" (tied with {len(ties) - 1}, the {params.sigma_ties} sigma wins)" if len(ties) > 1 else "")
         + f"; held-out errors {table}; {folds} fold(s), each robot holding out every "
         f"{params.holdout_every}th of its (inside point, nearest outside point) pairs; every candidate and "
         f"fold a soft-margin ADMM (C = {params.soft_C:g}) on its coarse lattice, all solved in the same "
@@ -374,6 +382,12 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
         "diagonal of the data's bounding box (scale-free: every candidate is proportional to diag)"
     )
     return float(best["sigma"]), why
+
+
+def tie_sign(params: AutoGridParams) -> float:
+    """+1 when a tie of held-out errors goes to the smaller sigma, -1 when to the larger: the
+    order in which `choose_sigma` ranks tied candidates (and early drop drops the losers)."""
+    return 1.0 if params.sigma_ties == "smaller" else -1.0
 
 
 def holdout_units(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
