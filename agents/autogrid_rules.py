@@ -76,6 +76,9 @@ class AutoGridParams:
     # outline more closely) or "larger" (issue 15: with narrow refined kernels, narrow_ratio > 1,
     # the wide width only has to fill the interior, so the smoothest width the data allow)
     sigma_ties: str = "smaller"
+    # the solid check rejects a candidate whose inside region has islands or holes (False, the
+    # default) or islands only (True: an enclosed outside cell in the unobserved interior passes)
+    holes_allowed: bool = False
     # a model beyond one width (issue 15): the level-0 lattice's kernels have width sigma, the
     # points refinement adds near the boundary sigma / narrow_ratio (1: one width everywhere, the
     # default: 3 helps the 11 benchmark shapes at 200-240 points but costs the 60-point default
@@ -413,25 +416,29 @@ def holdout_units(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return units
 
 
-def is_solid(inside: np.ndarray) -> bool:
-    """True when a raster's inside cells form one 4-connected piece with no enclosed hole."""
+def is_solid(inside: np.ndarray, holes_allowed: bool = False) -> bool:
+    """True when a raster's inside cells form one 4-connected piece with no enclosed hole (with
+    `holes_allowed`: one piece, enclosed outside cells allowed)."""
     if not inside.any():
         return False
     from scipy import ndimage  # here, not at the top: ~0.5 s of every robot process's start-up
 
     _, pieces = ndimage.label(inside)
+    if holes_allowed:
+        return pieces == 1
     outside, n_out = ndimage.label(~inside)
     rim = np.concatenate([outside[0], outside[-1], outside[:, 0], outside[:, -1]])
     touching = set(np.unique(rim).tolist()) - {0}
     return pieces == 1 and n_out == len(touching)
 
 
-def solid_on_raster(basis: GridBasis, c: np.ndarray, gamma: float, box: tuple[float, float, float, float], r: int) -> bool:
+def solid_on_raster(basis: GridBasis, c: np.ndarray, gamma: float, box: tuple[float, float, float, float], r: int,
+                    holes_allowed: bool = False) -> bool:
     """`is_solid` of the learned inside region {f < 0} on an r x r raster of `box`."""
     x0, x1, y0, y1 = box
     gx, gy = np.meshgrid(np.linspace(x0, x1, r), np.linspace(y0, y1, r))
     f = basis.decision(np.column_stack([gx.ravel(), gy.ravel()]), c, gamma)
-    return is_solid((f < 0).reshape(r, r))
+    return is_solid((f < 0).reshape(r, r), holes_allowed)
 
 
 def _crossing(f: np.ndarray) -> np.ndarray:

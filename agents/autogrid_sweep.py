@@ -199,7 +199,8 @@ class SigmaSweep:
             yf = y * t.basis.decision(pts, c, gamma)
             errors, hinge = int(np.sum(yf <= 0)), float(np.sum(np.maximum(0.0, 1.0 - yf)))
         raster = self._raster[t.cand]
-        outcome = errors, len(y), hinge, solid_on_raster(raster, c, gamma, t.box, self.params.solid_raster)  # type: ignore[arg-type]
+        outcome = errors, len(y), hinge, solid_on_raster(raster, c, gamma, t.box, self.params.solid_raster,  # type: ignore[arg-type]
+                                                     self.params.holes_allowed)
         self._outcomes[index] = (key, outcome)
         return outcome
 

@@ -256,7 +256,7 @@ def _central_sweep_choice(spec, params, bounds, diag):
             tp, tl, hp, hl = _fold_sets(spec, params, fold)
             sol = solve_central(basis, tp, tl, params.soft_C)
             errors += int(np.sum(hl * basis.decision(hp, sol.c, sol.gamma) <= 0))
-            solid &= solid_on_raster(basis, sol.c, sol.gamma, box, params.solid_raster)
+            solid &= solid_on_raster(basis, sol.c, sol.gamma, box, params.solid_raster, params.holes_allowed)
         records.append({"divisor": d, "sigma": sigma, "errors": errors, "held_out": 0, "solid": solid})
     return choose_sigma(records, diag, params)[0]
 
@@ -331,6 +331,7 @@ def main() -> None:
                     help="width of the refined points = sigma / this (default: the spec's AutoGridParams.narrow_ratio)")
     ap.add_argument("--emulate-widths", action="store_true", help="issue 15: central emulation of the two-width model")
     ap.add_argument("--proposed", action="store_true", help="issue 15: the sigma rule of PROPOSED (not the default)")
+    ap.add_argument("--holes-allowed", action="store_true", help="with --proposed: the solid check rejects islands only")
     args = ap.parse_args()
     if args.emulate_widths:
         wanted = [w for w in args.shapes.split(",") if w]
@@ -345,7 +346,7 @@ def main() -> None:
     if args.outlines is not None:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             divisors = tuple(float(d) for d in args.divisors.split(",")) if args.divisors else None
-            extra = PROPOSED if args.proposed else None
+            extra = dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
             futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space, args.narrow_ratio, extra)
                        for path in args.outlines]
             rows = []
@@ -361,7 +362,7 @@ def main() -> None:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         wanted = [w for w in args.shapes.split(",") if w]
         shapes = [(n, k) for n, k in SHAPES if not wanted or n.split()[0] in wanted]
-        extra = PROPOSED if args.proposed else None
+        extra = dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
         futures = [pool.submit(measure, name, kwargs, robots, points, params_kw, args.free_space, extra)
                    for name, kwargs in shapes]
         rows = []

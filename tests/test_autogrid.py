@@ -523,6 +523,21 @@ def test_solid_region_check():
     assert is_solid(edge)
 
 
+def test_solid_check_can_allow_holes_but_never_islands():
+    """holes_allowed (issue 15): a ring (one piece around an enclosed outside cell) passes, two
+    pieces still fail, a plain disc passes either way."""
+    ring = np.zeros((9, 9), dtype=bool)
+    ring[2:7, 2:7] = True
+    ring[4, 4] = False
+    two = np.zeros((9, 9), dtype=bool)
+    two[1:3, 1:3] = two[6:8, 6:8] = True
+    disc = np.zeros((9, 9), dtype=bool)
+    disc[2:7, 2:7] = True
+    assert not is_solid(ring) and is_solid(ring, holes_allowed=True)
+    assert not is_solid(two) and not is_solid(two, holes_allowed=True)
+    assert is_solid(disc) and is_solid(disc, holes_allowed=True)
+
+
 def test_choose_sigma_skips_candidates_that_are_not_solid():
     params = AutoGridParams()
     rec = lambda d, e, solid: {"divisor": d, "sigma": 10.0 / d, "errors": e, "held_out": 20, "solid": solid}
