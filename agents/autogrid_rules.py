@@ -374,7 +374,8 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
     folds = min(params.validate_folds, params.holdout_every)
     why = (
         f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: "
-        + (f"of the {len(solid)} candidates whose inside region is one solid piece (no holes, no islands), "
+        + (f"of the {len(solid)} candidates whose inside region is one solid piece "
+           f"({'no islands, holes allowed' if params.holes_allowed else 'no holes, no islands'}), "
            if solid else "no candidate gave a solid inside region; of all candidates, ")
         + f"fewest held-out errors ({best['errors']}/{held})"
         + (f" (tied with {len(ties) - 1}, the {params.sigma_ties} sigma wins)" if len(ties) > 1 else "")

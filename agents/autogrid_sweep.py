@@ -14,9 +14,9 @@ misclassifies one of its held-out points or its inside region is not one solid p
 a max over D rounds makes it fleet-wide. A candidate whose folds all stopped with verdict 0 is
 *perfect* (no held-out error anywhere, solid): `choose_sigma` (fewest errors, ties -> the smaller
 sigma) can then never pick a wider candidate, so once every narrower candidate has stopped too,
-the wider unfinished ones are dropped (with `sigma_ties = "larger"` the mirror image: narrower
-ones are dropped once every wider candidate has stopped) (judged on their iterate, marked `dropped`) and the sweep
-ends. The choice is the one the full sweep would make; only the rounds change.
+the wider unfinished ones are dropped (judged on their iterate, marked `dropped`) and the sweep
+ends. With `sigma_ties = "larger"` it is the mirror image: the narrower ones are dropped once every
+wider candidate has stopped. The choice is the one the full sweep would make; only the rounds change.
 
 Tally (one max-consensus): per candidate, two slots per robot id: the exact integer
 errors + PACK * held_out + PACK^2 * not_solid (summed over folds by the robot) and the hinge loss.
