@@ -72,6 +72,13 @@ class AutoGridParams:
     # frames carry w beside v (agents/admm.py), so every ADMM slot has room for both
     hub_frames: bool = False
     early_drop: bool = True  # end the sweep once a perfect candidate decides it (autogrid_sweep.py)
+    # which candidate wins a tie of held-out errors: "smaller" sigma (the default: it follows the
+    # outline more closely) or "larger" (issue 15: with narrow refined kernels, narrow_ratio > 1,
+    # the wide width only has to fill the interior, so the smoothest width the data allow)
+    sigma_ties: str = "smaller"
+    # the solid check rejects a candidate whose inside region has islands or holes (False, the
+    # default) or islands only (True: an enclosed outside cell in the unobserved interior passes)
+    holes_allowed: bool = False
     # a model beyond one width (issue 15): the level-0 lattice's kernels have width sigma, the
     # points refinement adds near the boundary sigma / narrow_ratio (1: one width everywhere, the
     # default: 3 helps the 11 benchmark shapes at 200-240 points but costs the 60-point default
@@ -99,6 +106,8 @@ class AutoGridParams:
             raise ValueError("holdout_every must be >= 2 and validate_rounds >= 1")
         if not 1 <= self.validate_folds <= self.holdout_every:
             raise ValueError(f"validate_folds must be in [1, holdout_every], got {self.validate_folds}")
+        if self.sigma_ties not in ("smaller", "larger"):
+            raise ValueError(f"sigma_ties must be 'smaller' or 'larger', got {self.sigma_ties!r}")
         if self.solid_raster < 8:
             raise ValueError(f"solid_raster must be at least 8, got {self.solid_raster}")
         if not 0 < self.relax < 2:
@@ -349,12 +358,14 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
        and a too-narrow kernel betrays itself by holes and islands where there are no data.
        If no candidate is solid, keep them all.
     2. Among those, the fewest held-out errors; ties -> the smaller sigma (it follows the outline
-       more closely; step 1 guards against the narrow widths that break the region up).
+       more closely; step 1 guards against the narrow widths that break the region up), or with
+       ``params.sigma_ties == "larger"`` the larger one (`tie_sign`).
     Returns (sigma, reason in words).
     """
     solid = [r for r in records if r["solid"]]
     pool = solid or records
-    best = min(pool, key=lambda r: (r["errors"], r["sigma"]))
+    sign = tie_sign(params)
+    best = min(pool, key=lambda r: (r["errors"], sign * r["sigma"]))
     held = best["held_out"]
     ties = [r for r in pool if r["errors"] == best["errors"]]
     table = ", ".join(
@@ -363,10 +374,11 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
     folds = min(params.validate_folds, params.holdout_every)
     why = (
         f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: "
-        + (f"of the {len(solid)} candidates whose inside region is one solid piece (no holes, no islands), "
+        + (f"of the {len(solid)} candidates whose inside region is one solid piece "
+           f"({'no islands, holes allowed' if params.holes_allowed else 'no holes, no islands'}), "
            if solid else "no candidate gave a solid inside region; of all candidates, ")
         + f"fewest held-out errors ({best['errors']}/{held})"
-        + (f" (tied with {len(ties) - 1}, the smaller sigma wins)" if len(ties) > 1 else "")
+        + (f" (tied with {len(ties) - 1}, the {params.sigma_ties} sigma wins)" if len(ties) > 1 else "")
         + f"; held-out errors {table}; {folds} fold(s), each robot holding out every "
         f"{params.holdout_every}th of its (inside point, nearest outside point) pairs; every candidate and "
         f"fold a soft-margin ADMM (C = {params.soft_C:g}) on its coarse lattice, all solved in the same "
@@ -374,6 +386,12 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
         "diagonal of the data's bounding box (scale-free: every candidate is proportional to diag)"
     )
     return float(best["sigma"]), why
+
+
+def tie_sign(params: AutoGridParams) -> float:
+    """+1 when a tie of held-out errors goes to the smaller sigma, -1 when to the larger: the
+    order in which `choose_sigma` ranks tied candidates (and early drop drops the losers)."""
+    return 1.0 if params.sigma_ties == "smaller" else -1.0
 
 
 def holdout_units(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -399,25 +417,29 @@ def holdout_units(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return units
 
 
-def is_solid(inside: np.ndarray) -> bool:
-    """True when a raster's inside cells form one 4-connected piece with no enclosed hole."""
+def is_solid(inside: np.ndarray, holes_allowed: bool = False) -> bool:
+    """True when a raster's inside cells form one 4-connected piece with no enclosed hole (with
+    `holes_allowed`: one piece, enclosed outside cells allowed)."""
     if not inside.any():
         return False
     from scipy import ndimage  # here, not at the top: ~0.5 s of every robot process's start-up
 
     _, pieces = ndimage.label(inside)
+    if holes_allowed:
+        return pieces == 1
     outside, n_out = ndimage.label(~inside)
     rim = np.concatenate([outside[0], outside[-1], outside[:, 0], outside[:, -1]])
     touching = set(np.unique(rim).tolist()) - {0}
     return pieces == 1 and n_out == len(touching)
 
 
-def solid_on_raster(basis: GridBasis, c: np.ndarray, gamma: float, box: tuple[float, float, float, float], r: int) -> bool:
+def solid_on_raster(basis: GridBasis, c: np.ndarray, gamma: float, box: tuple[float, float, float, float], r: int,
+                    holes_allowed: bool = False) -> bool:
     """`is_solid` of the learned inside region {f < 0} on an r x r raster of `box`."""
     x0, x1, y0, y1 = box
     gx, gy = np.meshgrid(np.linspace(x0, x1, r), np.linspace(y0, y1, r))
     f = basis.decision(np.column_stack([gx.ravel(), gy.ravel()]), c, gamma)
-    return is_solid((f < 0).reshape(r, r))
+    return is_solid((f < 0).reshape(r, r), holes_allowed)
 
 
 def _crossing(f: np.ndarray) -> np.ndarray:

@@ -15,7 +15,8 @@ a max over D rounds makes it fleet-wide. A candidate whose folds all stopped wit
 *perfect* (no held-out error anywhere, solid): `choose_sigma` (fewest errors, ties -> the smaller
 sigma) can then never pick a wider candidate, so once every narrower candidate has stopped too,
 the wider unfinished ones are dropped (judged on their iterate, marked `dropped`) and the sweep
-ends. The choice is the one the full sweep would make; only the rounds change.
+ends. With `sigma_ties = "larger"` it is the mirror image: the narrower ones are dropped once every
+wider candidate has stopped. The choice is the one the full sweep would make; only the rounds change.
 
 Tally (one max-consensus): per candidate, two slots per robot id: the exact integer
 errors + PACK * held_out + PACK^2 * not_solid (summed over folds by the robot) and the hinge loss.
@@ -29,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from agents.admm import ADMMParams
-from agents.autogrid_rules import PACK, TALLY_BLOCKS, AutoGridParams, coarse_lattice, solid_on_raster
+from agents.autogrid_rules import PACK, TALLY_BLOCKS, AutoGridParams, coarse_lattice, solid_on_raster, tie_sign
 from agents.autogrid_warm import WarmADMM
 from agents.kernel import GridBasis
 from agents.rounds import RobotShare
@@ -160,18 +161,21 @@ class SigmaSweep:
         self._drop_decided()
 
     def _drop_decided(self) -> None:
-        """Drop the unfinished candidates wider than a perfect one once every narrower candidate
-        has stopped (see the module docstring); the same round on every robot."""
+        """Drop the unfinished candidates that lose every tie to a perfect one (wider ones when
+        ties go to the smaller sigma, narrower ones when to the larger) once every candidate that
+        would win a tie against it has stopped (see the module docstring); the same round on
+        every robot."""
         if not self.params.early_drop:
             return
-        cands = sorted({t.cand for t in self.tasks}, key=lambda c: self.task(c, 0).sigma)  # narrowest first
+        sign = tie_sign(self.params)
+        cands = sorted({t.cand for t in self.tasks}, key=lambda c: sign * self.task(c, 0).sigma)  # tie winners first
         for cand in cands:
             tasks = [t for t in self.tasks if t.cand == cand]
             if not all(t.since >= 0 or t.dropped for t in tasks):
-                return  # a narrower candidate still running could win on a tie
+                return  # a candidate still running that would win a tie could still win
             if all(t.since >= self.params.diameter and t.verdict == 0.0 for t in tasks):
                 for t in self.tasks:
-                    if t.sigma > tasks[0].sigma and t.since < 0:
+                    if sign * t.sigma > sign * tasks[0].sigma and t.since < 0:
                         t.dropped = True
                 return
 
@@ -195,7 +199,8 @@ class SigmaSweep:
             yf = y * t.basis.decision(pts, c, gamma)
             errors, hinge = int(np.sum(yf <= 0)), float(np.sum(np.maximum(0.0, 1.0 - yf)))
         raster = self._raster[t.cand]
-        outcome = errors, len(y), hinge, solid_on_raster(raster, c, gamma, t.box, self.params.solid_raster)  # type: ignore[arg-type]
+        outcome = errors, len(y), hinge, solid_on_raster(raster, c, gamma, t.box, self.params.solid_raster,  # type: ignore[arg-type]
+                                                     self.params.holes_allowed)
         self._outcomes[index] = (key, outcome)
         return outcome
 

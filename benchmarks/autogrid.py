@@ -56,6 +56,10 @@ SHAPES = [
     ("bracket_mm.csv (mm)", {"shape_file": str(ROOT / "benchmarks/data/bracket_mm.csv"), **MM}),
 ]
 SWEEP = (2, 4, 6, 8, 12, 16)  # SVC: a superset of the fleet's candidates diag/{4, 6, 8, 12, 16}
+#: issue 15, the sigma rule chosen by central emulation (benchmarks/results/autogrid.md, "The sigma
+#: rule"): candidates diag/{4, 8, 16, 24}, 4 folds, ties -> the larger sigma, refined points sigma / 3
+PROPOSED = {"validate_divisors": (4.0, 8.0, 16.0, 24.0), "validate_folds": 4, "sigma_ties": "larger",
+            "narrow_ratio": 3.0}
 
 
 def run_fleet(world, spec, params):
@@ -103,10 +107,10 @@ def svc_iou(world, bounds, sigma):
     return scenario.iou_on_raster(world.shape, lambda q: clf.decision_function(q) < 0, bounds)
 
 
-def measure(name, kwargs, robots, points, params_kw, free_space=None):
+def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None):
     free = {} if free_space is None else {"free_space": free_space}
     world, spec = build_world(Options(fleet_id="bench", robots=robots, points=points, **kwargs, **free))
-    params = AutoGridParams(diameter=spec.params["diameter"], **params_kw)
+    params = AutoGridParams(diameter=spec.params["diameter"], **{**params_kw, **(extra or {})})
     started = time.perf_counter()
     cores = run_fleet(world, spec, params)
     wall = time.perf_counter() - started
@@ -166,7 +170,7 @@ OUTLINE_SWEEP = (2, 3, 4, 6, 8, 12, 16, 24, 32)  # SVC's sigma candidates for th
 
 
 def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tuple[float, ...] | None = None,
-                    free_space: int | None = None, narrow_ratio: float | None = None) -> dict:
+                    free_space: int | None = None, narrow_ratio: float | None = None, extra: dict | None = None) -> dict:
     """One complex outline with the defaults of `simulate --shape-file path --robots 5 --points 40`
     (the spec's own autogrid parameters), against SVC with sigma by 5-fold CV and the oracle."""
     free = {} if free_space is None else {"free_space": free_space}
@@ -176,6 +180,8 @@ def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tupl
         params = dataclasses.replace(params, validate_divisors=divisors)
     if narrow_ratio is not None:  # an experiment: another width of the refined points
         params = dataclasses.replace(params, narrow_ratio=narrow_ratio)
+    if extra:  # an experiment: another sigma rule (--proposed)
+        params = dataclasses.replace(params, **extra)
     started = time.perf_counter()
     cores = run_fleet(world, spec, params)
     wall = time.perf_counter() - started
@@ -250,7 +256,7 @@ def _central_sweep_choice(spec, params, bounds, diag):
             tp, tl, hp, hl = _fold_sets(spec, params, fold)
             sol = solve_central(basis, tp, tl, params.soft_C)
             errors += int(np.sum(hl * basis.decision(hp, sol.c, sol.gamma) <= 0))
-            solid &= solid_on_raster(basis, sol.c, sol.gamma, box, params.solid_raster)
+            solid &= solid_on_raster(basis, sol.c, sol.gamma, box, params.solid_raster, params.holes_allowed)
         records.append({"divisor": d, "sigma": sigma, "errors": errors, "held_out": 0, "solid": solid})
     return choose_sigma(records, diag, params)[0]
 
@@ -324,6 +330,8 @@ def main() -> None:
     ap.add_argument("--narrow-ratio", type=float, default=None,
                     help="width of the refined points = sigma / this (default: the spec's AutoGridParams.narrow_ratio)")
     ap.add_argument("--emulate-widths", action="store_true", help="issue 15: central emulation of the two-width model")
+    ap.add_argument("--proposed", action="store_true", help="issue 15: the sigma rule of PROPOSED (not the default)")
+    ap.add_argument("--holes-allowed", action="store_true", help="with --proposed: the solid check rejects islands only")
     args = ap.parse_args()
     if args.emulate_widths:
         wanted = [w for w in args.shapes.split(",") if w]
@@ -338,7 +346,9 @@ def main() -> None:
     if args.outlines is not None:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             divisors = tuple(float(d) for d in args.divisors.split(",")) if args.divisors else None
-            futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space, args.narrow_ratio) for path in args.outlines]
+            extra = dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
+            futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space, args.narrow_ratio, extra)
+                       for path in args.outlines]
             rows = []
             for future in futures:
                 rows.append(future.result())
@@ -352,7 +362,9 @@ def main() -> None:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         wanted = [w for w in args.shapes.split(",") if w]
         shapes = [(n, k) for n, k in SHAPES if not wanted or n.split()[0] in wanted]
-        futures = [pool.submit(measure, name, kwargs, robots, points, params_kw, args.free_space) for name, kwargs in shapes]
+        extra = dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
+        futures = [pool.submit(measure, name, kwargs, robots, points, params_kw, args.free_space, extra)
+                   for name, kwargs in shapes]
         rows = []
         for future in futures:
             row = future.result()

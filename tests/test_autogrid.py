@@ -523,6 +523,21 @@ def test_solid_region_check():
     assert is_solid(edge)
 
 
+def test_solid_check_can_allow_holes_but_never_islands():
+    """holes_allowed (issue 15): a ring (one piece around an enclosed outside cell) passes, two
+    pieces still fail, a plain disc passes either way."""
+    ring = np.zeros((9, 9), dtype=bool)
+    ring[2:7, 2:7] = True
+    ring[4, 4] = False
+    two = np.zeros((9, 9), dtype=bool)
+    two[1:3, 1:3] = two[6:8, 6:8] = True
+    disc = np.zeros((9, 9), dtype=bool)
+    disc[2:7, 2:7] = True
+    assert not is_solid(ring) and is_solid(ring, holes_allowed=True)
+    assert not is_solid(two) and not is_solid(two, holes_allowed=True)
+    assert is_solid(disc) and is_solid(disc, holes_allowed=True)
+
+
 def test_choose_sigma_skips_candidates_that_are_not_solid():
     params = AutoGridParams()
     rec = lambda d, e, solid: {"divisor": d, "sigma": 10.0 / d, "errors": e, "held_out": 20, "solid": solid}
@@ -532,6 +547,19 @@ def test_choose_sigma_skips_candidates_that_are_not_solid():
     assert "diag/16: 0 (not solid)" in why and "the smaller sigma wins" in why
     sigma, why = choose_sigma([rec(4, 2, False), rec(8, 1, False)], 10.0, params)
     assert sigma == 10.0 / 8 and "no candidate gave a solid inside region" in why
+
+
+def test_choose_sigma_ties_can_go_to_the_larger_sigma():
+    """Issue 15: with sigma_ties="larger" the same tallies pick the widest of the tied solid
+    candidates (diag/8, not diag/12); a candidate with fewer errors still wins outright."""
+    params = AutoGridParams(sigma_ties="larger")
+    rec = lambda d, e, solid: {"divisor": d, "sigma": 10.0 / d, "errors": e, "held_out": 20, "solid": solid}
+    sigma, why = choose_sigma([rec(4, 1, True), rec(8, 0, True), rec(12, 0, True), rec(16, 0, False)], 10.0, params)
+    assert sigma == 10.0 / 8 and "the larger sigma wins" in why
+    sigma, _ = choose_sigma([rec(4, 1, True), rec(8, 2, True), rec(12, 0, True)], 10.0, params)
+    assert sigma == 10.0 / 12
+    with pytest.raises(ValueError, match="sigma_ties"):
+        AutoGridParams(sigma_ties="middle")
 
 
 # -- agreement measured, not manufactured (issue 18); exact references, grids near data (issue 10) --
@@ -697,6 +725,30 @@ def test_sweep_drops_wider_candidates_once_a_narrower_one_is_perfect():
     assert end - start == max([narrowest["rounds"] + early.params.diameter, *narrower])
     assert end - start < _phase_rounds(full, "validate")[1] - start
     assert early.round < full.round
+
+
+@pytest.mark.parametrize("ties", ["smaller", "larger"])
+def test_early_drop_drops_only_candidates_that_lose_every_tie(ties):
+    """Early drop's decision on its own (no fleet): diag/8 stopped perfect (D rounds ago, verdict
+    0). Ties to the smaller sigma: the wider diag/4 is dropped once the narrower diag/16 has
+    stopped, not before. Ties to the larger (issue 15): the mirror image, diag/16 is dropped once
+    the wider diag/4 has stopped."""
+    from types import SimpleNamespace
+
+    from agents.autogrid_sweep import SigmaSweep
+
+    sweep = object.__new__(SigmaSweep)
+    sweep.params = AutoGridParams(diameter=2, sigma_ties=ties)
+    task = lambda cand, d, since, verdict: SimpleNamespace(cand=cand, fold=0, sigma=10.0 / d, since=since,
+                                                           verdict=verdict, dropped=False)
+    loser, winner = (0, 2) if ties == "smaller" else (2, 0)  # indices into diag/4, diag/8, diag/16
+    tasks = [task(0, 4, -1, 0.0), task(1, 8, 2, 0.0), task(2, 16, -1, 0.0)]
+    sweep.tasks = tasks
+    sweep._drop_decided()
+    assert not any(t.dropped for t in tasks)  # the candidate that would win a tie is still running
+    tasks[winner].since, tasks[winner].verdict = 0, 1.0  # it stopped with a held-out error
+    sweep._drop_decided()
+    assert tasks[loser].dropped and not tasks[1].dropped and not tasks[winner].dropped
 
 
 def test_near_data_cell_is_decided_on_lattice_indices_with_ties_allowed_both_ways():
