@@ -35,18 +35,20 @@ F(S)_j = t_j + eta (mean_k a_k - x_j) -- each x_j is robot j's own prox of its o
 view is an exact evaluation of the one fleet operator at some (mixed-age) point, which is what
 type-II Anderson needs: it extrapolates from the last ``hub_anderson`` views (regularised least
 squares on the P-weighted residuals, as lockstep's hub) and the robot keeps its own block of the
-result as its new t_i. It steps on every tick (``hub_every_tick``, the default): even without a
-packet its own block is new (its own x_i and a_i of the last solve), so the view is a new
-evaluation. Two safeguards: when the view's residual exceeds ``hub_safeguard`` x the best since
-the last restart, the history is dropped and the plain step taken (``restarts`` counts them); and
-the extrapolation's correction of the whole view (P-weighted) is scaled down to at most
-``hub_step_cap`` x the view's residual -- mixed-age views can make the least squares propose a far
-jump, which then costs a restart and a plateau (measured in benchmarks/results/free.md: the
-chosen setting's slowest runs on worlds 0-2 went from 1.12 to 0.95 x lockstep's time). In lockstep (everyone's newest = current) every robot holds the same views and this is
-lockstep's global Anderson. At a fixed point the residual is zero, the least squares returns zero
-and the extrapolation is the plain step: the fixed point, so the answer, is unchanged
-(tests/test_free_hub.py). Convergence of the extrapolated asynchronous iteration is not a theorem
-(measured: benchmarks/results/free.md); the answer it stops at is checked against the exact one
+result as its new t_i. By default it steps only when a packet brought news; ``hub_every_tick``
+steps on every tick (its own block of the view is new after every solve). Safeguard: when the
+view's residual exceeds ``hub_safeguard`` x the best since the last restart, the history is dropped
+and the plain step taken (``restarts`` counts them); ``hub_step_cap`` > 0 also scales the
+extrapolation's correction of the whole view (P-weighted) down to at most that many times the
+view's residual (mixed-age views can make the least squares propose a far jump). Both options are
+off by default: with them and eta 1.6 the 3-robot fleet was faster at 5 ms, but 4-robot fleets
+stopped outside the tolerance (benchmarks/results/free.md, docs/robustness.md). In lockstep
+(everyone's newest = current) every robot holds the same views and this is lockstep's global
+Anderson. At a fixed point the
+residual is zero, the least squares returns zero and the extrapolation is the plain step (the
+cap scales a zero correction): the fixed point, so the answer, is unchanged (tests/test_free_hub.py).
+Convergence of the extrapolated asynchronous iteration is not a theorem (measured:
+benchmarks/results/free.md); the answer it stops at is checked against the exact one
 in every benchmark and sweep cell. Anderson on the robot's own t_i sequence alone was slower than
 no acceleration (664 against 476 iterations without a clock): robots then extrapolate with
 unrelated coefficients.
@@ -89,15 +91,15 @@ class FreeHubParams(RelaxedADMMParams):
     unused) plus the hub's relaxation and acceleration."""
 
     rho: float = 8.0  # measured at loss 0.3, 20 ms, period 5 ms: 5 and 10 slower, 12-20 much slower
-    # eta and memory chosen on seeds 0-2 at periods 10 and 5 ms (loss 0.3, 20 ms; the largest ratio to
-    # lockstep's stop time over the six runs; seeds 3-9 held out): benchmarks/results/free.md
-    # eta, every-tick stepping and the step cap chosen at 10 ms on worlds 0-2 only (10 link/clock
-    # realisations each), checked at 5 ms: benchmarks/results/free.md, docs/robustness.md
-    hub_relax: float = 1.6  # eta in (0, 2): 1 is plain ADMM; smaller damps staleness (ARock's step)
+    # memory and safeguard chosen on seeds 0-2 at periods 10 and 5 ms (loss 0.3, 20 ms; the largest
+    # ratio to lockstep's stop time over the six runs). A candidate eta 1.6 + every-tick steps + step
+    # cap 10 (better on 3 robots at 5 ms) stopped 4-robot fleets outside the tolerance (6e-3): not the
+    # default (benchmarks/results/free.md, docs/robustness.md)
+    hub_relax: float = 1.5  # eta in (0, 2): 1 is plain ADMM; smaller damps staleness (ARock's step)
     hub_anderson: int = 35  # memory of the Anderson acceleration on the robot's view (0: none; 5-25 slower)
     hub_safeguard: float = 10.0  # restart Anderson when the view's residual exceeds this x its best
-    hub_every_tick: bool = True  # step on every tick (False: only when a packet brought news)
-    hub_step_cap: float = 10.0  # extrapolation's correction at most this x the view's residual (0: no cap)
+    hub_every_tick: bool = False  # True: step on ticks without news too (the candidate; see above)
+    hub_step_cap: float = 0.0  # >0: extrapolation's correction at most this x the view's residual
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -142,7 +144,8 @@ class FreeHubADMM(RelaxedADMM):
 
     def _solve(self) -> np.ndarray:
         """Move t_i (every tick, or only on news; see the module), then x_i = prox(t_i), a_i = 2 x_i - t_i."""
-        if self.ticks and (self._news or self.params.hub_every_tick) and len(self._held) == len(self.neighbours):  # until all were heard, t waits
+        heard_all = len(self._held) == len(self.neighbours)  # until all were heard, t waits
+        if self.ticks and (self._news or self.params.hub_every_tick) and heard_all:
             self._t = self._view_step()
         self._news = set()
         sol = self._qp.solve(-self._P * self._t)

@@ -28,12 +28,14 @@ def _lockstep(cores: list[FreeHubADMM], ticks: int) -> None:
                 cores[j].receive(p)
 
 
-@pytest.mark.parametrize("anderson", [0, 30])
-def test_the_fixed_point_is_the_exact_optimum(default_run, anderson):
+@pytest.mark.parametrize("anderson, options", [(0, {}), (30, {}), (30, {"hub_every_tick": True, "hub_step_cap": 10.0})])
+def test_the_fixed_point_is_the_exact_optimum(default_run, anderson, options):
     """At the fixed point every x_i is one z, mean_i t_i = z (so sum_i P (t_i - z) = 0: the
-    subgradients P (t_i - z) of the f_i at z sum to zero) and z is the central solution."""
+    subgradients P (t_i - z) of the f_i at z sum to zero) and z is the central solution; the
+    every-tick step and the step cap leave it there."""
     _, spec, central = default_run
-    params = {"tol": 1e-12, "max_ticks": 10**6, "hub_anderson": anderson, "hub_relax": 1.0 if anderson else 1.9}
+    params = {"tol": 1e-12, "max_ticks": 10**6, "hub_anderson": anderson, "hub_relax": 1.0 if anderson else 1.9,
+              **options}
     cores = [build_free_core(spec, r, params, "hub") for r in spec.robot_ids]
     _lockstep(cores, 300 if anderson else 450)
     z = np.mean([c.values for c in cores], axis=0)
