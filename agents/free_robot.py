@@ -34,7 +34,7 @@ from typing import Any, TextIO
 
 from agents.pdmm import build_free_core
 from agents.robot import (PUBLISH_EXPRESS, RobotShell, _inbox_for, _open_session, _write_atomic,
-                          robot_config_dict_for, robot_ids_of, robot_process_parser)
+                          robot_config_dict_for, robot_ids_of, robot_process_parser, watch_parent)
 from protocol.free import FreeSession
 from protocol.keys import state_key
 from protocol.links import LinkLayer
@@ -230,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--status-interval", type=float, default=0.05, help="seconds between status lines")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
+    watch_parent(args.parent_pid)
     from agents.spec import FleetSpec
 
     try:

@@ -68,6 +68,7 @@ __all__ = [
     "DIVERGED_ABS",
     "GIVE_UP_FACTOR",
     "early_argv",
+    "watch_parent",
 ]
 
 log = logging.getLogger("shapefleet.robot")
@@ -922,7 +923,26 @@ def robot_process_parser(prog: str, doc: str | None, workdir_help: str) -> argpa
     ap.add_argument("--connect", action="append", required=True)
     ap.add_argument("--workdir", type=Path, required=True, help=workdir_help)
     ap.add_argument("--shared-session", action="store_true", help="one Zenoh session for the robots here")
+    ap.add_argument("--parent-pid", type=int, default=None,
+                    help="stop (as on SIGTERM) when this process is no longer our parent (the launcher is gone)")
     return ap
+
+
+def watch_parent(parent_pid: int | None, period_s: float = 0.5) -> None:
+    """When ``parent_pid`` stops being this process's parent (a launcher killed by SIGKILL cannot
+    stop its robots), SIGTERM ourselves: the robots stop as on any SIGTERM, results written with
+    ``stopped = "signal"``, instead of waiting up to ``max_wall_s`` for a router that died with
+    the launcher. A daemon thread; it sends nothing and ends with the process."""
+    if parent_pid is None:
+        return
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(period_s)
+        log.warning("launcher (pid %d) gone: stopping", parent_pid)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def robot_ids_of(spec: Any, ids_text: str, fleet_file: Path) -> list[int]:
@@ -945,6 +965,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--crash-at", type=int, help="fault injection: SIGKILL this (one-robot) process on reaching this round")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="robot %(message)s", stream=sys.stderr)
+    watch_parent(args.parent_pid)
     from agents.spec import FleetSpec
 
     _STARTED["algorithms_imported"] = time.monotonic()

@@ -523,7 +523,7 @@ class _Fleet:
             argv = [sys.executable, *robot_argv[:2], "--fleet-file", str(fleet_file), *robot_argv[2:],
                     "--id" if len(ids) == 1 else "--ids", ",".join(map(str, ids)), "--connect", endpoint,
                     "--workdir", str(workdir),
-                    "--status-interval", f"{interval:g}"]
+                    "--status-interval", f"{interval:g}", "--parent-pid", str(os.getpid())]
             if len(ids) > 1 and SHARED_SESSION:
                 argv.append("--shared-session")
             name = f"robot-{ids[0]}" if len(ids) == 1 else f"robots-{ids[0]}-{ids[-1]}"

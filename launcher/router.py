@@ -94,7 +94,7 @@ class EarlyRouter:
         self.log = open(self.log_path, "ab")
         argv = [sys.executable, "-m", "launcher.router", "--port", str(self.port), "--host", HOST,
                 "--ready-file", str(self.ready_file), "--max-wall-s", f"{self.bound_s:.0f}",
-                "--parent-pid", str(os.getpid())]
+                "--parent-pid", str(os.getpid()), "--orphan-folder", str(self.folder)]
         if run_folder:  # in its command line, as a router started by launch_fleet has (ps, tests)
             argv += ["--run-folder", run_folder]
         try:
@@ -249,6 +249,7 @@ def run_router(
     tls: TLSFiles | None = None,
     peers: list[str] | None = None,
     parent_pid: int | None = None,
+    orphan_folder: Path | None = None,
 ) -> None:
     """Open a Zenoh router listening on ``tcp/host:port``; run until SIGTERM/SIGINT; close.
 
@@ -258,7 +259,8 @@ def run_router(
     listens on ``tls/host:port`` instead (see protocol.zenoh_config.TLSFiles). ``peers``: other
     routers to link to (``tcp/host:port``), e.g. one router per host with the robots split between
     them (docs/scaling.md, "Beyond one host"). ``parent_pid``: end when that process is no
-    longer this one's parent (the launcher that started it is gone).
+    longer this one's parent (the launcher that started it is gone); ``orphan_folder`` (an early
+    router's temporary folder, named ``shapefleet-router-*``) is then removed, as nobody else will.
     """
     import zenoh
 
@@ -270,6 +272,7 @@ def run_router(
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     session = None
+    orphaned = False
     try:
         session = zenoh.open(config)
         info = {
@@ -284,6 +287,7 @@ def run_router(
         deadline = None if max_wall_s is None else time.monotonic() + max_wall_s
         while not stop.is_set():
             if parent_pid is not None and os.getppid() != parent_pid:
+                orphaned = True
                 break
             timeout = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
             if timeout <= 0:
@@ -300,6 +304,8 @@ def run_router(
             except FileNotFoundError:
                 pass
     print(json.dumps({"router": "closed", "pid": os.getpid()}), file=stream, flush=True)
+    if orphaned and orphan_folder is not None and Path(orphan_folder).name.startswith("shapefleet-router-"):
+        shutil.rmtree(orphan_folder, ignore_errors=True)  # its launcher was killed: nobody adopts it
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -312,10 +318,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--allow-remote", action="store_true", help="listen / connect beyond loopback")
     ap.add_argument("--parent-pid", type=int, default=None, help="end when this process is no longer the parent")
     ap.add_argument("--run-folder", default=None, help="the run this router serves (for ps; not read)")
+    ap.add_argument("--orphan-folder", type=Path, default=None,
+                    help="with --parent-pid: remove this shapefleet-router-* folder when the parent is gone")
     args = ap.parse_args(argv)
     try:
         run_router(args.port, host=args.host, ready_file=args.ready_file, max_wall_s=args.max_wall_s,
-                   loopback_only=not args.allow_remote, peers=args.connect, parent_pid=args.parent_pid)
+                   loopback_only=not args.allow_remote, peers=args.connect, parent_pid=args.parent_pid,
+                   orphan_folder=args.orphan_folder)
     except ValueError as exc:
         print(f"router: {exc}", file=sys.stderr)
         return 2

@@ -38,10 +38,13 @@ def test_an_early_router_or_robot_is_only_for_a_plain_launch(early):
 
 
 def test_a_router_ends_when_its_parent_is_gone(tmp_path):
-    ready, log = tmp_path / "ready.json", tmp_path / "router.log"
+    """... and removes its early-router folder: a killed launcher leaves no /tmp/shapefleet-router-*."""
+    folder = tmp_path / "shapefleet-router-test"
+    folder.mkdir()
+    ready, log = folder / "ready.json", tmp_path / "router.log"
     # the shell starts the router as its child and exits at once: the router is orphaned
     script = (f"{sys.executable} -m launcher.router --port {free_loopback_port()} --ready-file {ready} "
-              f"--max-wall-s 30 --parent-pid $$ > {log} 2>&1 &")
+              f"--max-wall-s 30 --parent-pid $$ --orphan-folder {folder} > {log} 2>&1 &")
     subprocess.run(["sh", "-c", script], cwd=ROOT, env=child_env(), timeout=10, check=True)
     end = time.monotonic() + 20
     while processes_with(str(ready)) and time.monotonic() < end:
@@ -52,6 +55,7 @@ def test_a_router_ends_when_its_parent_is_gone(tmp_path):
     assert left == []
     said = log.read_text()
     assert '"router": "ready"' in said and '"router": "closed"' in said, said  # it ran, then ended by itself
+    assert not folder.exists()
 
 
 
@@ -111,3 +115,28 @@ def test_early_robots_not_adopted_are_stopped_by_pid(tmp_path):
     assert len(procs) == 2 and processes_with(str(tmp_path))  # waiting, named by their run folder
     early.discard()
     assert all(p.returncode is not None for p in procs) and processes_with(str(tmp_path)) == []
+
+
+@pytest.mark.parametrize("program", ["agents.robot", "agents.free_robot"])
+def test_a_robot_whose_launcher_is_gone_stops_by_itself(tmp_path, program):
+    """A launcher killed by SIGKILL cannot stop its robots; with ``--parent-pid`` (what launch_fleet
+    passes) they notice and stop as on SIGTERM, instead of waiting max_wall_s (600 s) for a router
+    that died with the launcher."""
+    from tests.conftest import make_run
+
+    _, spec, _ = make_run(fleet_id="orphan")
+    fleet = tmp_path / "fleet.json"
+    spec.save(fleet)
+    extra = " --period 0.01" if program == "agents.free_robot" else ""
+    # the shell starts the robot as its child and exits at once: the robot is orphaned; no router
+    script = (f"{sys.executable} -m {program} --fleet-file {fleet} --id 0 --connect tcp/127.0.0.1:"
+              f"{free_loopback_port()} --workdir {tmp_path} --parent-pid $${extra} > {tmp_path / 'robot.log'} 2>&1 &")
+    subprocess.run(["sh", "-c", script], cwd=ROOT, env=child_env(), timeout=10, check=True)
+    end = time.monotonic() + 20
+    while processes_with(str(fleet)) and time.monotonic() < end:
+        time.sleep(0.05)
+    left = processes_with(str(fleet))
+    for pid in left:  # never leave it running, even when the test fails
+        os.kill(pid, 9)
+    assert left == [], (tmp_path / "robot.log").read_text()
+    assert "gone: stopping" in (tmp_path / "robot.log").read_text()
