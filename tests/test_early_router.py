@@ -37,26 +37,31 @@ def test_an_early_router_or_robot_is_only_for_a_plain_launch(early):
         assert early.for_command_line(["shapefleet", *args]) is None, args
 
 
+def run_orphaned(args: str, log: Path, *, marker: str, wait_s: float = 20.0) -> list[int]:
+    """Start ``python ARGS --parent-pid <a shell>`` from a shell that exits at once (the process is
+    orphaned, as when its launcher is SIGKILLed); the PIDs still running ``wait_s`` later (each then
+    killed by its PID: never left running, even when the test fails)."""
+    script = f"{sys.executable} {args} --parent-pid $$ > {log} 2>&1 &"
+    subprocess.run(["sh", "-c", script], cwd=ROOT, env=child_env(), timeout=10, check=True)
+    end = time.monotonic() + wait_s
+    while processes_with(marker) and time.monotonic() < end:
+        time.sleep(0.05)
+    left = processes_with(marker)
+    for pid in left:
+        os.kill(pid, 9)
+    return left
+
+
 def test_a_router_ends_when_its_parent_is_gone(tmp_path):
     """... and removes its early-router folder: a killed launcher leaves no /tmp/shapefleet-router-*."""
     folder = tmp_path / "shapefleet-router-test"
     folder.mkdir()
     ready, log = folder / "ready.json", tmp_path / "router.log"
-    # the shell starts the router as its child and exits at once: the router is orphaned
-    script = (f"{sys.executable} -m launcher.router --port {free_loopback_port()} --ready-file {ready} "
-              f"--max-wall-s 30 --parent-pid $$ --orphan-folder {folder} > {log} 2>&1 &")
-    subprocess.run(["sh", "-c", script], cwd=ROOT, env=child_env(), timeout=10, check=True)
-    end = time.monotonic() + 20
-    while processes_with(str(ready)) and time.monotonic() < end:
-        time.sleep(0.05)
-    left = processes_with(str(ready))
-    for pid in left:  # never leave it running, even when the test fails
-        os.kill(pid, 9)
-    assert left == []
+    assert run_orphaned(f"-m launcher.router --port {free_loopback_port()} --ready-file {ready} --max-wall-s 30 "
+                        f"--orphan-folder {folder}", log, marker=str(ready)) == []
     said = log.read_text()
     assert '"router": "ready"' in said and '"router": "closed"' in said, said  # it ran, then ended by itself
     assert not folder.exists()
-
 
 
 def test_an_early_router_bound_shorter_than_the_run_is_not_adopted(tmp_path):
@@ -128,15 +133,8 @@ def test_a_robot_whose_launcher_is_gone_stops_by_itself(tmp_path, program):
     fleet = tmp_path / "fleet.json"
     spec.save(fleet)
     extra = " --period 0.01" if program == "agents.free_robot" else ""
-    # the shell starts the robot as its child and exits at once: the robot is orphaned; no router
-    script = (f"{sys.executable} -m {program} --fleet-file {fleet} --id 0 --connect tcp/127.0.0.1:"
-              f"{free_loopback_port()} --workdir {tmp_path} --parent-pid $${extra} > {tmp_path / 'robot.log'} 2>&1 &")
-    subprocess.run(["sh", "-c", script], cwd=ROOT, env=child_env(), timeout=10, check=True)
-    end = time.monotonic() + 20
-    while processes_with(str(fleet)) and time.monotonic() < end:
-        time.sleep(0.05)
-    left = processes_with(str(fleet))
-    for pid in left:  # never leave it running, even when the test fails
-        os.kill(pid, 9)
-    assert left == [], (tmp_path / "robot.log").read_text()
-    assert "gone: stopping" in (tmp_path / "robot.log").read_text()
+    log = tmp_path / "robot.log"  # no router: the robot would wait for one
+    left = run_orphaned(f"-m {program} --fleet-file {fleet} --id 0 --connect tcp/127.0.0.1:{free_loopback_port()} "
+                        f"--workdir {tmp_path}{extra}", log, marker=str(fleet))
+    assert left == [], log.read_text()
+    assert "gone: stopping" in log.read_text()
