@@ -118,7 +118,6 @@ class RelayHubADMM(RoundCore):
         self.params = params
         self.ids = tuple(sorted(graph))
         self.n = n = len(self.ids)
-        self._k = self.ids.index(me)
         hops = hop_table(graph)
         self.delay = max(max(d.values()) for d in hops.values())  # D: every a_l is here after D rounds
         self._dist = hops[me]
@@ -126,6 +125,7 @@ class RelayHubADMM(RoundCore):
         # the neighbour nearest to l (ties: lowest id), whose frame of round r holds round r - d(j, l)
         self._route = {l: min(self.neighbours, key=lambda j: (hops[j][l], j)) for l in self.ids if l != me}
         self._route_hops = {l: hops[j][l] for l, j in self._route.items()}
+        self._slots = {l: slice(k * share.dim, (k + 1) * share.dim) for k, l in enumerate(self.ids)}  # l's a in a frame
         self.frame_dim = n * self.dim
         self._P = np.full(self.dim, params.rho)
         self._P[-1] *= params.gamma_penalty
@@ -161,11 +161,10 @@ class RelayHubADMM(RoundCore):
     def _make_frame(self) -> np.ndarray:
         """Slot l: the newest a_l held, of round `round - d(me, l)` (zeros until it arrived)."""
         frame = np.zeros(self.frame_dim)
-        d = self.dim
-        for k, l in enumerate(self.ids):
+        for l in self.ids:
             a = self._a[l].get(self.round - self._dist[l])
             if a is not None:
-                frame[k * d:(k + 1) * d] = a
+                frame[self._slots[l]] = a
         return frame
 
     def outgoing(self) -> StateUpdate:
@@ -178,11 +177,11 @@ class RelayHubADMM(RoundCore):
     def _step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
         if self._broken is not None:
             raise SolverError(self._broken)
-        k, d, D = self.round, self.dim, self.delay
+        k, D = self.round, self.delay
         for l, j in self._route.items():  # round k's frames: a_l of round k - d(j, l) = k + 1 - d(me, l)
             stamp = k - self._route_hops[l]
             if stamp >= 0:
-                a = theirs[j][self.ids.index(l) * d:(self.ids.index(l) + 1) * d]
+                a = theirs[j][self._slots[l]]
                 if not np.all(np.isfinite(a)):
                     raise SolverError(f"robot {j} relayed a non-finite value of robot {l}")
                 self._a[l][stamp] = a.copy()
@@ -191,7 +190,7 @@ class RelayHubADMM(RoundCore):
         if j >= 0:  # every a_l of round j is here: F(S^j), Anderson -> S^(k+1)
             A = np.array([self._a[l][j] for l in self.ids])
             below = self._shared_step(self._state(j), A)
-            t = self._S[k + 1][self._k * d:(self._k + 1) * d]
+            t = self._S[k + 1][self._slots[self.robot_id]]
         else:  # the first round's values are still on their way: t stays t^0 = the own solution
             t = self._a[self.robot_id][0]
         x = self._solve(t)
