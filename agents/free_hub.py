@@ -191,9 +191,10 @@ class FreeHubADMM(RelaxedADMM):
         except np.linalg.LinAlgError:
             return F[own]
         cap = self.params.hub_step_cap
-        step = float(np.linalg.norm((coef @ dF) * w))
-        if cap and step > cap * res:  # a far jump from an ill-posed least squares: shortened
-            coef = coef * (cap * res / step)
+        if cap:  # a far jump from an ill-posed least squares: shortened (the view's norm only then)
+            step = float(np.linalg.norm((coef @ dF) * w))
+            if step > cap * res:
+                coef = coef * (cap * res / step)
         return F[own] - coef @ dF[:, own]
 
     def final_packets(self) -> list[Packet]:
