@@ -11,7 +11,7 @@ not know). Wall-clock figures of this machine do not enter any table.
     .venv/bin/python benchmarks/free.py --sweep runs/<sweep>/sweep.csv --sweep-wall 184
                                                # only (re)writes the sweep section from a sweep.csv
     .venv/bin/python benchmarks/free.py --only headline,hub   # reruns those sections in place
-                                               # (headline fresh selection four hub rate zenoh floor faults ct)
+                                               # (headline fresh selection four hub rate zenoh floor faults ct plots)
 """
 
 from __future__ import annotations
@@ -319,6 +319,108 @@ def ct_admm(lines: list[str]) -> None:
     print("\n".join(lines[-12:]), flush=True)
 
 
+def _trace_free(spec, central, faults, **kw) -> tuple[list[float], list[float], str]:
+    """(virtual seconds, worst robot's latest error) after every tick, and how the run ended."""
+    s = dataclasses.replace(spec, faults=faults)
+    latest: dict[int, float] = {}
+    ts: list[float] = []
+    errs: list[float] = []
+
+    def on_tick(t, rid, v):
+        latest[rid] = _err(spec, central, v)
+        if len(latest) == spec.n_robots:
+            ts.append(t)
+            errs.append(max(latest.values()))
+
+    try:
+        o = simulate_free(s, on_tick=on_tick, **kw)
+        ended = "met its stop rule" if all(r["converged"] for r in o.robots) else "ran to its tick cap"
+    except FleetFailure as exc:
+        ended = "diverged: " + str(exc).split(": ", 1)[0]
+    return ts, errs, ended
+
+
+def _ct_lag_trace(spec, central, lag: int, periods: int = 1000) -> list[float]:
+    """CT-ADMM with every sample held `lag` periods: the worst robot's error after every period."""
+    from agents.ct_admm import CTADMMParams
+    from agents.pdmm import FreeCTADMM, RelaxedADMMParams
+    from agents.rounds import RobotShare
+
+    shares = {rid: RobotShare(rid, r.neighbours, spec.basis.features(r.points), r.labels, n_robots=spec.n_robots)
+              for rid, r in spec.robots.items()}
+    cores = {rid: FreeCTADMM(share, RelaxedADMMParams(max_ticks=periods), ct_params=CTADMMParams())
+             for rid, share in shares.items()}
+    queue, errs = [], []
+    for _ in range(periods):
+        queue.append({rid: c.tick() for rid, c in cores.items()})
+        if len(queue) > lag:
+            sent = queue.pop(0)
+            for rid, c in cores.items():
+                for j, p in zip(c.neighbours, sent[rid]):
+                    cores[j].receive(p)
+        errs.append(max(_err(spec, central, c.values) for c in cores.values()))
+    return errs
+
+
+PLOT_FLOOR, PLOT_CT = OUT.parent / "free-floor.png", OUT.parent / "free-ct-limit.png"
+
+
+def plots(lines: list[str]) -> None:
+    """The plain-ADMM floor and the CT-ADMM stability limit as pictures (seed 0, the default world)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    def figure(size: tuple[float, float]) -> tuple[Any, Any]:
+        fig = Figure(figsize=size, dpi=110)
+        return fig, FigureCanvasAgg(fig)
+
+    _, spec, central = scenario(0)
+    f = LinkFaults(loss=0.3, delay=0.02)
+    lock = run_lockstep(spec, central, f)
+    fig, canvas = figure((9.0, 4.2))
+    panels = [fig.add_axes((0.07, 0.13, 0.40, 0.74)), fig.add_axes((0.57, 0.13, 0.40, 0.74))]
+    ended: list[str] = []
+    for ax, (loss, delay) in zip(panels, ((0.0, 0.0), (0.3, 0.02))):
+        faults = LinkFaults(loss=loss, delay=delay)
+        runs = [("plain ADMM, newest values (relax 1.0)", dict(algorithm="admm-newest", params={"relax": 1.0, "max_ticks": 1500}, max_virtual_s=20.0)),
+                ("relaxed ADMM (unbiased)", dict(algorithm="radmm", max_virtual_s=60.0)),
+                ("free hub ADMM (default)", dict(algorithm="hub", max_virtual_s=60.0))]
+        for label, kw in runs:
+            ts, errs, how = _trace_free(spec, central, faults, **kw)
+            ended.append(f"loss {loss:g}, {delay * 1e3:g} ms, {label}: {how} at {ts[-1] if ts else 0:.2f} s, last error {errs[-1] if errs else float('nan'):.1e}")
+            ax.plot(ts, np.maximum(errs, 1e-12), label=label, lw=1.2)
+        if loss:
+            ax.axvline(lock["t"], color="k", ls=":", lw=1, label=f"lockstep stops ({lock['t']:.2f} s)")
+        ax.axhline(CLAIM, color="grey", ls="--", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_xlabel("robots' seconds (virtual clock, period 10 ms)")
+        ax.set_title(f"loss {loss:g}, delay {delay * 1e3:g} ms", fontsize=10)
+    panels[0].set_ylabel("worst robot's error vs the exact answer")
+    panels[1].legend(fontsize=7, loc="upper right")
+    fig.suptitle("Free-running robots: plain ADMM fed the newest values settles far from the answer", fontsize=10)
+    canvas.print_png(PLOT_FLOOR)
+
+    fig, canvas = figure((6.0, 4.2))
+    ax = fig.add_axes((0.12, 0.13, 0.84, 0.76))
+    for lag in (0, 1, 2, 5):
+        errs = _ct_lag_trace(spec, central, lag)
+        ended.append(f"CT-ADMM lag {lag}: error after 10 s {errs[-1]:.1e}")
+        ax.plot(np.arange(1, len(errs) + 1) * 0.01, np.clip(errs, 1e-12, 1e6), label=f"samples {lag * 10} ms old ({lag} period{'' if lag == 1 else 's'})", lw=1.2)
+    ax.axhline(CLAIM, color="grey", ls="--", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xlabel("flow time (s), period 10 ms")
+    ax.set_ylabel("worst robot's error vs the exact answer (clipped at 1e6)")
+    ax.set_title("CT-ADMM with sampled-and-held neighbour samples", fontsize=10)
+    ax.legend(fontsize=7)
+    canvas.print_png(PLOT_CT)
+    lines += ["", "## Plots: the plain-ADMM floor and the CT-ADMM stability limit", "",
+              f"![plain ADMM fed the newest values against the unbiased methods]({PLOT_FLOOR.name})", "",
+              f"![CT-ADMM error against the age of its neighbour samples]({PLOT_CT.name})", "",
+              "What the curves end at (seed 0, `benchmarks/free.py --only plots`):", ""]
+    lines += [f"* {e}" for e in ended]
+    print("\n".join(lines[-len(ended):]), flush=True)
+
+
 def study_row(lines: list[str], labels: list[str], r: dict, restarts: bool = False) -> None:
     """One row of a study table: ticks, time to 1e-3, stop, their difference, the error (and restarts)."""
     head = " | ".join(labels)
@@ -493,7 +595,7 @@ def sweep_section(csv_path: Path, wall_s: float) -> list[str]:
 
 
 SECTIONS = {"headline": headline, "fresh": fresh_seeds, "selection": selection, "four": four_robots, "hub": hub_study, "rate": rate_study, "zenoh": zenoh_side_by_side, "floor": floor,
-            "faults": fault_models, "ct": ct_admm}
+            "faults": fault_models, "ct": ct_admm, "plots": plots}
 
 
 def only(names: list[str]) -> None:
@@ -538,6 +640,7 @@ def main() -> None:
     floor(lines)
     fault_models(lines)
     ct_admm(lines)
+    plots(lines)
     lines += ["", f"Benchmark wall time {time.perf_counter() - t0:.0f} s on the shared 2-core machine (under load; not a figure of the runs)."]
     old = OUT.read_text() if OUT.exists() else ""
     if SWEEP_HEADER in old:  # the sweep section is written by --sweep from a sweep run; keep it
