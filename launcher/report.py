@@ -92,14 +92,18 @@ def agreement_verdict(
         reasons.append(f"robots {worst[0]} and {worst[1]} disagree by {disagreement:.3g} > tol {tol:g}")
     wrong = _wrong_answer(rows, exact_error)
     if wrong is not None and wrong[1] > WRONG_ANSWER_FACTOR * tol:
+        unfinished = wrong[0] in not_converged and wrong[0] not in failed
         reasons.append(
             f"robot {wrong[0]}'s answer is {wrong[1]:.3g} from the exact answer of the participants' data "
-            f"(> {WRONG_ANSWER_FACTOR:g} x tol): the fleet settled on a biased point"
+            f"(> {WRONG_ANSWER_FACTOR:g} x tol): "
+            + ("it had not converged when it stopped" if unfinished else "the fleet settled on a biased point")
         )
     rest = [i for i in not_converged if i not in failed]
     if rest:
         how = sorted({str(rows[i].get("stopped")) for i in rest if rows[i].get("stopped") not in (None, "finished")})
-        reasons.append(f"robots {rest} did not meet their stopping rule" + (f" (stopped: {', '.join(how)})" if how else ""))
+        cap = {int(rows[i].get("rounds") or 0) for i in rest if rows[i].get("stopped") in (None, "finished")}
+        when = f" within {max(cap)} rounds" if cap and max(cap) > 0 else ""
+        reasons.append(f"robots {rest} did not meet their stopping rule{when}" + (f" (stopped: {', '.join(how)})" if how else ""))
     converged = not reasons
     return {
         "converged": converged,

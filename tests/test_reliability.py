@@ -184,6 +184,18 @@ def test_verdict_refuses_agreement_on_a_biased_answer():
     assert v["converged"] is True and v["agreement"]["error_vs_exact"] is None
 
 
+def test_verdict_tells_an_unfinished_fleet_from_a_biased_one():
+    """Far from the exact answer at the round cap is "not converged yet", not "settled on a bias"."""
+    from launcher.report import agreement_verdict
+
+    biased = [_row(0, [1], 1.19), _row(1, [0], 1.19)]
+    unfinished = [{**r, "converged": False, "rounds": 5000} for r in biased]
+    exact = lambda r: abs(r["v"] - 1.0)  # noqa: E731
+    v = agreement_verdict(unfinished, _gap, tol=1e-3, exact_error=exact)["verdict"]
+    assert v.startswith("robot 0's answer is 0.19 from the exact answer") and "had not converged when it stopped" in v
+    assert "did not meet their stopping rule within 5000 rounds" in v and "biased" not in v
+    assert "settled on a biased point" in agreement_verdict(biased, _gap, tol=1e-3, exact_error=exact)["verdict"]
+
 def test_a_run_agreeing_on_a_shifted_answer_is_not_converged(tmp_path):
     """End to end through build_result: every robot reports the exact answer scaled by 1.2."""
     from agents.problem import solve_central
