@@ -135,17 +135,10 @@ def write(name: str, polygon: Polygon, digits: int) -> None:
     (HERE / name).write_text(text)
 
 
+#: (maker, decimals): metres to 1e-4, millimetres to 1e-2; the held-out set from letter_k on
+OUTLINES = ((letter_e, 4), (digit_3, 4), (wrench_mm, 2), (gear_mm, 2), (fork_mm, 2),
+            (letter_k, 4), (letter_m, 4), (digit_2, 4), (key_mm, 2), (comb_mm, 2), (tslot_mm, 2), (clamp_mm, 2))
+
 if __name__ == "__main__":
-    write("letter_e.csv", letter_e(), 4)
-    write("digit_3.csv", digit_3(), 4)
-    write("wrench_mm.csv", wrench_mm(), 2)
-    write("gear_mm.csv", gear_mm(), 2)
-    write("fork_mm.csv", fork_mm(), 2)
-    # the held-out set
-    write("letter_k.csv", letter_k(), 4)
-    write("letter_m.csv", letter_m(), 4)
-    write("digit_2.csv", digit_2(), 4)
-    write("key_mm.csv", key_mm(), 2)
-    write("comb_mm.csv", comb_mm(), 2)
-    write("tslot_mm.csv", tslot_mm(), 2)
-    write("clamp_mm.csv", clamp_mm(), 2)
+    for make, digits in OUTLINES:
+        write(f"{make.__name__}.csv", make(), digits)
