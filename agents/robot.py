@@ -731,7 +731,8 @@ class RobotShell:
         if self.result_path is None or not os.environ.get("SHAPEFLEET_PROFILE"):
             return
         steady = {k: self._prof_last[k] - self._prof_first[k] for k in PROFILE_KEYS}
-        body = {"robot": self.me, "rounds": self._rounds_done, "phases_s": steady, "marks": self.marks}
+        body = {"robot": self.me, "rounds": self._rounds_done, "phases_s": steady, "marks": self.marks,
+                "resends": dict(self.session.resends)}
         _write_atomic(self.result_path.with_name(self.result_path.name + ".profile.json"),
                       json.dumps(body).encode())
 
