@@ -238,7 +238,7 @@ class _Reject(Exception):
         self.detail = detail
 
 
-def _parse_envelope(data: Any) -> tuple[int, bytes, dict[int, bytes]]:
+def _parse_envelope(data: Any) -> tuple[int, bytes, dict[int, bytes], dict[Any, Any]]:
     """The structure of an authentication envelope: sender, body and the tag of each receiver
     (the first one a receiver has); "auth" if it is not one. Nothing here is verified yet."""
     env = FrameDecoder._unpack_object(data)
@@ -257,7 +257,9 @@ def _parse_envelope(data: Any) -> tuple[int, bytes, dict[int, bytes]]:
     tags: dict[int, bytes] = {}
     for off in range(0, len(raw), _TAG_ENTRY):
         tags.setdefault(_U32.unpack_from(raw, off)[0], raw[off + 4 : off + _TAG_ENTRY])
-    return sender, body, tags
+    # the fourth item: the body's checked fields by (decoder profile, sender), filled by the
+    # first receiver of the process that verified its tag (FrameDecoder._decode)
+    return sender, body, tags, {}
 
 
 _U32 = struct.Struct("<I")
@@ -370,15 +372,19 @@ class FrameDecoder:
             raise _Reject("too-large", f"{size} bytes > {MAX_FRAME_BYTES}")
         if self.auth is None:
             return self._update(self._parsed_frame(data, expected_sender))
-        sender, body = self._open_envelope(data, expected_sender)
-        fields = self._parsed_frame(body, sender)
+        sender, body, parsed = self._open_envelope(data, expected_sender)
+        key = (self._profile, sender)
+        fields = parsed.get(key)
+        if fields is None:  # the first receiver of this frame here: parse (or the memo's rejection)
+            fields = parsed[key] = self._parsed_frame(body, sender)
         self._check_equivocation(*fields[:2], *fields[3:7])
         return self._update(fields)
 
-    def _open_envelope(self, data: Any, expected_sender: int | None) -> tuple[int, bytes]:
-        """The authenticated frame's sender and body; "auth" unless the tag to us verifies."""
+    def _open_envelope(self, data: Any, expected_sender: int | None) -> tuple[int, bytes, dict]:
+        """The authenticated frame's sender, body and its parses by profile (shared, see
+        _parse_envelope); "auth" unless the tag to us verifies."""
         assert self.auth is not None
-        sender, body, tags = _MEMO.get_or_parse(("env", data), data, _parse_envelope)
+        sender, body, tags, parsed = _MEMO.get_or_parse(("env", data), data, _parse_envelope)
         if sender not in self.known_senders:
             raise _Reject("sender", f"sender {sender} is not a known sender")
         if expected_sender is not None and sender != expected_sender:
@@ -390,7 +396,7 @@ class FrameDecoder:
             raise _Reject("auth", f"no tag for robot {self.auth.me} in sender {sender}'s frame")
         if not self.auth.verify(sender, body, tag):
             raise _Reject("auth", f"tag of sender {sender}'s frame does not verify")
-        return sender, body
+        return sender, body, parsed
 
     def _parsed_frame(self, data: Any, expected_sender: int | None) -> tuple[Any, ...]:
         """The checked fields of a frame body and a StateUpdate built from them (memoised: the
