@@ -245,6 +245,8 @@ class RobotSession:
         if len(seen.rounds) >= DEDUP_WINDOW:
             seen.keep_after(seen.top - DEDUP_WINDOW // 2)
         newest = not seen.rounds or out.seq > seen.top
+        if seen.rounds and out.seq > seen.top + 1:
+            self.resends["seq_gap"] += 1  # a frame of source's that never came (lost, or overtaken)
         repeat = seen.per_round.get(upd.round, 0) > 0
         seen.add(out.seq, upd.round)
         self.last_heard[source] = now
