@@ -54,6 +54,7 @@ REJECTION_REASONS: tuple[str, ...] = (
     "prev",             # prev at round 0, or pflags set without prev
     "vector-length",    # x or prev is not 8 * dim bytes
     "non-finite",       # x or prev holds NaN or +-inf
+    "need",             # the optional "need" list names a robot that is not a known sender, twice, or unsorted
     # only with authentication (FrameDecoder(auth=...)); "auth" is checked right after unpacking
     # the envelope (before any field of the frame is trusted), "equivocation" last
     "auth",             # no envelope, no tag for this receiver, or a tag that does not verify
@@ -77,6 +78,11 @@ _FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "prev": (bytes, type(None)),
     "pflags": (int,),
 }
+# Optional fields: absent means "not said" (a frame without one is as valid as before).
+# "need": the robots whose value of this frame's round the sender still lacks, sorted ascending
+# (protocol/session.py: a neighbour answers a repeat with a fast resend only if it is named).
+_OPTIONAL_TYPES: dict[str, tuple[type, ...]] = {"need": (tuple,)}
+MAX_NEED = 1024  # msgpack's array limit of the decoder; a longer list is left out ("not said")
 
 
 # The message type lives with the algorithms (agents/messages.py): re-exported here so that
@@ -86,10 +92,12 @@ _check_int = check_int
 
 @dataclass(frozen=True)
 class Decoded:
-    """A frame that passed every check. ``update`` owns fresh, writable arrays."""
+    """A frame that passed every check. ``update`` owns fresh, writable arrays. ``need``: the
+    robots whose value of the frame's round its sender lacked when it sent it (None: not said)."""
 
     update: StateUpdate
     seq: int
+    need: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -113,9 +121,14 @@ def _check_config_tag(tag: Any) -> bytes:
 
 
 def encode_state(
-    update: StateUpdate, *, fleet: str, seq: int, config_tag: bytes, auth: FrameAuth | None = None
+    update: StateUpdate, *, fleet: str, seq: int, config_tag: bytes, auth: FrameAuth | None = None,
+    need: Collection[int] | None = None,
 ) -> bytes:
     """Serialise ``update`` as a version-1 state frame, authenticated when ``auth`` is given.
+
+    ``need``: the robots whose value of ``update.round`` the sender still lacks (written as the
+    optional "need" field, sorted; None or more than MAX_NEED robots: left out). It lets a
+    neighbour answer a repeat only when the repeat waits for *its* value (docs/protocol.md).
 
     With ``auth`` (the sender's edge keys) the frame is wrapped in an envelope
     ``[sender, frame, tags]`` carrying one tag per neighbour (docs/protocol.md, "Authentication").
@@ -144,6 +157,8 @@ def encode_state(
         ),
         "pflags": update.prev_flags,
     }
+    if need is not None and len(need) <= MAX_NEED:
+        frame["need"] = sorted(validate_robot_id(j) for j in need)
     data: bytes = msgpack.packb(frame, use_bin_type=True)
     if auth is None:
         return data
@@ -223,7 +238,7 @@ class _Reject(Exception):
         self.detail = detail
 
 
-def _parse_envelope(data: Any) -> tuple[int, bytes, dict[int, bytes]]:
+def _parse_envelope(data: Any) -> tuple[int, bytes, dict[int, bytes], dict[Any, Any]]:
     """The structure of an authentication envelope: sender, body and the tag of each receiver
     (the first one a receiver has); "auth" if it is not one. Nothing here is verified yet."""
     env = FrameDecoder._unpack_object(data)
@@ -242,7 +257,9 @@ def _parse_envelope(data: Any) -> tuple[int, bytes, dict[int, bytes]]:
     tags: dict[int, bytes] = {}
     for off in range(0, len(raw), _TAG_ENTRY):
         tags.setdefault(_U32.unpack_from(raw, off)[0], raw[off + 4 : off + _TAG_ENTRY])
-    return sender, body, tags
+    # the fourth item: the body's checked fields by (decoder profile, sender), filled by the
+    # first receiver of the process that verified its tag (FrameDecoder._decode)
+    return sender, body, tags, {}
 
 
 _U32 = struct.Struct("<I")
@@ -355,15 +372,19 @@ class FrameDecoder:
             raise _Reject("too-large", f"{size} bytes > {MAX_FRAME_BYTES}")
         if self.auth is None:
             return self._update(self._parsed_frame(data, expected_sender))
-        sender, body = self._open_envelope(data, expected_sender)
-        fields = self._parsed_frame(body, sender)
+        sender, body, parsed = self._open_envelope(data, expected_sender)
+        key = (self._profile, sender)
+        fields = parsed.get(key)
+        if fields is None:  # the first receiver of this frame here: parse (or the memo's rejection)
+            fields = parsed[key] = self._parsed_frame(body, sender)
         self._check_equivocation(*fields[:2], *fields[3:7])
         return self._update(fields)
 
-    def _open_envelope(self, data: Any, expected_sender: int | None) -> tuple[int, bytes]:
-        """The authenticated frame's sender and body; "auth" unless the tag to us verifies."""
+    def _open_envelope(self, data: Any, expected_sender: int | None) -> tuple[int, bytes, dict]:
+        """The authenticated frame's sender, body and its parses by profile (shared, see
+        _parse_envelope); "auth" unless the tag to us verifies."""
         assert self.auth is not None
-        sender, body, tags = _MEMO.get_or_parse(("env", data), data, _parse_envelope)
+        sender, body, tags, parsed = _MEMO.get_or_parse(("env", data), data, _parse_envelope)
         if sender not in self.known_senders:
             raise _Reject("sender", f"sender {sender} is not a known sender")
         if expected_sender is not None and sender != expected_sender:
@@ -375,7 +396,7 @@ class FrameDecoder:
             raise _Reject("auth", f"no tag for robot {self.auth.me} in sender {sender}'s frame")
         if not self.auth.verify(sender, body, tag):
             raise _Reject("auth", f"tag of sender {sender}'s frame does not verify")
-        return sender, body
+        return sender, body, parsed
 
     def _parsed_frame(self, data: Any, expected_sender: int | None) -> tuple[Any, ...]:
         """The checked fields of a frame body and a StateUpdate built from them (memoised: the
@@ -386,7 +407,7 @@ class FrameDecoder:
 
     def _checked(self, data: Any, expected_sender: int | None) -> tuple[Any, ...]:
         fields = self._decode_fields(data, expected_sender)
-        sender, rnd, seq, flags, x, prev, pflags = fields
+        sender, rnd, seq, flags, x, prev, pflags, need = fields
         template = StateUpdate(  # validated once here; receivers get copies (_update)
             sender=sender,
             round=rnd,
@@ -395,7 +416,7 @@ class FrameDecoder:
             prev_values=None if prev is None else np.frombuffer(prev, dtype="<f8").astype(np.float64),
             prev_flags=pflags,
         )
-        return (*fields, template)
+        return (*fields[:7], template, need)
 
     @staticmethod
     def _update(fields: tuple[Any, ...]) -> Decoded:
@@ -407,7 +428,7 @@ class FrameDecoder:
         update.__dict__["values"] = template.values.copy()
         if template.prev_values is not None:
             update.__dict__["prev_values"] = template.prev_values.copy()
-        return Decoded(update, fields[2])
+        return Decoded(update, fields[2], fields[8])
 
     def _check_equivocation(self, sender: int, rnd: int, flags: int, x: bytes, prev: bytes | None,
                             pflags: int) -> None:
@@ -438,7 +459,7 @@ class FrameDecoder:
         with the vectors as raw little-endian bytes."""
         frame = self._unpack(data)
         self._check_version_and_kind(frame)
-        unknown = [k for k in frame if k not in _FIELD_TYPES]
+        unknown = [k for k in frame if k not in _FIELD_TYPES and k not in _OPTIONAL_TYPES]
         if unknown:
             raise _Reject("unknown-field", f"unknown field(s) {sorted(map(repr, unknown))}")
         missing = [k for k in _FIELD_TYPES if k not in frame]
@@ -449,6 +470,10 @@ class FrameDecoder:
                 raise _Reject(
                     "field-type", f"{name!r} has type {type(frame[name]).__name__}"
                 )
+        need = frame.get("need")
+        if need is not None:
+            if type(need) not in _OPTIONAL_TYPES["need"] or any(type(j) is not int for j in need):
+                raise _Reject("field-type", "'need' is not an array of ints")
 
         if frame["fleet"] != self.fleet:
             raise _Reject("fleet", f"frame of fleet {frame['fleet'][:80]!r}, not {self.fleet!r}")
@@ -477,7 +502,12 @@ class FrameDecoder:
         self._vector("x", frame["x"])
         if frame["prev"] is not None:
             self._vector("prev", frame["prev"])
-        return (sender, frame["round"], frame["seq"], frame["flags"], frame["x"], frame["prev"], frame["pflags"])
+        if need is not None:
+            known = self.known_senders
+            if any(j not in known for j in need) or any(a >= b for a, b in zip(need, need[1:])):
+                raise _Reject("need", f"'need' {list(need)[:8]!r} names an unknown robot, or is not sorted")
+        return (sender, frame["round"], frame["seq"], frame["flags"], frame["x"], frame["prev"], frame["pflags"],
+                need)
 
     @classmethod
     def _unpack(cls, data: bytes | bytearray | memoryview) -> dict[str, Any]:

@@ -53,14 +53,27 @@ __all__ = [
 DEFAULT_PORT = 7447
 LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
 
-# What every node shares: no discovery of any kind, no admin space, no shared memory.
+# What every node shares: no discovery of any kind, no admin space, no shared memory; and room
+# for bursts of express frames (below).
+TX_QUEUE_BATCHES = 16  # zenoh's maximum (default 2)
 _COMMON: dict[str, Any] = {
     "scouting": {
         "multicast": {"enabled": False},
         "gossip": {"enabled": False},
     },
     "adminspace": {"enabled": False},
-    "transport": {"shared_memory": {"enabled": False}},
+    "transport": {
+        "shared_memory": {"enabled": False},
+        # Room for a burst of express frames: a process of 16 robots publishes 16 frames in one
+        # pass of its loop, and the router forwards ~32 a round to each process, whose reading
+        # thread waits for the GIL. With zenoh's defaults (2 batches per priority, dropped after
+        # 1 ms without room) a loaded 2-core machine dropped frames: 32 robots, 300 rounds, 5120
+        # gaps in the neighbours' seqs (each drop seen by up to 16 robots of a process), 1568 with
+        # 16 batches (224 with wait_before_drop 5 ms as well, not taken: a full queue would then
+        # hold up the router's forwarding to the others for that long). Every drop costs
+        # resends and a round's wait. Lazy allocation: memory is taken only when a burst comes.
+        "link": {"tx": {"queue": {"size": {"data": TX_QUEUE_BATCHES}}}},
+    },
 }
 
 # Robots wait this long for the router at start-up (the launcher may start them a little before the

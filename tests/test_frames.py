@@ -95,6 +95,19 @@ def test_encoded_frame_is_the_documented_map():
     assert np.frombuffer(frame["x"], "<f8").tolist() == X.tolist()
 
 
+def test_need_is_optional_and_round_trips():
+    """The optional "need" field: left out when not given, sorted when given, decoded as a
+    tuple (None when absent); a frame with it carries the same update as one without."""
+    update = StateUpdate(sender=1, round=5, values=X, flags=3, prev_values=PREV, prev_flags=1)
+    plain = decoder().decode(encode_state(update, fleet=FLEET, seq=42, config_tag=TAG))
+    data = encode_state(update, fleet=FLEET, seq=42, config_tag=TAG, need=[2, 0])
+    assert msgpack.unpackb(data, raw=False)["need"] == [0, 2]
+    got = decoder().decode(data)
+    assert isinstance(got, Decoded) and got.need == (0, 2) and got.update == plain.update
+    assert plain.need is None
+    assert decoder().decode(encode_state(update, fleet=FLEET, seq=42, config_tag=TAG, need=())).need == ()
+
+
 def test_golden_frame_bytes():
     """The example in docs/protocol.md, byte for byte: the format must not drift silently."""
     update = StateUpdate(sender=3, round=12, values=[0.25, -1.0], flags=1,
@@ -223,6 +236,12 @@ REJECTION_CASES: dict[str, tuple[str, object]] = {
     "vector-length/x-odd": ("vector-length", pack(valid_map(x=le(X) + b"\x00"))),
     "vector-length/x-empty": ("vector-length", pack(valid_map(x=b""))),
     "vector-length/prev": ("vector-length", pack(valid_map(prev=le(PREV[:2])))),
+    "need/unknown": ("need", pack(valid_map(need=[0, 3]))),
+    "need/unsorted": ("need", pack(valid_map(need=[2, 0]))),
+    "need/twice": ("need", pack(valid_map(need=[0, 0]))),
+    "field-type/need/int": ("field-type", pack(valid_map(need=2))),
+    "field-type/need/bool": ("field-type", pack(valid_map(need=[True]))),
+    "field-type/need/nil-item": ("field-type", pack(valid_map(need=[None]))),
 }
 for _name in ("v", "kind", "fleet", "from", "round", "seq", "cfg", "x", "flags", "prev",
               "pflags"):
