@@ -46,15 +46,18 @@ def _err(spec, central, v) -> float:
     return b.function_error(b.c_from_x(np.asarray(v[:-1])), float(v[-1]), central.c, central.gamma)
 
 
-def run_free(spec, central, faults, **kw) -> dict:
+def run_free(spec, central, faults, trace: list[tuple[float, float]] | None = None, **kw) -> dict:
+    """A free run's figures; ``trace`` (if given) gets (virtual s, worst robot's latest error) per tick."""
     s = dataclasses.replace(spec, faults=faults)
     last_bad: dict[int, float] = {}
-    seen: set[int] = set()
+    latest: dict[int, float] = {}
 
     def on_tick(t, rid, v):
-        seen.add(rid)
-        if _err(spec, central, v) >= CLAIM:
+        latest[rid] = _err(spec, central, v)
+        if latest[rid] >= CLAIM:
             last_bad[rid] = t
+        if trace is not None and len(latest) == spec.n_robots:
+            trace.append((t, max(latest.values())))
 
     try:
         o = simulate_free(s, on_tick=on_tick, **kw)
@@ -303,27 +306,6 @@ def ct_admm(lines: list[str]) -> None:
     print("\n".join(lines[-12:]), flush=True)
 
 
-def _trace_free(spec, central, faults, **kw) -> tuple[list[float], list[float], str]:
-    """(virtual seconds, worst robot's latest error) after every tick, and how the run ended."""
-    s = dataclasses.replace(spec, faults=faults)
-    latest: dict[int, float] = {}
-    ts: list[float] = []
-    errs: list[float] = []
-
-    def on_tick(t, rid, v):
-        latest[rid] = _err(spec, central, v)
-        if len(latest) == spec.n_robots:
-            ts.append(t)
-            errs.append(max(latest.values()))
-
-    try:
-        o = simulate_free(s, on_tick=on_tick, **kw)
-        ended = "met its stop rule" if all(r["converged"] for r in o.robots) else "ran to its tick cap"
-    except FleetFailure as exc:
-        ended = "diverged: " + str(exc).split(": ", 1)[0]
-    return ts, errs, ended
-
-
 def _ct_lag_trace(spec, central, lag: int, periods: int = 1000) -> list[float]:
     """CT-ADMM with every sample held `lag` periods: the worst robot's error after every period."""
     from agents.ct_admm import CTADMMParams
@@ -370,7 +352,11 @@ def plots(lines: list[str]) -> None:
                 ("relaxed ADMM (unbiased)", dict(algorithm="radmm", max_virtual_s=60.0)),
                 ("free hub ADMM (default)", dict(algorithm="hub", max_virtual_s=60.0))]
         for label, kw in runs:
-            ts, errs, how = _trace_free(spec, central, faults, **kw)
+            trace: list[tuple[float, float]] = []
+            r = run_free(spec, central, faults, trace=trace, **kw)
+            ts, errs = [t for t, _ in trace], [e for _, e in trace]
+            how = ("diverged: " + r["failed"].split(": ", 1)[0] if "failed" in r
+                   else "met its stop rule" if r["converged"] else "ran to its tick cap")
             ended.append(f"loss {loss:g}, {delay * 1e3:g} ms, {label}: {how} at {ts[-1] if ts else 0:.2f} s, last error {errs[-1] if errs else float('nan'):.1e}")
             ax.plot(ts, np.maximum(errs, 1e-12), label=label, lw=1.2)
         if loss:
