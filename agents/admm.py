@@ -168,24 +168,52 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     """Cholesky solve of a small symmetric positive definite system, deterministic on any machine:
     right-looking updates are elementwise numpy (each entry updated in the same order), the
     triangular solves exactly rounded sums (math.fsum over Python floats: the same products, less
-    overhead than numpy for vectors this short) -- no BLAS call whose summation order varies."""
-    A = np.array(H, dtype=float)  # becomes L in its lower triangle, column by column
-    n = len(A)
-    for k in range(n):
-        if not A[k, k] > 0:
+    overhead than numpy for vectors this short) -- no BLAS call whose summation order varies.
+
+    The factorisation runs in a work matrix kept per size and thread (`_spd_workspace`: its views
+    made once, every ufunc writing into them), a hub step's largest cost: ~3 numpy calls a column
+    and nothing allocated, the same operations in the same order as a fresh matrix per call."""
+    n = len(H)
+    A, steps = _spd_workspace(n)
+    np.copyto(A, H)
+    sqrt, divide, outer, subtract = math.sqrt, np.divide, np.multiply.outer, np.subtract
+    for k, col, trail, prod in steps:  # A becomes L in its lower triangle, column by column
+        akk = A[k, k]
+        if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
-        A[k, k] = lkk = math.sqrt(A[k, k])
-        col = A[k + 1 :, k]
-        col /= lkk
-        A[k + 1 :, k + 1 :] -= np.multiply.outer(col, col)
-    rows, cols, rhs = A.tolist(), A.T.tolist(), [float(v) for v in g]
-    y = [0.0] * n
-    for i in range(n):
-        y[i] = (rhs[i] - math.fsum(map(operator.mul, rows[i][:i], y[:i]))) / rows[i][i]
+        A[k, k] = lkk = sqrt(akk)
+        divide(col, lkk, out=col)
+        outer(col, col, out=prod)
+        subtract(trail, prod, out=trail)
+    rows, cols = A.tolist(), A.T.tolist()
+    rhs = g.tolist() if isinstance(g, np.ndarray) else [float(v) for v in g]
+    fsum, mul = math.fsum, operator.mul
+    y: list[float] = []
+    for i, row in enumerate(rows):  # map stops at len(y) == i: the products row[:i] * y[:i]
+        y.append((rhs[i] - fsum(map(mul, row, y))) / row[i])
     x = [0.0] * n
-    for i in reversed(range(n)):
-        x[i] = (y[i] - math.fsum(map(operator.mul, cols[i][i + 1 :], x[i + 1 :]))) / rows[i][i]
+    for i in range(n - 1, -1, -1):
+        x[i] = (y[i] - fsum(map(mul, cols[i][i + 1 :], x[i + 1 :]))) / rows[i][i]
     return np.array(x)
+
+
+_SPD_WORK = threading.local()  # fleets run in worker threads (launcher/api.py run_async)
+
+
+def _spd_workspace(n: int) -> tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]]:
+    """This thread's n x n work matrix for `_solve_spd` and, per column k, the views a step of the
+    factorisation writes: column k below the diagonal, the trailing block, a buffer for the outer
+    product (contiguous). Made once per size (Anderson's memory bounds the sizes)."""
+    by_n = getattr(_SPD_WORK, "by_n", None)
+    if by_n is None:
+        by_n = _SPD_WORK.by_n = {}
+    ws = by_n.get(n)
+    if ws is None:
+        A, flat = np.empty((n, n)), np.empty(max(n - 1, 0) ** 2)
+        steps = [(k, A[k + 1 :, k], A[k + 1 :, k + 1 :], flat[: (n - k - 1) ** 2].reshape(n - k - 1, n - k - 1))
+                 for k in range(n)]
+        ws = by_n[n] = (A, steps)
+    return ws
 
 
 class _Hub:
