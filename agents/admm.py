@@ -171,20 +171,23 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     overhead than numpy for vectors this short) -- no BLAS call whose summation order varies.
 
     The factorisation runs in a work matrix kept per size and thread (`_spd_workspace`: its views
-    made once, every ufunc writing into them), a hub step's largest cost: ~3 numpy calls a column
-    and nothing allocated, the same operations in the same order as a fresh matrix per call."""
+    made once, every ufunc writing into them, the pivots written back at the end), a hub step's
+    largest cost: 3 numpy calls a column and nothing allocated, the same operations in the same
+    order as a fresh matrix per call (tests/test_exact_arith.py compares with that plain form)."""
     n = len(H)
-    A, steps = _spd_workspace(n)
+    A, diag, steps = _spd_workspace(n)
     np.copyto(A, H)
-    sqrt, divide, outer, subtract = math.sqrt, np.divide, np.multiply.outer, np.subtract
-    for k, col, trail, prod in steps:  # A becomes L in its lower triangle, column by column
-        akk = A[k, k]
+    sqrt, divide, multiply, subtract, item = math.sqrt, np.divide, np.multiply, np.subtract, A.item
+    pivots: list[float] = []
+    for k, (col, col_t, trail, prod) in enumerate(steps):  # A becomes L in its lower triangle
+        akk = item(k, k)
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
-        A[k, k] = lkk = sqrt(akk)
-        divide(col, lkk, out=col)
-        outer(col, col, out=prod)
-        subtract(trail, prod, out=trail)
+        pivots.append(lkk := sqrt(akk))
+        divide(col, lkk, col)
+        multiply(col_t, col, prod)  # the outer product col col^T
+        subtract(trail, prod, trail)
+    diag[:] = pivots
     rows, cols = A.tolist(), A.T.tolist()
     rhs = g.tolist() if isinstance(g, np.ndarray) else [float(v) for v in g]
     fsum, mul = math.fsum, operator.mul
@@ -200,19 +203,20 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
 _SPD_WORK = threading.local()  # fleets run in worker threads (launcher/api.py run_async)
 
 
-def _spd_workspace(n: int) -> tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]]:
-    """This thread's n x n work matrix for `_solve_spd` and, per column k, the views a step of the
-    factorisation writes: column k below the diagonal, the trailing block, a buffer for the outer
-    product (contiguous). Made once per size (Anderson's memory bounds the sizes)."""
+def _spd_workspace(n: int) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, ...]]]:
+    """This thread's n x n work matrix for `_solve_spd`, a view of its diagonal and, per column k,
+    the views a step of the factorisation writes: column k below the diagonal (also as a column
+    vector, for the outer product by broadcasting), the trailing block, a contiguous buffer for
+    the outer product. Made once per size (Anderson's memory bounds the sizes)."""
     by_n = getattr(_SPD_WORK, "by_n", None)
     if by_n is None:
         by_n = _SPD_WORK.by_n = {}
     ws = by_n.get(n)
     if ws is None:
         A, flat = np.empty((n, n)), np.empty(max(n - 1, 0) ** 2)
-        steps = [(k, A[k + 1 :, k], A[k + 1 :, k + 1 :], flat[: (n - k - 1) ** 2].reshape(n - k - 1, n - k - 1))
-                 for k in range(n)]
-        ws = by_n[n] = (A, steps)
+        steps = [(A[k + 1 :, k], A[k + 1 :, k, None], A[k + 1 :, k + 1 :],
+                  flat[: (n - k - 1) ** 2].reshape(n - k - 1, n - k - 1)) for k in range(n)]
+        ws = by_n[n] = (A, A.reshape(-1)[:: n + 1], steps)
     return ws
 
 
