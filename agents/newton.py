@@ -28,7 +28,9 @@ u, A'mu, sum mu] (5 + (M+1)(M+2)/2 + 3(M+1) floats).
 Fixed rule, no tuning: tau 0.99, s = mu = 1 (xi = nu = 1) and v = 0 at the start; centering
 (1 - alpha)^2 of the last step clipped to [0.1, 0.3]; stop when the fleet-wide mean
 complementarity m < 1e-10 and the last step moved v by at most 1e-9 relative, values every robot
-holds in the same round, so all stop together. Infeasible only with a certificate: y = mu/sum(mu)
+holds in the same round, so all stop together. After a full step with m < 1e-4 a robot lowers its
+multipliers to at most 10x the step's target (RECENTER_*: a nearly active margin otherwise stalls
+the fleet 2.3e-6 off the optimum). Infeasible only with a certificate: y = mu/sum(mu)
 shows every separating v has |v| >= sum(mu)/|A'mu|; above 1e8 the run stops as infeasible.
 The sums travel by the exact all-reduce of `agents/allreduce.py`. docs/newton.md has the why.
 
@@ -104,6 +106,22 @@ def frame_size(dim: int, graph: Mapping[int, Sequence[int]], params: NewtonParam
 #: feasible problem can never trip it (the bound never exceeds |v*|; the optimum here is |v*| < 1e3
 #: on every built-in scenario, 5e4 on the worst near-infeasible one measured)
 INFEASIBLE_RADIUS = 1e8
+
+#: after a full step of the fleet and once m is below RECENTER_BELOW, a robot lowers every
+#: multiplier whose pair lies more than RECENTER_FACTOR above the step's target onto that bound:
+#: mu = min(mu, 10 centering*m / s) (nu likewise with xi). Why: a margin nearly but not quite active
+#: at the optimum (slack 1.7e-5 on 48 robots, bean, seed 1) otherwise keeps s and mu halving
+#: together (Newton splits s*mu -> target between ds/s and dmu/mu) while m falls 5-10x per step;
+#: its mu stays ~100x above m/s, pulls v off the optimum, and the active margins' slacks reach the
+#: rounding floor of a'v - 1 (~1e-14, m ~ 1e-12) before it resolves: 2.3e-6 off at the stop, with
+#: exactly rounded (fsum) sums too (1.9e-6) and on one robot holding all points (3.5e-6). Lowered,
+#: its weight mu/s stops pulling v: 3.9e-7 (one robot: 1.1e-7). Only the robot's own multipliers
+#: move (never sent); v, the slacks and the common step do not. Measured alternatives: always on
+#: fools the stop rule (m falls with no progress: 1.3 off "converged"); factor 1 resolves this case
+#: better (6.1e-8) but stalls three ellipse fleets 5e-6..4e-5 off (an active margin still on its
+#: way down lost its weight); factor 100: 8.5e-7.
+RECENTER_BELOW = 1e-4
+RECENTER_FACTOR = 10.0
 
 #: m beyond this (or not finite) with no certificate: the steps broke down numerically
 _BREAKDOWN_MU = 1e12
@@ -294,8 +312,8 @@ class DistributedNewton(RoundCore):
         if not np.all(np.isfinite(dv)):
             return self._fail("the Newton step is not finite: " + self._breakdown())
         self._dv = dv
-        self._alpha = self._local_step(dv, centering * m)
         self._last_step = alpha
+        self._alpha = self._local_step(dv, centering * m, recenter=alpha == 1.0 and m < RECENTER_BELOW)
         return self._reduce.begin(self._contribution()), False
 
     def _settled(self, moved: float) -> bool:
@@ -385,14 +403,16 @@ class DistributedNewton(RoundCore):
             out[0] = _BROKEN
         return out
 
-    def _local_step(self, dv: np.ndarray, target: float) -> float:
+    def _local_step(self, dv: np.ndarray, target: float, recenter: bool = False) -> float:
         """Move the own multipliers along the Newton direction (own dual step) and the own slacks
         by the own primal step, tentatively: the fleet's step (the minimum) arrives with the next
-        sums, and a robot whose step was longer moves back to it (a re-sync). Returns the own step."""
+        sums, and a robot whose step was longer moves back to it (a re-sync). With `recenter`, a
+        multiplier whose pair ends above the target s*mu = target is lowered onto it (see
+        RECENTER_BELOW). Returns the own step."""
         with np.errstate(all="ignore"):
-            return self._local_step_unchecked(dv, target)
+            return self._local_step_unchecked(dv, target, recenter)
 
-    def _local_step_unchecked(self, dv: np.ndarray, sm: float) -> float:
+    def _local_step_unchecked(self, dv: np.ndarray, sm: float, recenter: bool) -> float:
         tau = self.params.tau
         adv = self._rows @ dv
         r = self._primal_residual()
@@ -419,6 +439,9 @@ class DistributedNewton(RoundCore):
         self._xi = self._xi + primal * dxi
         self._s = s + primal * ds
         self._mu = mu + dual * dmu
+        if recenter:
+            self._mu = np.minimum(self._mu, RECENTER_FACTOR * sm / self._s)
+            self._nu = np.minimum(self._nu, RECENTER_FACTOR * sm / self._xi)
         return primal
 
     # -- checkpoint ---------------------------------------------------------------------------

@@ -30,6 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents.newton import payload_size  # noqa: E402
 from agents.problem import certify_hard_margin, margin_rows, solve_central  # noqa: E402
 from agents.spec import build_core  # noqa: E402
 from benchmarks.common import FLEETS, RESULTS, add_row, lockstep_round, write_results  # noqa: E402
@@ -182,8 +183,10 @@ def main() -> None:
         return
     lines = [
         "Paper preset (grid 5x3, sigma 1, 20 points per robot), M + 1 = 16: a newton contribution is "
-        "3 + 136 + 32 = 171 floats. newton: centering 0.3, tau 0.99, stop at mean s*mu < 1e-10; admm: the "
-        "project's defaults (rho 15, relax 1.95, tol 1e-3). 'to tol': the first round after which every "
+        f"{payload_size(16)} floats (5 scalars, triu(H) 136, g, u, A'mu 16 each; frames carry the schedule's "
+        "contributions per frame). newton: the fixed rule of agents/newton.py (centering (1 - alpha)^2 in "
+        "[0.1, 0.3], tau 0.99, multipliers capped at 10x the target after full steps once m < 1e-4, stop at "
+        "mean s*mu < 1e-10 with v settled); admm: the project's defaults (tol 1e-3). 'to tol': the first round after which every "
         "robot stays within 1e-6 (newton) / 1e-3 (admm) of the exact optimum. 'err exact': vs the "
         "KKT-certified optimum (see the script), 'err central': vs piqp's solve_central. Frame bytes: one "
         "encoded frame (msgpack, with the piggybacked previous round); per run: frame bytes x (rounds + 1), "

@@ -19,12 +19,13 @@ import pytest
 from agents.allreduce import AllReduce, ReducePlan, check_graph
 from agents.newton import DistributedNewton, NewtonParams, payload_size
 from agents.problem import certify_hard_margin, margin_rows
+from agents.rounds import RobotShare
 from agents.spec import build_core, restore_core
 from launcher.scenario import ScenarioError
 from launcher.simulate import simulate_fleet
 from protocol.links import LinkFaults
 
-from .conftest import make_run, max_function_error, step_all
+from .conftest import make_run, max_function_error, run_to_end, step_all
 
 PAPER_NEWTON = {"algorithm": "newton"}
 
@@ -113,6 +114,44 @@ def test_ill_conditioned_32_robot_fleet_is_solved_not_called_infeasible():
     assert error_to(spec, robots, best) < 1e-6
     _assert_identical(robots)
     assert robots[0]["rounds"] <= 40
+
+
+def _nearly_active_case():
+    """48 robots, bean, seed 1 (960 points): 13 margins active at the certified optimum and one
+    nearly so (slack 1.7e-5). The sweep's last two wrong runs (2.3e-6 off at the stop)."""
+    world, spec, central = make_run(**PAPER_NEWTON, robots=48, topology="geometric", shape="bean", seed=1)
+    assert central.certified
+    rows = margin_rows(spec.basis.features(world.points), world.labels)
+    slack = rows @ np.append(central.x, central.gamma) - 1.0
+    assert np.any((slack > 1e-6) & (slack < 1e-4))  # the margin that is nearly but not active
+    return world, spec, central
+
+
+def test_nearly_active_margin_does_not_stall_the_fleet_off_the_optimum():
+    """Its multiplier used to stay 100x above m/s until the active slacks hit the rounding floor
+    of a'v - 1; now it is lowered onto the target after full steps (agents/newton.RECENTER_BELOW)."""
+    _world, spec, central = _nearly_active_case()
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]  # lock step: 4x faster than simulate
+    run_to_end(cores, limit=100)
+    robots = [c.result() for c in cores]
+    assert all(r["converged"] and r["message"] == "" for r in robots)
+    _assert_identical(robots)
+    assert max_function_error(spec, central, robots) < 1e-6
+    assert robots[0]["rounds"] <= 40
+
+
+def test_nearly_active_margin_on_one_robot_alone():
+    """The same data on one robot (no fleet sums, no re-syncs): it stalled 3.5e-6 off too, so the
+    cause was never the sums' rounding."""
+    world, spec, central = _nearly_active_case()
+    share = RobotShare(0, (), spec.basis.features(world.points), world.labels)
+    core = DistributedNewton(share, NewtonParams(), graph={0: ()}, keep_trace=False)
+    while not core.finished:
+        core.advance()
+    res = core.result()
+    assert core.converged
+    b = spec.basis
+    assert b.function_error(b.c_from_x(np.asarray(res["x"])), res["gamma"], central.c, central.gamma) < 1e-6
 
 
 def test_lone_robot_solves_the_central_problem():
