@@ -171,15 +171,14 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
         bases = {i: ref.basis for i, ref in references.items()}
         result = report.build_autogrid_result(world, robots, references, wall_s=wall_s, extra=extra)
     report.write_json(out / "result.json", result)
-    pictures: list[Callable[[], None]] = [
-        lambda: report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None, result, bases=bases)]
+    report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None, result, bases=bases)
     written = ["result.json", "data.csv", "shapes.png"]
     if result["history"]:
-        pictures.append(lambda: report.plot_convergence(out / "convergence.png", result["history"]))
+        report.plot_convergence(out / "convergence.png", result["history"])
         written.append("convergence.png")
     elif not spec.fixed_grid and robots and robots[0].get("residuals"):
         hist = report.autogrid_progress(robots[0], result["robots"][0].get("function_error"))
-        pictures.append(lambda: report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases")))
+        report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases"))
         written.append("convergence.png")
     first = next((r for r in robots if r.get("trace")), None)
     if spec.algorithm == "ct-admm" and first is not None:
@@ -187,10 +186,8 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
 
         period = float(spec.algorithm_params.period)
         reference = np.append(central.x, central.gamma) if central.solved else None
-        pictures.append(lambda: plot_trajectory(out / "trajectory.png", *trajectory_from_trace(first["trace"], period),
-                                                reference=reference))
+        plot_trajectory(out / "trajectory.png", *trajectory_from_trace(first["trace"], period), reference=reference)
         written.append("trajectory.png")
-    report.draw_pictures(pictures)
     console = Console(quiet=quiet)
     console.print(report.summary_table(result))
     if not spec.fixed_grid and result.get("sigma_reason"):

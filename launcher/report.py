@@ -10,13 +10,9 @@ sigma against the centralized solve there (`autogrid_references`, `build_autogri
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
-import signal
-import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -572,87 +568,6 @@ def preload_pictures() -> None:
             pass
 
     threading.Thread(target=load, name="preload-pictures", daemon=True).start()
-
-
-#: a picture drawn in a forked child gets this long; then the child is stopped by its PID and the
-#: picture drawn in the launcher itself
-PICTURE_CHILD_TIMEOUT_S = 60.0
-
-
-def draw_pictures(jobs: list[Callable[[], None]]) -> None:
-    """Draw a run's pictures: the first here, each other one in a forked child at the same time.
-
-    Why: the pictures are the last ~0.5 s of `launch --preset paper` (~1.6 s in all) and ran one
-    after the other while the second core sat idle. A child that fails, is killed or outlives
-    PICTURE_CHILD_TIMEOUT_S is stopped by its own PID and its picture drawn here, so a drawing error
-    still surfaces as it did before; on Ctrl-C every child still running is stopped too. Where
-    ``os.fork`` does not exist the pictures are drawn one after the other."""
-    if len(jobs) < 2 or not hasattr(os, "fork"):
-        for job in jobs:
-            job()
-        return
-    _import_matplotlib()  # now, so that no child is forked while a thread holds an import lock
-    children: dict[int, Callable[[], None]] = {}
-    redraw: list[Callable[[], None]] = []
-    try:
-        for job in jobs[1:]:
-            pid = _fork_picture(job)
-            if pid is None:
-                redraw.append(job)
-            else:
-                children[pid] = job
-        jobs[0]()
-        redraw += _wait_for_pictures(children)
-    finally:
-        for pid in children:
-            with contextlib.suppress(OSError):
-                os.kill(pid, signal.SIGKILL)
-                os.waitpid(pid, 0)
-    for job in redraw:
-        job()
-
-
-def _import_matplotlib() -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
-    from matplotlib.figure import Figure  # noqa: F401
-    from matplotlib.ticker import LogFormatterSciNotation  # noqa: F401
-
-
-def _fork_picture(job: Callable[[], None]) -> int | None:
-    """The PID of a child drawing ``job``, or None if no child could be made (drawn here then)."""
-    try:
-        with warnings.catch_warnings():  # 3.12+ warns about fork with threads; the child only draws
-            warnings.simplefilter("ignore", DeprecationWarning)
-            pid = os.fork()
-    except OSError:
-        return None
-    if pid == 0:  # the child: default signals (Ctrl-C just ends it), no atexit, no buffered output
-        code = 1
-        try:
-            signal.signal(signal.SIGINT, signal.SIG_DFL)
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
-            job()
-            code = 0
-        finally:
-            os._exit(code)
-    return pid
-
-
-def _wait_for_pictures(children: dict[int, Callable[[], None]]) -> list[Callable[[], None]]:
-    """Reap the children (removing each from ``children``); the jobs of those that did not finish
-    cleanly within PICTURE_CHILD_TIMEOUT_S (left in ``children`` for the caller to stop)."""
-    failed: list[Callable[[], None]] = []
-    deadline = time.monotonic() + PICTURE_CHILD_TIMEOUT_S
-    while children and time.monotonic() < deadline:
-        for pid in list(children):
-            done, status = os.waitpid(pid, os.WNOHANG)
-            if done:
-                job = children.pop(pid)
-                if os.waitstatus_to_exitcode(status) != 0:
-                    failed.append(job)
-        if children:
-            time.sleep(0.002)
-    return failed + list(children.values())
 
 
 def _figure(size: tuple[float, float], rect: tuple[float, float, float, float]) -> tuple[Any, Any]:
