@@ -57,9 +57,13 @@ SHAPES = [
 ]
 SWEEP = (2, 4, 6, 8, 12, 16)  # SVC: a superset of the fleet's candidates diag/{4, 6, 8, 12, 16}
 #: issue 15, the sigma rule chosen by central emulation (benchmarks/results/autogrid.md, "The sigma
-#: rule"): candidates diag/{4, 8, 16, 24}, 4 folds, ties -> the larger sigma, refined points sigma / 3
+#: rule"): candidates diag/{4, 8, 16, 24}, 4 folds, ties -> the larger sigma, refined points sigma / 3;
+#: (with holes_allowed: the held-out winner; not the default -- make demo 15-19 s, benchmarks/results/autogrid.md)
 PROPOSED = {"validate_divisors": (4.0, 8.0, 16.0, 24.0), "validate_folds": 4, "sigma_ties": "larger",
             "narrow_ratio": 3.0}
+#: the default before issue 15 (--previous): diag/{4, 6, 8, 12, 16}, 2 folds, ties -> smaller, no holes, one width
+PREVIOUS = {"validate_divisors": (4.0, 6.0, 8.0, 12.0, 16.0), "validate_folds": 2, "sigma_ties": "smaller",
+            "holes_allowed": False, "narrow_ratio": 1.0}
 
 
 def run_fleet(world, spec, params):
@@ -318,6 +322,13 @@ def emulate_widths(name: str, kwargs: dict, robots: int, ratios=(1.0, 2.0, 3.0))
     return row
 
 
+def _rule(args) -> dict | None:
+    """The AutoGridParams fields of the rule the flags ask for (None: the spec's defaults)."""
+    if args.previous:
+        return dict(PREVIOUS)
+    return dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="3 robots x 20 points")
@@ -330,8 +341,10 @@ def main() -> None:
     ap.add_argument("--narrow-ratio", type=float, default=None,
                     help="width of the refined points = sigma / this (default: the spec's AutoGridParams.narrow_ratio)")
     ap.add_argument("--emulate-widths", action="store_true", help="issue 15: central emulation of the two-width model")
-    ap.add_argument("--proposed", action="store_true", help="issue 15: the sigma rule of PROPOSED (not the default)")
+    ap.add_argument("--proposed", action="store_true",
+                    help="issue 15: the sigma rule of PROPOSED (not the default)")
     ap.add_argument("--holes-allowed", action="store_true", help="with --proposed: the solid check rejects islands only")
+    ap.add_argument("--previous", action="store_true", help="the default rule before issue 15 (PREVIOUS)")
     args = ap.parse_args()
     if args.emulate_widths:
         wanted = [w for w in args.shapes.split(",") if w]
@@ -346,7 +359,7 @@ def main() -> None:
     if args.outlines is not None:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             divisors = tuple(float(d) for d in args.divisors.split(",")) if args.divisors else None
-            extra = dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
+            extra = _rule(args)
             futures = [pool.submit(measure_outline, path, 5, 40, divisors, args.free_space, args.narrow_ratio, extra)
                        for path in args.outlines]
             rows = []
@@ -362,7 +375,7 @@ def main() -> None:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         wanted = [w for w in args.shapes.split(",") if w]
         shapes = [(n, k) for n, k in SHAPES if not wanted or n.split()[0] in wanted]
-        extra = dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
+        extra = _rule(args)
         futures = [pool.submit(measure, name, kwargs, robots, points, params_kw, args.free_space, extra)
                    for name, kwargs in shapes]
         rows = []
@@ -375,16 +388,21 @@ def main() -> None:
                 f"cv {row['svc_cv']:.3f}  grids {row['sizes']}  {row['rounds']} rounds  {row['wall']:.0f}s",
                 flush=True,
             )
+    rule = AutoGridParams(**{**params_kw, **(extra or {})})
+    divs = ", ".join(f"{d:g}" for d in rule.validate_divisors)
     lines = [
         f"# Automatic grid and sigma vs scikit-learn SVC ({robots} robots x {points} points, complete graph)",
         "",
-        "Fleet: `agents/autogrid.py` defaults: sigma chosen by the fleet's held-out sweep over diag/{4, 6, 8, 12, 16} "
-        "(2 folds, every robot holds out every 5th of its (inside, nearest outside) pairs per fold; all 10 candidate/fold "
-        "soft-margin ADMMs solved in one pass from stacked frames, each on its coarse lattice, tol 1e-2, <= 300 rounds, wider candidates dropped once a narrower one stopped perfect; "
+        f"Fleet: `agents/autogrid.py`, sigma chosen by the fleet's held-out sweep over diag/{{{divs}}} "
+        f"({rule.validate_folds} folds, every robot holds out every 5th of its (inside, nearest outside) pairs per fold; all "
+        f"{len(rule.validate_divisors) * rule.validate_folds} candidate/fold "
+        "soft-margin ADMMs solved in one pass from stacked frames, each on its coarse lattice, tol 1e-2, <= 300 rounds, "
+        "unfinished candidates dropped once a finished one decides the tie; "
         "held-out errors and 'inside region not solid' flags tallied exactly by max-consensus; among the solid candidates "
-        "the fewest errors, ties -> the smaller sigma; `*` marks a candidate that was not solid), then the chosen "
+        f"({'islands only rejected' if rule.holes_allowed else 'no holes, no islands'}) the fewest errors, ties -> the "
+        f"{rule.sigma_ties} sigma; `*` marks a candidate that was not solid), then the chosen "
         "candidate's fold-0 solution (flooded) seeds one refinement of its 1.5 sigma lattice near the zero level set and "
-        "near data, no finer than 0.7 sigma (K_G full rank), "
+        f"near data (refined points of width sigma / {rule.narrow_ratio:g}), no finer than 0.7 x their width (K_G full rank), "
         f"within {params_kw['max_points']} points, solved on all data, tol {params_kw['tol']:g}, frames through the real "
         "codec, no faults. 'sweep rounds' = the one pass + its tally; 'rank = M' says the reference solve is exact; "
         "'gap' = the largest relative gap between neighbours measured before the flood.",
@@ -392,7 +410,7 @@ def main() -> None:
         "widened by 20%. 'best of sweep' picks sigma in diag/{2,4,6,8,12,16} by IoU with the truth (an oracle); "
         "'5-fold CV' picks it by cross-validated accuracy (first best on ties, i.e. the larger sigma).",
         "",
-        "| shape | points | fleet sigma (diag/k) | held-out errors diag/4,6,8,12,16 | sweep rounds | grid sizes | margin | rounds | wall s "
+        f"| shape | points | fleet sigma (diag/k) | held-out errors diag/{divs.replace(' ', '')} | sweep rounds | grid sizes | margin | rounds | wall s "
         "| error vs central | rank = M | gap before flood | converged "
         "| IoU fleet | IoU SVC same sigma | IoU SVC best of sweep (sigma) | IoU SVC 5-fold CV (sigma) | fleet >= best (within 0.001) | fleet >= CV |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
