@@ -196,6 +196,7 @@ def test_verdict_tells_an_unfinished_fleet_from_a_biased_one():
     assert "did not meet their stopping rule within 5000 rounds" in v and "biased" not in v
     assert "settled on a biased point" in agreement_verdict(biased, _gap, tol=1e-3, exact_error=exact)["verdict"]
 
+
 def test_a_run_agreeing_on_a_shifted_answer_is_not_converged(tmp_path):
     """End to end through build_result: every robot reports the exact answer scaled by 1.2."""
     from agents.problem import solve_central
