@@ -579,23 +579,55 @@ _POWER = re.compile(r"\^\{(-?\d+)\}")
 
 
 def preload_pictures() -> None:
-    """Import matplotlib's figure and Agg canvas in a daemon thread, now, for pictures drawn later.
+    """Import what the run's pictures and summary need in a daemon thread, now, for later.
 
     `launch` calls it when its fleet starts: the launcher then only waits for its robots, and the
-    import (~0.3-0.5 s of CPU, a third of the pictures' time) runs while they do instead of after
-    them. The first ``_figure`` call that needs the modules waits for the import on Python's own
-    module locks (nothing to join); a failed import fails again there, in the drawing thread."""
+    imports (matplotlib ~0.25-0.4 s of CPU, rich's console and table ~0.03 s) run while they do
+    instead of after them. The first ``_figure`` call that needs the modules waits for the import
+    on Python's own module locks (nothing to join); a failed import fails again there, in the
+    drawing thread."""
     import threading
 
     def load() -> None:
         try:
-            import matplotlib.backends.backend_agg  # noqa: F401
-            import matplotlib.figure  # noqa: F401
-            import matplotlib.ticker  # noqa: F401
+            import_picture_modules()
+            import rich.console  # noqa: F401
+            import rich.table  # noqa: F401
         except Exception:  # noqa: BLE001 - reported by the drawing's own import
             pass
 
     threading.Thread(target=load, name="preload-pictures", daemon=True).start()
+
+
+def import_picture_modules() -> None:
+    """Import matplotlib's figure, Agg canvas and tickers without one cost of matplotlib's import
+    that no picture reads: the docstring of every Artist subclass's ``set``, a table of its
+    properties built by inspecting the class (`matplotlib.artist.kwdoc`, ~30 % of the import's
+    CPU). kwdoc is a stub only while these modules are imported the first time and is put back
+    after, so a caller's own ``kwdoc`` calls are unchanged; the ``set`` docstrings of the classes
+    defined meanwhile (and matplotlib's ``%(Line2D:kwdoc)s``-style docstring entries filled
+    meanwhile) say less. Nothing else in matplotlib reads them."""
+    import sys
+
+    if "matplotlib.figure" not in sys.modules:
+        import matplotlib.artist
+
+        kwdoc = matplotlib.artist.kwdoc
+        matplotlib.artist.kwdoc = _no_kwdoc
+        try:
+            import matplotlib.backends.backend_agg  # noqa: F401
+            import matplotlib.figure  # noqa: F401
+            import matplotlib.ticker  # noqa: F401
+        finally:
+            matplotlib.artist.kwdoc = kwdoc
+    import matplotlib.backends.backend_agg  # noqa: F401, F811 - another thread may still be importing
+    import matplotlib.figure  # noqa: F401, F811
+    import matplotlib.ticker  # noqa: F401, F811
+
+
+def _no_kwdoc(artist: Any) -> str:
+    """`matplotlib.artist.kwdoc` while the picture modules are first imported: no property table."""
+    return ""
 
 
 def _figure(size: tuple[float, float], rect: tuple[float, float, float, float]) -> tuple[Any, Any]:
@@ -605,6 +637,7 @@ def _figure(size: tuple[float, float], rect: tuple[float, float, float, float]) 
     manager and backend switch buy nothing, and tight_layout measured every tick label in a pass of
     its own before the drawing measured them again (with the pyplot import, ~0.5 s of the 1 s the
     two pictures of `launch --preset paper` took)."""
+    import_picture_modules()
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

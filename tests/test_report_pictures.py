@@ -63,3 +63,21 @@ def test_convergence_axis_of_less_than_a_decade_keeps_labelled_minor_ticks():
     minor = [t.label1.get_text() for t in ax.yaxis.get_minor_ticks() if t.label1.get_visible()]
     assert any(minor)  # matplotlib's own minor ticks, some with labels
     assert not ax.collections
+
+
+def test_picture_imports_skip_only_the_set_docstrings_and_restore_kwdoc():
+    """import_picture_modules leaves matplotlib's kwdoc as it was (a fresh interpreter: the stub
+    acts only during the first import), and the figures still work."""
+    import subprocess
+    import sys
+
+    code = (
+        "from launcher.report import import_picture_modules, _figure\n"
+        "import_picture_modules()\n"
+        "import matplotlib.artist, matplotlib.lines\n"
+        "assert matplotlib.artist.kwdoc(matplotlib.lines.Line2D).startswith('Properties:')\n"
+        "assert 'Properties' not in (matplotlib.lines.Line2D.set.__doc__ or '')\n"
+        "fig, ax = _figure((1, 1), (0.1, 0.1, 0.8, 0.8)); ax.plot([0, 1]); fig.canvas.draw()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
