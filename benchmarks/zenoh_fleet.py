@@ -195,6 +195,112 @@ def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -
     return "\n".join(lines)
 
 
+#: run in a child interpreter (``python -c``, PYTHONPATH = the tree measured): `shapefleet launch
+#: --preset paper --out OUT` as the program runs it (argv[0] "shapefleet": the early router and robots
+#: start before the imports), with the launcher's phases marked on the robots' monotonic clock in
+#: seconds from this process's start (/proc), and its own CPU at each mark; written to OUT/timeline.json
+_TIMELINE_CHILD = r"""
+import json, os, sys, threading, time
+with open("/proc/self/stat") as f:
+    ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+with open("/proc/uptime") as f:
+    up = float(f.read().split()[0])
+start = time.monotonic() - (up - ticks / os.sysconf("SC_CLK_TCK"))
+out = sys.argv[1]
+sys.argv = ["shapefleet", "launch", "--preset", "paper", "--out", out]
+marks = {}
+def mark(k):
+    marks[k] = [time.monotonic() - start, time.process_time()]
+import launcher.cli as cli
+mark("cli imported")
+from launcher import fleet, report
+def wrap(mod, name):
+    f = getattr(mod, name)
+    def g(*a, **k):
+        mark(name + " start"); r = f(*a, **k); mark(name + " end"); return r
+    setattr(mod, name, g)
+for mod, name in ((fleet, "launch_fleet"), (report, "write_json"), (report, "plot_shapes"),
+                  (report, "plot_convergence")):
+    wrap(mod, name)
+try:
+    code = cli.main()
+except SystemExit as e:
+    code = e.code
+mark("main returned")
+robots = []
+for name in os.listdir(os.path.join(out, "fleet")):
+    if name.endswith(".profile.json"):
+        with open(os.path.join(out, "fleet", name)) as f:
+            robots.append({k: v - start for k, v in json.load(f)["marks"].items()
+                           if k in ("imported", "adopted", "first_round", "last_round", "closed")})
+with open(os.path.join(out, "timeline.json"), "w") as f:
+    json.dump({"code": code, "launcher": marks, "robots": robots}, f)
+"""
+
+
+def cli_timeline(tree: Path) -> dict:
+    """One `launch --preset paper` of ``tree`` with its timeline (_TIMELINE_CHILD): the launcher's
+    phases and CPU, the slowest robot's marks, the wall and CPU of every process from outside."""
+    import resource
+    import subprocess
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="shapefleet-timeline-") as tmp:
+        t = time.perf_counter()
+        done = subprocess.run([sys.executable, "-c", _TIMELINE_CHILD, tmp], cwd=tree, capture_output=True, text=True,
+                              timeout=300, env={**os.environ, "PYTHONPATH": str(tree), "SHAPEFLEET_PROFILE": "1"})
+        wall = time.perf_counter() - t
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        if done.returncode != 0:
+            raise RuntimeError(f"launch in {tree} failed: {done.stderr.strip()[-500:]}")
+        got = json.loads((Path(tmp) / "timeline.json").read_text())
+    m = got["launcher"]
+    slowest = {k: max(r[k] for r in got["robots"]) for k in ("imported", "first_round", "last_round", "closed")}
+    return {
+        "load": load, "wall": wall,
+        "cpu_all": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
+        "imports": m["cli imported"][0], "robots_imported": slowest["imported"],
+        "fleet_start": m["launch_fleet start"][0], "first_round": slowest["first_round"],
+        "last_round": slowest["last_round"], "stopped": m["launch_fleet end"][0],
+        "result_json": m["write_json end"][0],
+        "shapes": m["plot_shapes end"][0] - m["plot_shapes start"][0],
+        "convergence": m["plot_convergence end"][0] - m["plot_convergence start"][0],
+        "returned": m["main returned"][0],
+        "cpu_start": m["launch_fleet start"][1],
+        "cpu_fleet": m["launch_fleet end"][1] - m["launch_fleet start"][1],
+        "cpu_finish": m["main returned"][1] - m["launch_fleet end"][1],
+    }
+
+
+_TIMELINE_COLUMNS = (
+    ("load", "load"), ("imports", "launcher imported"), ("robots_imported", "robots imported"),
+    ("fleet_start", "fleet handed over"), ("first_round", "first round"), ("last_round", "last round"),
+    ("stopped", "every process stopped"), ("result_json", "result.json"), ("shapes", "shapes.png s"),
+    ("convergence", "convergence.png s"), ("returned", "main returns"), ("wall", "wall (outside)"),
+    ("cpu_start", "launcher CPU to hand-over"), ("cpu_fleet", "launcher CPU during fleet"),
+    ("cpu_finish", "launcher CPU after"), ("cpu_all", "CPU all processes"),
+)
+
+
+def cli_timeline_table(trees: list[tuple[str, Path]], runs: int) -> str:
+    """Medians over ``runs`` timelines per tree, the trees alternating run by run; seconds from the
+    launcher's process start (robots: the slowest), CPU seconds."""
+    got: dict[str, list[dict]] = {label: [] for label, _t in trees}
+    for _ in range(runs):
+        for label, tree in trees:
+            got[label].append(cli_timeline(tree))
+    lines = ["| step | " + " | ".join(f"{label} (median of {runs})" for label, _t in trees) + " |",
+             "|---|" + "---:|" * len(trees)]
+    for key, title in _TIMELINE_COLUMNS:
+        cells = []
+        for label, _t in trees:
+            values = [r[key] for r in got[label]]
+            cells.append(f"{min(values):.1f}-{max(values):.1f}" if key == "load" else f"{statistics.median(values):.2f}")
+        lines.append(f"| {title} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="3,8,16", help="fleet sizes for the fixed-rounds runs (default 3,8,16)")
@@ -209,8 +315,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--launch-runs", type=int, default=0,
                     help="only time the whole `launch --preset paper` command this many times (with --base: "
                          "alternating with another checkout), print the table and stop")
-    ap.add_argument("--base", type=Path, default=None, help="with --launch-runs: a checkout to compare against")
+    ap.add_argument("--base", type=Path, default=None,
+                    help="with --launch-runs or --timeline: a checkout to compare against")
+    ap.add_argument("--timeline", type=int, default=0,
+                    help="only run `launch --preset paper` this many times (with --base: alternating with another "
+                         "checkout) with the launcher's phases and the robots' marks, print the medians and stop")
     args = ap.parse_args(argv)
+    if args.timeline:
+        trees = ([("base", args.base.resolve())] if args.base else []) + [("this tree", ROOT)]
+        print(cli_timeline_table(trees, args.timeline))
+        return 0
     if args.launch_runs:
         trees = ([("base", args.base.resolve(), {})] if args.base else []) + [("this tree", ROOT, {})]
         print(cli_launch_table(trees, args.launch_runs))
