@@ -34,19 +34,30 @@ _EARLY_ROUTER = (EarlyRouter.for_command_line(sys.argv)
 #: arguments (launcher/router.py EarlyRobots): the robots' start is no longer after the launcher's
 _EARLY_ROBOTS = EarlyRobots.for_command_line(sys.argv) if _EARLY_ROUTER is not None else None
 
-import numpy as np  # noqa: E402
+import gc  # noqa: E402
 
-from launcher import scenario, topology  # noqa: E402
-from launcher.options import (  # noqa: E402
-    PAPER_GRID,
-    PAPER_SIGMA,
-    ROBOT_ID_ENV,
-    Options,
-    add_arguments,
-    options_from_args,
-)
-from launcher.world import World, build_world  # noqa: E402
-from protocol.links import LinkFaults  # noqa: E402
+#: the imports below create ~10^5 long-lived objects and no garbage worth a collection; the cyclic
+#: collector's passes over them while they load (~60, the later ones over everything imported so
+#: far) cost ~5 % of the launcher's start, on its critical path: paused for them, then as it was
+_GC_WAS_ENABLED = gc.isenabled()
+gc.disable()
+try:
+    import numpy as np
+
+    from launcher import scenario, topology
+    from launcher.options import (
+        PAPER_GRID,
+        PAPER_SIGMA,
+        ROBOT_ID_ENV,
+        Options,
+        add_arguments,
+        options_from_args,
+    )
+    from launcher.world import World, build_world
+    from protocol.links import LinkFaults
+finally:
+    if _GC_WAS_ENABLED:
+        gc.enable()
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 1
