@@ -619,14 +619,16 @@ def import_picture_modules() -> None:
         try:
             import matplotlib.artist
 
-            kwdoc = matplotlib.artist.kwdoc
-            matplotlib.artist.kwdoc = _no_kwdoc
+            kwdoc = getattr(matplotlib.artist, "kwdoc", None)  # None: another matplotlib, import as is
+            if kwdoc is not None:
+                matplotlib.artist.kwdoc = _no_kwdoc
             try:
                 import matplotlib.backends.backend_agg  # noqa: F401
                 import matplotlib.figure  # noqa: F401
                 import matplotlib.ticker  # noqa: F401
             finally:
-                matplotlib.artist.kwdoc = kwdoc
+                if kwdoc is not None:
+                    matplotlib.artist.kwdoc = kwdoc
         finally:
             if collecting:
                 gc.enable()
