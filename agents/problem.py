@@ -4,6 +4,10 @@ Variables are v = (x, gamma) with x = K_G^{1/2} c (see kernel.py); soft margins 
 per data point. Hard margin (the paper):     min 1/2 |x|^2          s.t. theta_i (phi_i' x + gamma) >= 1
 Soft margin (penalty C):                     min 1/2 |x|^2 + C sum xi  s.t. theta_i (phi_i' x + gamma) + xi_i >= 1, xi >= 0
 
+Hard-margin ADMM steps with fewer margin rows than variables are solved exactly through their dual
+by an active-set method (agents/qp_dual.py); everything else, and every step the dual does not
+certify, by piqp.
+
 piqp >= 0.7 writes inequalities as h_l <= G z <= h_u (older versions had G z <= h); every
 constraint here is a lower bound with h_u = +inf.
 """
