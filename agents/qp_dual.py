@@ -2,7 +2,10 @@
 
 Why: every ADMM round solves, per robot, min 1/2 v' D v + q' v  s.t.  A v >= 1 (hard margin) or
 with slacks of cost C (soft), D DIAGONAL and positive (x_weight + prox on x, prox on gamma). piqp's
-interior point took ~0.7 ms per solve for 20-40 rows, the largest cost of a round. Through the dual
+interior point grows with dim (1.7-2.9 ms per solve at dim 142 in the default run's hard phase, under
+load); this method costs ~7 numpy-level steps whatever dim is (0.3 ms there, 6-10x less), but more
+than piqp on the paper preset's 16 variables. MarginQP (agents/problem.py) therefore uses it for
+hard-margin steps with fewer rows than variables only (benchmarks/results/round_cost.md). Through the dual
 (multipliers lam, one per row of A; v = D^-1 (A' lam - q)) it is
 
     min 1/2 lam' H lam - b' lam    s.t.  0 <= lam (<= C soft),   H = A D^-1 A',  b = 1 + A D^-1 q
