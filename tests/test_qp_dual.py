@@ -1,0 +1,143 @@
+"""The ADMM step's exact active-set dual (agents/qp_dual.py) against piqp and the KKT conditions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import agents.problem as problem
+from agents import qp_dual
+from agents.problem import InfeasibleError, MarginQP
+from agents.qp_dual import dual_hessian, solve_box_dual
+
+
+def _problem(seed: int, n: int, m: int, C: float | None) -> tuple[MarginQP, np.ndarray]:
+    """A random step QP with positive, unequal prox weights (x_weight 1/3 as in a 3-robot fleet)."""
+    rng = np.random.default_rng(seed)
+    features = rng.normal(size=(n, m))
+    labels = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+    prox = rng.uniform(0.1, 20.0, size=m + 1)
+    qp = MarginQP(features, labels, x_weight=1.0 / 3.0, prox_weight=prox, C=C)
+    return qp, rng.normal(size=m + 1) * rng.choice([0.1, 1.0, 10.0])
+
+
+def _objective(qp: MarginQP, q: np.ndarray, v: np.ndarray) -> float:
+    hinge = qp._upper * np.maximum(0.0, 1.0 - qp._rows @ v).sum() if qp.soft else 0.0
+    return float(0.5 * v @ (_weights(qp) * v) + q @ v + hinge)
+
+
+def _weights(qp: MarginQP) -> np.ndarray:
+    """P's diagonal on (x, gamma), whichever solver MarginQP picks."""
+    return np.diag(qp._P)[: qp.dim].copy()
+
+
+def _kkt_residual(qp: MarginQP, q: np.ndarray, v: np.ndarray, lam: np.ndarray) -> float:
+    """Largest violation of stationarity, the multipliers' box, the margins and complementarity."""
+    rows, upper = qp._rows, qp._upper
+    g = rows @ v - 1.0
+    station = np.abs(_weights(qp) * v + q - rows.T @ lam).max()
+    box = max(0.0, -lam.min(), lam.max() - upper)
+    low, high = lam == 0.0, lam == upper
+    mid = ~(low | high)
+    margins = max(0.0, -g[low].min(initial=0.0), g[high].max(initial=0.0), np.abs(g[mid]).max(initial=0.0))
+    return float(max(station, box, margins))
+
+
+CASES = [(seed, n, m, C) for seed, (n, m) in enumerate([(17, 21), (20, 43), (12, 30), (30, 15), (20, 16), (8, 40)])
+         for C in (None, 0.5, 10.0, 100.0)]
+
+
+@pytest.mark.parametrize("seed,n,m,C", CASES)
+def test_dual_matches_piqp_and_is_an_exact_kkt_point(seed, n, m, C):
+    qp, q = _problem(seed, n, m, C)
+    d = _weights(qp)
+    out = solve_box_dual(qp._rows, d, dual_hessian(qp._rows, d), q, qp._upper)
+    try:
+        ref = qp.solve_piqp(q)
+    except InfeasibleError:
+        assert out is None  # an infeasible hard margin is never "certified"
+        return
+    assert out is not None, "a well-posed random step QP must be certified"
+    v, lam = out
+    ref_v = np.append(ref.x, ref.gamma)
+    assert _kkt_residual(qp, q, v, lam) < 1e-9 * max(1.0, np.abs(q).max())
+    # piqp stops at 1e-10: the exact point is never worse, and near it
+    assert _objective(qp, q, v) <= _objective(qp, q, ref_v) + 1e-9 * max(1.0, abs(_objective(qp, q, ref_v)))
+    np.testing.assert_allclose(v, ref_v, atol=1e-5 * max(1.0, np.abs(ref_v).max()))
+
+
+def test_soft_box_has_multipliers_at_C_and_slacks_there():
+    qp, q = _problem(3, 20, 25, 0.05)  # a small C: many margins give way
+    d = _weights(qp)
+    out = solve_box_dual(qp._rows, d, dual_hessian(qp._rows, d), q, qp._upper)
+    assert out is not None
+    v, lam = out
+    at_c = lam == 0.05
+    assert at_c.sum() >= 3
+    slack = 1.0 - qp._rows @ v
+    assert np.all(slack[at_c] > 0.0) and np.all(slack[lam < 0.05] < 1e-9)  # only capped margins give way
+    assert _kkt_residual(qp, q, v, lam) < 1e-9
+    ref = qp.solve_piqp(q)
+    np.testing.assert_allclose(v, np.append(ref.x, ref.gamma), atol=1e-6)
+
+
+def test_infeasible_hard_margin_falls_back_to_piqp_which_says_so():
+    features = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # one point, both labels
+    qp = MarginQP(features, np.array([1.0, -1.0, 1.0]), x_weight=0.5, prox_weight=2.0, C=None)
+    q = np.zeros(qp.dim)
+    assert qp._hessian is not None  # 3 rows < dim 4: the dual is tried first
+    assert solve_box_dual(qp._rows, qp._d, qp._hessian, q, qp._upper) is None
+    with pytest.raises(InfeasibleError):
+        qp.solve(q)
+
+
+def test_an_uncertified_point_falls_back_to_piqp(monkeypatch):
+    qp, q = _problem(1, 17, 21, None)
+    exact = qp.solve(q)
+    monkeypatch.setattr(qp_dual, "KKT_TOL", -1.0)  # no point passes the check
+    assert solve_box_dual(qp._rows, qp._d, qp._hessian, q, qp._upper) is None
+    fallback = qp.solve(q)
+    ref = qp.solve_piqp(q)
+    assert np.array_equal(fallback.x, ref.x) and fallback.gamma == ref.gamma
+    np.testing.assert_allclose(fallback.x, exact.x, atol=1e-6)
+
+
+def test_same_inputs_give_the_same_bits():
+    a, q = _problem(4, 18, 31, None)
+    b, _ = _problem(4, 18, 31, None)
+    assert a._hessian is not None  # the dual path
+    first, again, fresh = a.solve(q), a.solve(q.copy()), b.solve(q)
+    for other in (again, fresh):
+        assert np.array_equal(first.x, other.x) and first.gamma == other.gamma
+        assert np.array_equal(first.slack, other.slack)
+
+
+def test_scaling_the_objective_leaves_the_optimum():
+    """min 1/2 v'Dv + q'v and its s-multiple (s D, s q, s C) have one optimum: the dual keeps it to round-off."""
+    for C in (None, 10.0):
+        qp, q = _problem(5, 17, 71, C)
+        d, upper = _weights(qp), qp._upper
+        v = solve_box_dual(qp._rows, d, dual_hessian(qp._rows, d), q, upper)[0]
+        for s in (1e-3, 1e3):
+            w = solve_box_dual(qp._rows, s * d, dual_hessian(qp._rows, s * d), s * q, s * upper)[0]
+            np.testing.assert_allclose(w, v, rtol=1e-10, atol=1e-10 * np.abs(v).max())
+
+
+@pytest.mark.parametrize(
+    "n,m,C,prox,dual",
+    [(17, 30, None, 5.0, True), (17, 30, None, np.linspace(1.0, 3.0, 31), True), (20, 15, None, 5.0, False),
+     (16, 15, None, 5.0, False), (17, 30, None, 0.0, False), (17, 30, 10.0, 5.0, False)],
+)
+def test_the_dual_answers_hard_steps_with_fewer_rows_than_variables(monkeypatch, n, m, C, prox, dual):
+    qp, q = _problem(6, n, m, C)
+    qp.set_prox(prox)
+    calls = []
+    monkeypatch.setattr(problem, "solve_box_dual", lambda *a: calls.append(1) or solve_box_dual(*a))
+    try:
+        sol = qp.solve(q)
+    except InfeasibleError:  # only n >= dim can be infeasible here; piqp answered
+        assert not dual and not calls
+        return
+    assert bool(calls) == dual
+    ref = qp.solve_piqp(q)
+    np.testing.assert_allclose(np.append(sol.x, sol.gamma), np.append(ref.x, ref.gamma), atol=1e-6)
