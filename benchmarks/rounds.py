@@ -73,6 +73,7 @@ def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
         return max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores)
 
     first = None
+    switched = None
     compute = 0.0
     auth = {c.robot_id: spec.frame_auth(c.robot_id) for c in cores}
     sent = dict.fromkeys(auth, 0)
@@ -88,6 +89,8 @@ def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
             publish(c, c.outgoing(), c.round)
         if first is None and error() < 1e-3:
             first = cores[0].round
+        if switched is None and getattr(getattr(cores[0], "_hub", None), "plain", False):
+            switched = cores[0].round  # the hub's stall switch fired (agents/admm.py stall_watch)
     rounds = cores[0].round
     return {
         "first": first,
@@ -96,6 +99,7 @@ def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
         "error": error(),
         "ms": 1e3 * compute / max(rounds * len(cores), 1),
         "form": form_name(cores[0]),
+        "switched": switched,
         "rank": f"{b.rank}/{b.size}",
         "bytes": sum(sent.values()) / len(sent),
     }
