@@ -14,6 +14,8 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
     .venv/bin/python benchmarks/rounds.py --stop-check  # the stopping rule on sparse fleets, every
                                                         # built-in shape x seeds 0-2 (~10 minutes);
                                                         # the relay hub, or with --edge the edge form
+    .venv/bin/python benchmarks/rounds.py --complete-large  # complete fleets of 16-48 robots, the hub's
+                                                            # stall switch (~8 minutes)
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
         return max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores)
 
     first = None
+    switched = None
     compute = 0.0
     auth = {c.robot_id: spec.frame_auth(c.robot_id) for c in cores}
     sent = dict.fromkeys(auth, 0)
@@ -88,6 +91,8 @@ def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
             publish(c, c.outgoing(), c.round)
         if first is None and error() < 1e-3:
             first = cores[0].round
+        if switched is None and getattr(getattr(cores[0], "_hub", None), "plain", False):
+            switched = cores[0].round  # the hub's stall switch fired (agents/admm.py stall_watch)
     rounds = cores[0].round
     return {
         "first": first,
@@ -96,6 +101,7 @@ def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
         "error": error(),
         "ms": 1e3 * compute / max(rounds * len(cores), 1),
         "form": form_name(cores[0]),
+        "switched": switched,
         "rank": f"{b.rank}/{b.size}",
         "bytes": sum(sent.values()) / len(sent),
     }
@@ -125,6 +131,38 @@ def algorithm_bytes(kwargs: dict) -> dict:
         "frames": sum(r["frames_sent"] for r in rows) / n,
         "bytes": sum(r["bytes_sent"] for r in rows) / n,
     }
+
+
+# -- complete fleets of 24-48 robots: the hub's stall switch ------------------------------------
+#: (label, options, (rounds to 1e-3, rounds at stop, error at stop) on main 6f67b86 without the stall
+#: switch -- None: not converged, the error after the rounds given)
+LARGE_COMPLETE = [
+    ("16 robots, bean", {"robots": 16, "shape": "bean"}, (999, 1034, 1.2e-05)),
+    ("24 robots", {"robots": 24}, (None, ">3000", 0.14)),
+    ("24 robots, seed 1", {"robots": 24, "seed": 1}, (2305, 2331, 9.1e-05)),
+    ("32 robots, geometric", {"robots": 32, "topology": "geometric"}, (None, ">3000", 0.42)),
+    ("32 robots, geometric, seed 1", {"robots": 32, "topology": "geometric", "seed": 1}, (2827, 2870, 3.0e-06)),
+    ("32 robots, geometric, bean", {"robots": 32, "topology": "geometric", "shape": "bean"}, (None, ">3000", 0.57)),
+    ("48 robots, geometric", {"robots": 48, "topology": "geometric"}, (1695, 1724, 5.6e-05)),
+]
+
+
+def complete_large(max_rounds: int) -> list[str]:
+    """Rounds and error at stop of complete fleets that Anderson stalls on (or finishes late), with
+    the round of the stall switch's first firing (agents/admm.py, `stall_watch`)."""
+    tol = ADMMParams().tol
+    lines = [
+        "| fleet (complete) | rounds to 1e-3 (before) | rounds at stop (before) | converged | error at stop (before) "
+        "| first switch to plain | safe |",
+        "|---|---:|---:|:---:|---:|---:|:---:|",
+    ]
+    for label, kwargs, (b_first, b_stop, b_err) in LARGE_COMPLETE:
+        r = measure(kwargs, max_rounds)
+        first = r["first"] if r["first"] is not None else ">" + str(r["stop"])
+        safe = ("yes" if r["error"] <= tol else "NO") if r["converged"] else "cap"
+        add_row(lines, f"| {label} | {first} ({b_first or 'not reached'}) | {r['stop']} ({b_stop}) | "
+                       f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e} ({b_err:.1e}) | {r['switched'] or '-'} | {safe} |")
+    return lines
 
 
 # -- the stopping rule's safety on sparse fleets -------------------------------------------------
@@ -183,7 +221,13 @@ def main() -> None:
                     help="with --stop-check: the edge form (rounds-stop.md) instead of the relay hub (rounds-stop-relay.md)")
     ap.add_argument("--stop-check", action="store_true",
                     help="only the stopping rule's error at stop on sparse fleets (shapes x seeds)")
+    ap.add_argument("--complete-large", action="store_true",
+                    help="only the complete fleets of 16-48 robots (the hub's stall switch), rounds-complete.md")
     args = ap.parse_args()
+    if args.complete_large:
+        write_results("rounds-complete.md", "# Decentralized ADMM: complete fleets of 16-48 robots\n\n"
+                      + "\n".join(complete_large(args.max_rounds)) + "\n")
+        return
     if args.stop_check:
         body = stop_check(args.max_rounds, relay=not args.edge)
         write_results("rounds-stop.md" if args.edge else "rounds-stop-relay.md",

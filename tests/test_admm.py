@@ -211,16 +211,27 @@ def test_checkpoint_restore_resumes_bit_for_bit(fleet3):
     spec, _, cores = fleet3
     for _ in range(12):
         step_all(cores)
-    saved = msgpack.unpackb(msgpack.packb(cores[1].checkpoint()), strict_map_key=False)
-    twin = restore_core(spec, cores[1].robot_id, saved)  # a restarted process, fed the same frames
+    twin = restored_twin(spec, cores[1])
     for _ in range(10):
-        assert twin.outgoing() == cores[1].outgoing()
-        updates = [c.outgoing() for c in cores]
-        for u in updates:
-            twin.receive(u)
-        step_all(cores)
-        twin.advance()
+        step_with_twin(cores, twin, cores[1])
     assert twin.outgoing() == cores[1].outgoing()
+
+
+def restored_twin(spec, core):
+    """`core` restarted from a msgpack round trip of its checkpoint (what a robot process writes)."""
+    saved = msgpack.unpackb(msgpack.packb(core.checkpoint()), strict_map_key=False)
+    return restore_core(spec, core.robot_id, saved)
+
+
+def step_with_twin(cores, twin, original) -> None:
+    """One lock-step round of `cores`, the restored `twin` of `original` fed the same frames; the
+    twin must send what the original sends."""
+    assert twin.outgoing() == original.outgoing()
+    updates = [c.outgoing() for c in cores]
+    for u in updates:
+        twin.receive(u)
+    step_all(cores)
+    twin.advance()
 
 
 def test_hub_sums_match_math_fsum_bit_for_bit():
