@@ -53,6 +53,7 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     near_data_marks,
     refine_grid,
     grid_widths,
+    widths_for_data,
     scale_from_bounds,
 )
 from agents.autogrid_state import load_state, save_state
@@ -124,7 +125,7 @@ class AdaptiveGridCore(RoundCore):
                 f"robot id {robot_id}: the sigma sweep tallies one slot per id, ids must be in "
                 f"[0, {params.tally_slots}) (raise max_points)"
             )
-        self.params = params
+        self.params = self._given = params  # params: _given, or after the tally widths_for_data's
         self._points, self._labels = points, labels
         self._share = share
         self._n_robots = share.n_robots
@@ -299,6 +300,8 @@ class AdaptiveGridCore(RoundCore):
         sweep, self._sweep = self._sweep, None
         self.sigma_validation = sweep.records(self._values)
         self.sigma, self.sigma_reason = choose_sigma(self.sigma_validation, self._diag, self.params)
+        self.params, note = widths_for_data(self._given, self.sigma_validation)
+        self.sigma_reason += note
         self._first_grid()
         cand = next(i for i, r in enumerate(self.sigma_validation) if r["sigma"] == self.sigma)
         task = sweep.task(cand, 0)

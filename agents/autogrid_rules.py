@@ -7,6 +7,7 @@ lattice and refined grid without sending them. See agents/autogrid.py for the ph
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -84,6 +85,11 @@ class AutoGridParams:
     # default: 3 helps the 11 benchmark shapes at 200-240 points but costs the 60-point default
     # run 0.06 IoU, see benchmarks/results/autogrid.md)
     narrow_ratio: float = 1.0
+    # the two widths only where the data can carry them (issue 15, step 6): with narrow_ratio > 1,
+    # the fleet keeps one width when its sweep held out fewer than this many points per fold on
+    # average (a count the tally already agrees on bit for bit; 0: always two widths). 3 x 20
+    # points hold out 8-12 per fold, 5 x 40 hold out 23-37: the narrow kernels need the latter
+    narrow_min_held: int = 0
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
@@ -108,6 +114,8 @@ class AutoGridParams:
             raise ValueError(f"validate_folds must be in [1, holdout_every], got {self.validate_folds}")
         if self.sigma_ties not in ("smaller", "larger"):
             raise ValueError(f"sigma_ties must be 'smaller' or 'larger', got {self.sigma_ties!r}")
+        if self.narrow_min_held < 0:
+            raise ValueError(f"narrow_min_held must be >= 0, got {self.narrow_min_held}")
         if self.solid_raster < 8:
             raise ValueError(f"solid_raster must be at least 8, got {self.solid_raster}")
         if not 0 < self.relax < 2:
@@ -386,6 +394,23 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
         "diagonal of the data's bounding box (scale-free: every candidate is proportional to diag)"
     )
     return float(best["sigma"]), why
+
+
+def widths_for_data(params: AutoGridParams, records: list[dict[str, Any]]) -> tuple[AutoGridParams, str]:
+    """The parameters of the run after the sweep: one width (narrow_ratio 1) when the fleet's
+    held-out points per fold (from the agreed tally, so the same on every robot) are fewer than
+    `narrow_min_held` -- narrow refined kernels on sparse data leave gaps the few points cannot
+    close (measured: 3 x 20 points, r = 3 loses 0.03-0.12 IoU on star and bracket) -- else
+    `params` unchanged. Returns (params, a note for sigma_reason; empty when nothing changed)."""
+    if params.narrow_ratio == 1.0 or params.narrow_min_held <= 0 or not records:
+        return params, ""
+    per_fold = records[0]["held_out"] / max(1, records[0]["folds"])
+    if per_fold >= params.narrow_min_held:
+        return params, (f"; two widths (refined points sigma / {params.narrow_ratio:g}): {per_fold:g} held-out "
+                        f"points per fold >= {params.narrow_min_held}")
+    return dataclasses.replace(params, narrow_ratio=1.0), (
+        f"; one width: {per_fold:g} held-out points per fold < {params.narrow_min_held}, too few for "
+        f"narrow refined kernels (sigma / {params.narrow_ratio:g})")
 
 
 def tie_sign(params: AutoGridParams) -> float:

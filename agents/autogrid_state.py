@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.autogrid_rules import widths_for_data
 from agents.rounds import from_bytes, to_bytes
 
 if TYPE_CHECKING:
@@ -63,6 +64,7 @@ def load_state(core: AdaptiveGridCore, state: dict[str, Any]) -> None:
     core.bounds = None if state["bounds"] is None else tuple(float(b) for b in state["bounds"])
     core.sigma = None if state["sigma"] is None else float(state["sigma"])
     core.sigma_validation = [dict(r) for r in state["sigma_validation"]]
+    core.params = widths_for_data(core._given, core.sigma_validation)[0]
     core.grid_history = [
         {**{k: v for k, v in h.items() if k != "grid"}, "grid": from_bytes(h["grid"]).reshape(-1, 2).tolist()}
         for h in state["history"]

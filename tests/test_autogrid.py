@@ -6,6 +6,8 @@ FrameDecoder, fixed vector length max_points + 2), like launcher.simulate with n
 
 from __future__ import annotations
 
+import dataclasses
+
 import msgpack
 from pathlib import Path
 
@@ -809,3 +811,44 @@ def test_two_widths_refined_points_narrow_exact_against_the_central_reference():
     ref = GridKernelSVC(grid=grid, sigma=first.sigma, widths=widths).fit(world.points, world.labels)
     assert first._basis.function_error(c, gamma, ref.coef_, ref.intercept_) < 1e-3
     assert np.all(ref.predict(world.points) == world.labels)
+
+
+def test_widths_for_data_keeps_one_width_when_few_points_are_held_out():
+    """narrow_min_held (issue 15, step 6): the two widths only when the agreed tally held out at
+    least that many points per fold; below it the run uses one width, the rest unchanged."""
+    from agents.autogrid_rules import widths_for_data
+
+    params = AutoGridParams(narrow_ratio=3.0, narrow_min_held=16, validate_folds=4)
+    sparse = [{"held_out": 4 * 15, "folds": 4}]  # 15 per fold
+    dense = [{"held_out": 4 * 16, "folds": 4}]
+    one, note = widths_for_data(params, sparse)
+    assert one.narrow_ratio == 1.0 and "one width" in note
+    assert dataclasses.replace(one, narrow_ratio=3.0) == params
+    two, note = widths_for_data(params, dense)
+    assert two is params and "two widths" in note
+    assert widths_for_data(dataclasses.replace(params, narrow_min_held=0), sparse)[0].narrow_ratio == 3.0
+    assert widths_for_data(params, [])[0] is params
+    with pytest.raises(ValueError):
+        AutoGridParams(narrow_min_held=-1)
+
+
+def test_sparse_fleet_keeps_one_width_and_resumes_after_the_tally():
+    """The default scenario (3 x 20 points, 8 held out in fold 0) with narrow_ratio 3 and the
+    threshold 16: one width, the same on every robot, and a restart after the tally (the choice
+    is re-derived from the restored tally) ends bit for bit where the uninterrupted run ends."""
+    world, spec = build_world(Options(fleet_id="t"))
+    params = fast_params(spec, validate_divisors=(4.0,), validate_folds=1, validate_rounds=60, narrow_ratio=3.0,
+                         narrow_min_held=16, max_points=60, tol=1e-3)
+    robots = robots_of(spec)
+    ref = run_fleet(make_cores(robots, params))
+    first = ref[0]
+    assert "widths" not in first.result() and first.params.narrow_ratio == 1.0
+    assert "one width" in first.sigma_reason
+    assert all(np.array_equal(k.function()[1], first.function()[1]) for k in ref[1:])
+    start, _ = _phase_rounds(first, "vote")
+    _, blobs = _checkpoints_at(robots, params, {"after": start + 1})["after"]
+    resumed = _resume_from_checkpoints(None, robots, params, blobs)
+    assert resumed[0].params.narrow_ratio == 1.0
+    for a, b in zip(ref, resumed):
+        assert a.round == b.round and a.grid_history == b.grid_history
+        assert np.array_equal(a.function()[1], b.function()[1])
