@@ -90,6 +90,13 @@ class AutoGridParams:
     # average (a count the tally already agrees on bit for bit; 0: always two widths). 3 x 20
     # points hold out 8-12 per fold, 5 x 40 hold out 23-37: the narrow kernels need the latter
     narrow_min_held: int = 0
+    # the sweep's folds where the data are few (issue 15, step 6): when the fleet holds fewer than
+    # sparse_units held-out units in all (one inside point with its nearest outside point each;
+    # counted in BOUNDS, one slot per robot id), the sweep runs min(validate_folds, sparse_folds)
+    # folds (0: always validate_folds). 3 x 20 points have 30 units, 5 x 40 have 100: on the former
+    # 2 folds choose what 4 choose (central emulation) at half the sweep's cost
+    sparse_units: int = 0
+    sparse_folds: int = 2
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
@@ -114,6 +121,8 @@ class AutoGridParams:
             raise ValueError(f"validate_folds must be in [1, holdout_every], got {self.validate_folds}")
         if self.sigma_ties not in ("smaller", "larger"):
             raise ValueError(f"sigma_ties must be 'smaller' or 'larger', got {self.sigma_ties!r}")
+        if self.sparse_units < 0 or self.sparse_folds < 1:
+            raise ValueError(f"sparse_units must be >= 0 and sparse_folds >= 1, got {self.sparse_units}, {self.sparse_folds}")
         if self.narrow_min_held < 0:
             raise ValueError(f"narrow_min_held must be >= 0, got {self.narrow_min_held}")
         if self.solid_raster < 8:
@@ -394,6 +403,18 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
         "diagonal of the data's bounding box (scale-free: every candidate is proportional to diag)"
     )
     return float(best["sigma"]), why
+
+
+def folds_for_data(params: AutoGridParams, units: int) -> tuple[AutoGridParams, str]:
+    """The sweep's parameters for a fleet holding `units` held-out units in all (agreed in
+    BOUNDS, the same on every robot): min(validate_folds, sparse_folds) folds below
+    `sparse_units`, else `params` unchanged. Frames keep the given params' length (the fewer
+    folds' blocks are a prefix of it). Returns (params, a note for sigma_reason)."""
+    folds = min(params.validate_folds, params.sparse_folds)
+    if params.sparse_units <= 0 or units >= params.sparse_units or folds == params.validate_folds:
+        return params, ""
+    return dataclasses.replace(params, validate_folds=folds), (
+        f"; {folds} folds instead of {params.validate_folds}: {units} held-out units in all < {params.sparse_units}")
 
 
 def widths_for_data(params: AutoGridParams, records: list[dict[str, Any]]) -> tuple[AutoGridParams, str]:
