@@ -126,7 +126,7 @@ class AdaptiveGridCore(RoundCore):
                 f"robot id {robot_id}: the sigma sweep tallies one slot per id, ids must be in "
                 f"[0, {params.tally_slots}) (raise max_points)"
             )
-        self.params = self._given = params  # params: _given, or after the tally widths_for_data's
+        self.params = self._given = params  # _given, then as derived from the data (folds_for_data, widths_for_data)
         self._points, self._labels = points, labels
         self._share = share
         self._n_robots = share.n_robots
@@ -200,7 +200,7 @@ class AdaptiveGridCore(RoundCore):
             v[:4] = (-lo[0], hi[0], -lo[1], hi[1])
         else:
             v[:4] = _NO_DATA
-        if self._given.validates and self._given.sparse_units > 0:  # its held-out units, one slot per id (< tally_slots)
+        if self._given.validates and self._given.sparse_units > 0:  # held-out units: one slot per id (< tally_slots)
             v[4 + self.robot_id] = float(np.max(self._units, initial=-1) + 1)
         self._counted(BOUNDS, v)
 

@@ -122,7 +122,8 @@ class AutoGridParams:
         if self.sigma_ties not in ("smaller", "larger"):
             raise ValueError(f"sigma_ties must be 'smaller' or 'larger', got {self.sigma_ties!r}")
         if self.sparse_units < 0 or self.sparse_folds < 1:
-            raise ValueError(f"sparse_units must be >= 0 and sparse_folds >= 1, got {self.sparse_units}, {self.sparse_folds}")
+            raise ValueError(f"sparse_units must be >= 0 and sparse_folds >= 1, "
+                             f"got {self.sparse_units}, {self.sparse_folds}")
         if self.narrow_min_held < 0:
             raise ValueError(f"narrow_min_held must be >= 0, got {self.narrow_min_held}")
         if self.solid_raster < 8:
