@@ -52,7 +52,9 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     lattice_box,
     near_data_marks,
     refine_grid,
+    folds_for_data,
     grid_widths,
+    widths_for_data,
     scale_from_bounds,
 )
 from agents.autogrid_state import load_state, save_state
@@ -124,7 +126,7 @@ class AdaptiveGridCore(RoundCore):
                 f"robot id {robot_id}: the sigma sweep tallies one slot per id, ids must be in "
                 f"[0, {params.tally_slots}) (raise max_points)"
             )
-        self.params = params
+        self.params = self._given = params  # _given, then as derived from the data (folds_for_data, widths_for_data)
         self._points, self._labels = points, labels
         self._share = share
         self._n_robots = share.n_robots
@@ -148,6 +150,7 @@ class AdaptiveGridCore(RoundCore):
         self.message = ""
         self.disagreement: float | None = None  # the fleet's largest gap before the last flood
         self._diag = 0.0
+        self._held_units = 0  # held-out units of the whole fleet (BOUNDS), for folds_for_data
         self._box: tuple[float, float, float, float] | None = None
         self._h0, self._level = 0.0, 0
         self._allowed: np.ndarray | None = None  # level-0 nodes marked near data by some robot
@@ -197,6 +200,8 @@ class AdaptiveGridCore(RoundCore):
             v[:4] = (-lo[0], hi[0], -lo[1], hi[1])
         else:
             v[:4] = _NO_DATA
+        if self._given.validates and self._given.sparse_units > 0:  # held-out units: one slot per id (< tally_slots)
+            v[4 + self.robot_id] = float(np.max(self._units, initial=-1) + 1)
         self._counted(BOUNDS, v)
 
     def _enter_validate(self) -> None:
@@ -206,7 +211,7 @@ class AdaptiveGridCore(RoundCore):
 
     def _new_sweep(self) -> SigmaSweep:
         share = self._share.with_data(self.neighbours, self._points, self._labels, None)
-        return SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params)
+        return SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params, dim=self.dim)
 
     def _enter_tally(self) -> None:
         self._counted(TALLY, self._sweep.tally_vector())
@@ -287,6 +292,8 @@ class AdaptiveGridCore(RoundCore):
         x0, x1, y0, y1 = self.bounds
         self._diag = math.hypot(x1 - x0, y1 - y0)
         if self.params.validates and self._diag > 0:
+            self._held_units = int(np.sum(self._values[4 : 4 + self.params.tally_slots]))
+            self.params = folds_for_data(self._given, self._held_units)[0]
             return "sweep sigma"
         self.sigma, self.sigma_reason = scale_from_bounds(self.bounds, self.params)
         self._first_grid()
@@ -299,6 +306,8 @@ class AdaptiveGridCore(RoundCore):
         sweep, self._sweep = self._sweep, None
         self.sigma_validation = sweep.records(self._values)
         self.sigma, self.sigma_reason = choose_sigma(self.sigma_validation, self._diag, self.params)
+        self.params, note = widths_for_data(self.params, self.sigma_validation)
+        self.sigma_reason += folds_for_data(self._given, self._held_units)[1] + note
         self._first_grid()
         cand = next(i for i, r in enumerate(self.sigma_validation) if r["sigma"] == self.sigma)
         task = sweep.task(cand, 0)

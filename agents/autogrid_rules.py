@@ -7,6 +7,7 @@ lattice and refined grid without sending them. See agents/autogrid.py for the ph
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -84,6 +85,18 @@ class AutoGridParams:
     # default: 3 helps the 11 benchmark shapes at 200-240 points but costs the 60-point default
     # run 0.06 IoU, see benchmarks/results/autogrid.md)
     narrow_ratio: float = 1.0
+    # the two widths only where the data can carry them (issue 15, step 6): with narrow_ratio > 1,
+    # the fleet keeps one width when its sweep held out fewer than this many points per fold on
+    # average (a count the tally already agrees on bit for bit; 0: always two widths). 3 x 20
+    # points hold out 8-12 per fold, 5 x 40 hold out 23-37: the narrow kernels need the latter
+    narrow_min_held: int = 0
+    # the sweep's folds where the data are few (issue 15, step 6): when the fleet holds fewer than
+    # sparse_units held-out units in all (one inside point with its nearest outside point each;
+    # counted in BOUNDS, one slot per robot id), the sweep runs min(validate_folds, sparse_folds)
+    # folds (0: always validate_folds). 3 x 20 points have 30 units, 5 x 40 have 100: on the former
+    # 2 folds choose what 4 choose (central emulation) at half the sweep's cost
+    sparse_units: int = 0
+    sparse_folds: int = 2
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
@@ -108,6 +121,11 @@ class AutoGridParams:
             raise ValueError(f"validate_folds must be in [1, holdout_every], got {self.validate_folds}")
         if self.sigma_ties not in ("smaller", "larger"):
             raise ValueError(f"sigma_ties must be 'smaller' or 'larger', got {self.sigma_ties!r}")
+        if self.sparse_units < 0 or self.sparse_folds < 1:
+            raise ValueError(f"sparse_units must be >= 0 and sparse_folds >= 1, "
+                             f"got {self.sparse_units}, {self.sparse_folds}")
+        if self.narrow_min_held < 0:
+            raise ValueError(f"narrow_min_held must be >= 0, got {self.narrow_min_held}")
         if self.solid_raster < 8:
             raise ValueError(f"solid_raster must be at least 8, got {self.solid_raster}")
         if not 0 < self.relax < 2:
@@ -386,6 +404,35 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
         "diagonal of the data's bounding box (scale-free: every candidate is proportional to diag)"
     )
     return float(best["sigma"]), why
+
+
+def folds_for_data(params: AutoGridParams, units: int) -> tuple[AutoGridParams, str]:
+    """The sweep's parameters for a fleet holding `units` held-out units in all (agreed in
+    BOUNDS, the same on every robot): min(validate_folds, sparse_folds) folds below
+    `sparse_units`, else `params` unchanged. Frames keep the given params' length (the fewer
+    folds' blocks are a prefix of it). Returns (params, a note for sigma_reason)."""
+    folds = min(params.validate_folds, params.sparse_folds)
+    if params.sparse_units <= 0 or units >= params.sparse_units or folds == params.validate_folds:
+        return params, ""
+    return dataclasses.replace(params, validate_folds=folds), (
+        f"; {folds} folds instead of {params.validate_folds}: {units} held-out units in all < {params.sparse_units}")
+
+
+def widths_for_data(params: AutoGridParams, records: list[dict[str, Any]]) -> tuple[AutoGridParams, str]:
+    """The parameters of the run after the sweep: one width (narrow_ratio 1) when the fleet's
+    held-out points per fold (from the agreed tally, so the same on every robot) are fewer than
+    `narrow_min_held` -- narrow refined kernels on sparse data leave gaps the few points cannot
+    close (measured: 3 x 20 points, r = 3 loses 0.03-0.12 IoU on star and bracket) -- else
+    `params` unchanged. Returns (params, a note for sigma_reason; empty when nothing changed)."""
+    if params.narrow_ratio == 1.0 or params.narrow_min_held <= 0 or not records:
+        return params, ""
+    per_fold = records[0]["held_out"] / max(1, records[0]["folds"])
+    if per_fold >= params.narrow_min_held:
+        return params, (f"; two widths (refined points sigma / {params.narrow_ratio:g}): {per_fold:g} held-out "
+                        f"points per fold >= {params.narrow_min_held}")
+    return dataclasses.replace(params, narrow_ratio=1.0), (
+        f"; one width: {per_fold:g} held-out points per fold < {params.narrow_min_held}, too few for "
+        f"narrow refined kernels (sigma / {params.narrow_ratio:g})")
 
 
 def tie_sign(params: AutoGridParams) -> float:

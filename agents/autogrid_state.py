@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.autogrid_rules import folds_for_data, widths_for_data
 from agents.rounds import from_bytes, to_bytes
 
 if TYPE_CHECKING:
@@ -18,7 +19,7 @@ if TYPE_CHECKING:
 #: plain fields (msgpack-able as they are)
 _PLAIN = ("phase", "sigma_reason", "margin", "message", "disagreement", "_diag", "_h0", "_level", "_mode",
           "_left", "_phase_start", "_sub_converged", "_admm_rounds", "_capped", "_agreed", "_best_norm2",
-          "_refinements")
+          "_refinements", "_held_units")
 #: float vectors (raw '<f8' bytes)
 _VECTORS = ("_warm", "_own", "_final")
 
@@ -63,6 +64,11 @@ def load_state(core: AdaptiveGridCore, state: dict[str, Any]) -> None:
     core.bounds = None if state["bounds"] is None else tuple(float(b) for b in state["bounds"])
     core.sigma = None if state["sigma"] is None else float(state["sigma"])
     core.sigma_validation = [dict(r) for r in state["sigma_validation"]]
+    # the parameters the fleet derived from its data: folds (BOUNDS), widths (TALLY)
+    if core.bounds is not None:
+        core.params = folds_for_data(core._given, core._held_units)[0]
+    if core.sigma_validation:
+        core.params = widths_for_data(core.params, core.sigma_validation)[0]
     core.grid_history = [
         {**{k: v for k, v in h.items() if k != "grid"}, "grid": from_bytes(h["grid"]).reshape(-1, 2).tolist()}
         for h in state["history"]

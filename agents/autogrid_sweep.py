@@ -87,10 +87,12 @@ class SigmaSweep:
 
     def __init__(
         self, share: RobotShare, units: np.ndarray, *, bounds: tuple[float, float, float, float], diag: float,
-        params: AutoGridParams,
+        params: AutoGridParams, dim: int | None = None,
     ) -> None:
         points, labels = share.features, share.labels  # autogrid's share: raw points
-        self.robot_id, self.params, self.dim = share.robot_id, params, params.dim
+        # dim: the fleet's frame length (the given params', when folds_for_data ran fewer folds)
+        self.robot_id, self.params, self.dim = share.robot_id, params, params.dim if dim is None else dim
+        self._slots = self.dim // (TALLY_BLOCKS * max(1, len(params.validate_divisors)))  # = the fleet's tally_slots
         self._points, self._labels = points, labels
         sub_params = ADMMParams(
             rho=params.rho, relax=params.relax, tol=params.validate_tol,
@@ -206,7 +208,7 @@ class SigmaSweep:
 
     def tally_vector(self) -> np.ndarray:
         """This robot's slots of the tally (zeros elsewhere), for a max-consensus."""
-        s = self.params.tally_slots
+        s = self._slots
         v = np.zeros(self.dim)
         for t in self.tasks:
             errors, held, hinge, solid = self._outcome(t)
@@ -217,7 +219,7 @@ class SigmaSweep:
 
     def records(self, tally: np.ndarray) -> list[dict[str, Any]]:
         """The fleet-wide record of every candidate from the agreed tally (identical everywhere)."""
-        s = self.params.tally_slots
+        s = self._slots
         out = []
         for cand, d in enumerate(self.params.validate_divisors):
             base = cand * TALLY_BLOCKS * s

@@ -61,6 +61,12 @@ SWEEP = (2, 4, 6, 8, 12, 16)  # SVC: a superset of the fleet's candidates diag/{
 #: (with holes_allowed: the held-out winner; not the default -- make demo 15-19 s, benchmarks/results/autogrid.md)
 PROPOSED = {"validate_divisors": (4.0, 8.0, 16.0, 24.0), "validate_folds": 4, "sigma_ties": "larger",
             "narrow_ratio": 3.0}
+#: issue 15 step 6 (--sigma4; benchmarks/results/autogrid.md "step 6"): PROPOSED with holes allowed and the two
+#: widths only when the sweep held out >= 16 points per fold (3 x 20 points: 8-12, one width; 5 x 40: 23-37, r = 3)
+SIGMA4 = {**PROPOSED, "holes_allowed": True, "narrow_min_held": 16}
+#: --sigma4 --sparse-folds: the same, and 2 folds instead of 4 when the fleet holds fewer than 60 held-out units
+#: (3 x 20 points: 30; 5 x 40: 100, where it is SIGMA4 exactly): added after the held-out-2 freeze (593e5b4)
+SIGMA4_SPARSE = {**SIGMA4, "sparse_units": 60, "sparse_folds": 2}
 #: the default before issue 15 (--previous): diag/{4, 6, 8, 12, 16}, 2 folds, ties -> smaller, no holes, one width
 PREVIOUS = {"validate_divisors": (4.0, 6.0, 8.0, 12.0, 16.0), "validate_folds": 2, "sigma_ties": "smaller",
             "holes_allowed": False, "narrow_ratio": 1.0}
@@ -326,6 +332,8 @@ def _rule(args) -> dict | None:
     """The AutoGridParams fields of the rule the flags ask for (None: the spec's defaults)."""
     if args.previous:
         return dict(PREVIOUS)
+    if args.sigma4:
+        return dict(SIGMA4_SPARSE if args.sparse_folds else SIGMA4)
     return dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
 
 
@@ -345,6 +353,9 @@ def main() -> None:
                     help="issue 15: the sigma rule of PROPOSED (not the default)")
     ap.add_argument("--holes-allowed", action="store_true", help="with --proposed: the solid check rejects islands only")
     ap.add_argument("--previous", action="store_true", help="the default rule before issue 15 (PREVIOUS)")
+    ap.add_argument("--sigma4", action="store_true", help="issue 15 step 6: the rule of SIGMA4 (PROPOSED + holes "
+                    "allowed + one width when fewer than 16 points per fold are held out)")
+    ap.add_argument("--sparse-folds", action="store_true", help="with --sigma4: SIGMA4_SPARSE (2 folds below 60 units)")
     args = ap.parse_args()
     if args.emulate_widths:
         wanted = [w for w in args.shapes.split(",") if w]

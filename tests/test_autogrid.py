@@ -6,6 +6,8 @@ FrameDecoder, fixed vector length max_points + 2), like launcher.simulate with n
 
 from __future__ import annotations
 
+import dataclasses
+
 import msgpack
 from pathlib import Path
 
@@ -809,3 +811,64 @@ def test_two_widths_refined_points_narrow_exact_against_the_central_reference():
     ref = GridKernelSVC(grid=grid, sigma=first.sigma, widths=widths).fit(world.points, world.labels)
     assert first._basis.function_error(c, gamma, ref.coef_, ref.intercept_) < 1e-3
     assert np.all(ref.predict(world.points) == world.labels)
+
+
+def test_widths_for_data_keeps_one_width_when_few_points_are_held_out():
+    """narrow_min_held (issue 15, step 6): the two widths only when the agreed tally held out at
+    least that many points per fold; below it the run uses one width, the rest unchanged."""
+    from agents.autogrid_rules import widths_for_data
+
+    params = AutoGridParams(narrow_ratio=3.0, narrow_min_held=16, validate_folds=4)
+    sparse = [{"held_out": 4 * 15, "folds": 4}]  # 15 per fold
+    dense = [{"held_out": 4 * 16, "folds": 4}]
+    one, note = widths_for_data(params, sparse)
+    assert one.narrow_ratio == 1.0 and "one width" in note
+    assert dataclasses.replace(one, narrow_ratio=3.0) == params
+    two, note = widths_for_data(params, dense)
+    assert two is params and "two widths" in note
+    assert widths_for_data(dataclasses.replace(params, narrow_min_held=0), sparse)[0].narrow_ratio == 3.0
+    assert widths_for_data(params, [])[0] is params
+    with pytest.raises(ValueError):
+        AutoGridParams(narrow_min_held=-1)
+
+
+def test_folds_for_data_runs_fewer_folds_below_the_unit_threshold():
+    """sparse_units (issue 15, step 6): fewer held-out units than the threshold -> sparse_folds
+    folds; at or above it, or with the threshold 0, the given params unchanged."""
+    from agents.autogrid_rules import folds_for_data
+
+    params = AutoGridParams(validate_folds=4, sparse_units=60)
+    few, note = folds_for_data(params, 59)
+    assert few.validate_folds == 2 and "2 folds instead of 4" in note
+    assert dataclasses.replace(few, validate_folds=4) == params
+    assert folds_for_data(params, 60)[0] is params
+    off = dataclasses.replace(params, sparse_units=0)
+    assert folds_for_data(off, 10)[0] is off
+    assert folds_for_data(dataclasses.replace(params, validate_folds=2), 10)[0].validate_folds == 2
+    with pytest.raises(ValueError):
+        AutoGridParams(sparse_folds=0)
+
+
+def test_sparse_fleet_runs_fewer_folds_one_width_and_resumes_bit_for_bit():
+    """The default scenario (3 x 20 points: 30 held-out units, 8 points held out in fold 0) with
+    sparse_units 60 and narrow_min_held 16: the sweep runs sparse_folds (1) of the 2 folds, the
+    run keeps one width, every robot agrees, and restarts in the sweep and after the tally (the
+    derived parameters re-derived from the restored counts) end bit for bit where the
+    uninterrupted run ends."""
+    world, spec = build_world(Options(fleet_id="t"))
+    params = fast_params(spec, validate_divisors=(4.0,), validate_folds=2, sparse_units=60, sparse_folds=1,
+                         validate_rounds=60, narrow_ratio=3.0, narrow_min_held=16, max_points=60, tol=1e-3)
+    robots = robots_of(spec)
+    ref = run_fleet(make_cores(robots, params))
+    first = ref[0]
+    assert [r["folds"] for r in first.sigma_validation] == [1]
+    assert "widths" not in first.result() and first.params.narrow_ratio == 1.0
+    assert "1 folds instead of 2: 30 held-out units" in first.sigma_reason and "one width" in first.sigma_reason
+    assert all(np.array_equal(k.function()[1], first.function()[1]) for k in ref[1:])
+    stops = {"sweep": _phase_rounds(first, "validate")[0] + 5, "after": _phase_rounds(first, "vote")[0] + 1}
+    for key, (_, blobs) in _checkpoints_at(robots, params, stops).items():
+        resumed = _resume_from_checkpoints(None, robots, params, blobs)
+        assert resumed[0].params == first.params, key
+        for a, b in zip(ref, resumed):
+            assert a.round == b.round and a.grid_history == b.grid_history, key
+            assert np.array_equal(a.function()[1], b.function()[1]), key
