@@ -345,5 +345,11 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
 def restore_core(spec: FleetSpec, robot_id: int, checkpoint: dict[str, Any]) -> Core:
     """A robot restarted after a crash resumes exactly where its checkpoint left it."""
     core = build_core(spec, robot_id)
-    core.restore(checkpoint)
+    try:
+        core.restore(checkpoint)
+    except KeyError as exc:  # a field this code's state has and the checkpoint's writer did not
+        raise ValueError(
+            f"robot {robot_id}'s checkpoint has no field {exc.args[0]!r}: it was written by another "
+            "version of shapefleet; start the run afresh (delete its checkpoint directory)"
+        ) from None
     return core

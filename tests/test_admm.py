@@ -217,6 +217,18 @@ def test_checkpoint_restore_resumes_bit_for_bit(fleet3):
     assert twin.outgoing() == cores[1].outgoing()
 
 
+def test_a_checkpoint_without_a_field_of_this_version_is_a_clear_error(fleet3):
+    """A checkpoint another version wrote (here: one state field missing) is refused with a
+    ValueError naming the field, which the robot's shell reports, instead of a KeyError."""
+    spec, _, cores = fleet3
+    step_all(cores)
+    saved = msgpack.unpackb(msgpack.packb(cores[0].checkpoint()), strict_map_key=False)
+    missing = "residual"
+    del saved[missing]
+    with pytest.raises(ValueError, match=f"no field {missing!r}.*another version"):
+        restore_core(spec, 0, saved)
+
+
 def restored_twin(spec, core):
     """`core` restarted from a msgpack round trip of its checkpoint (what a robot process writes)."""
     saved = msgpack.unpackb(msgpack.packb(core.checkpoint()), strict_map_key=False)
