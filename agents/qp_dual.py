@@ -28,7 +28,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg.lapack import dposv
 
 #: margins within this of tight count as tight (unitless: g is A v - 1)
 KKT_TOL = 1e-9
@@ -161,6 +160,10 @@ def _certify(
         rhs = b[free]
         if any_high:
             rhs = rhs - hessian[free] @ lam
+        # imported here, not at the top: scipy.linalg's import is ~0.15-0.2 s of every robot process's
+        # and the launcher's start (agents.spec imports this module), and most runs never get here
+        from scipy.linalg.lapack import dposv
+
         _, lam_f, info = dposv(hessian[free][:, free], rhs)
         if info != 0 or not np.isfinite(lam_f).all() or lam_f.min() < 0.0 or lam_f.max() > upper:
             return None
