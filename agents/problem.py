@@ -89,7 +89,7 @@ class MarginQP:
         self._size = size
         self._rows = rows
         self._upper = float(C) if self.soft else np.inf
-        self._P = self._p_matrix(prox_weight)
+        self._set_weights(prox_weight)
         self._q_slack = np.full(self.n_slack, float(C) if self.soft else 0.0)
         G = np.hstack([rows, np.eye(n)]) if self.soft else rows
         self._G = np.asfortranarray(G)
@@ -100,8 +100,9 @@ class MarginQP:
             self._x_l = np.concatenate([np.full(self.dim, -np.inf), np.zeros(n)])
             self._x_u = np.full(size, np.inf)
 
-    def _p_matrix(self, prox: float | np.ndarray) -> np.ndarray:
-        """x_weight on x, plus a proximal weight per variable of (x, gamma) (a scalar for all)."""
+    def _set_weights(self, prox: float | np.ndarray) -> None:
+        """P = x_weight on x, plus a proximal weight per variable of (x, gamma) (a scalar for all),
+        and with it the dual's diagonal and Hessian where the exact dual answers (below)."""
         p_diag = np.zeros(self._size)
         p_diag[: self.dim] = prox
         p_diag[: self.dim - 1] += self._x_weight
@@ -116,11 +117,11 @@ class MarginQP:
         # 8.7e-5 apart between data and data x1000: tests/test_autogrid.py::test_sigma_sweep_is_scale_free).
         self._d = d if not self.soft and len(self._rows) < self.dim and np.all(d > 0) else None
         self._hessian = dual_hessian(self._rows, d) if self._d is not None else None
-        return np.asfortranarray(np.diag(p_diag))
+        self._P = np.asfortranarray(np.diag(p_diag))
 
     def set_prox(self, prox: float | np.ndarray) -> None:
         """Change the proximal weights (e.g. 0 for a robot's own solve); the constraints stay."""
-        self._P = self._p_matrix(prox)
+        self._set_weights(prox)
 
     def solve(self, q: np.ndarray) -> QPSolution:
         """Minimise 1/2 v' P v + q' v over the margin constraints; q has length dim.
