@@ -146,8 +146,12 @@ class _Inbox:
     flags: dict[int, dict[int, int]] = field(default_factory=dict)
 
     def put(self, rnd: int, sender: int, values: np.ndarray, flags: int) -> None:
-        self.values.setdefault(rnd, {})[sender] = values
-        self.flags.setdefault(rnd, {})[sender] = flags
+        per = self.values.get(rnd)
+        if per is None:  # a round's two tables are made together
+            per = self.values[rnd] = {}
+            self.flags[rnd] = {}
+        per[sender] = values
+        self.flags[rnd][sender] = flags
 
     def forget_before(self, rnd: int) -> None:
         for table in (self.values, self.flags):
@@ -217,17 +221,22 @@ class RoundCore:
         j = update.sender
         if j not in self.neighbours:
             return
-        if update.values.shape != (self.frame_dim,):
+        if len(update.values) != self.frame_dim:  # (a StateUpdate's values are a 1-D vector)
             raise ValueError(f"robot {j} sent {update.values.shape[0]} values, expected {self.frame_dim}")
-        if update.round in (self.round, self.round + 1):
+        ahead = update.round - self.round  # which of our rounds (this one, the next) it serves
+        if ahead == 0 or ahead == 1:
             self._inbox.put(update.round, j, update.values, update.flags)
-        if update.prev_values is not None and update.round - 1 in (self.round, self.round + 1):
+        if update.prev_values is not None and (ahead == 1 or ahead == 2):
             self._inbox.put(update.round - 1, j, update.prev_values, update.prev_flags)
 
     def missing(self) -> tuple[int, ...]:
         """Neighbours whose value for the current round has not arrived."""
-        have = self._inbox.values.get(self.round, {})
-        return tuple(j for j in self.neighbours if j not in have)
+        have = self._inbox.values.get(self.round)
+        if not have:
+            return self.neighbours
+        if len(have) == len(self.neighbours):  # the inbox holds neighbours' values only (receive,
+            return ()                          # drop_neighbour): every one is there
+        return tuple([j for j in self.neighbours if j not in have])
 
     def ready(self) -> bool:
         """True when the next round can be computed."""

@@ -230,34 +230,47 @@ class RobotSession:
         Returns the decoder's verdict (None for a duplicate or a frame of a dropped neighbour).
         """
         out = self.decoder.decode(payload, expected_sender=source)
-        if not isinstance(out, Decoded):
+        if type(out) is not Decoded:
             self.rejected[out.reason] += 1
             return out
-        if source not in self.heard_round:  # not (or no longer) a neighbour we listen to
+        heard = self.heard_round.get(source)
+        if heard is None:  # not (or no longer) a neighbour we listen to
             return None
         upd = out.update
+        seq, rnd = out.seq, upd.round
         seen = self._seen.get(source)
         if seen is None:
             seen = self._seen[source] = _SeenFrames()
-        if seen.rounds.get(out.seq) == upd.round:
+        rounds = seen.rounds
+        if rounds.get(seq) == rnd:
             self.deduplicated += 1  # a copy of a frame we had (a restarted sender reuses no seq
             return None             # with another round, see SEQ_EPOCH; a fresh one may: kept)
-        if len(seen.rounds) >= DEDUP_WINDOW:
-            seen.keep_after(seen.top - DEDUP_WINDOW // 2)
-        newest = not seen.rounds or out.seq > seen.top
-        if seen.rounds and out.seq > seen.top + 1:
-            self.resends["seq_gap"] += 1  # a frame of source's that never came (lost, or overtaken)
-        repeat = seen.per_round.get(upd.round, 0) > 0
-        seen.add(out.seq, upd.round)
+        if rounds:
+            if len(rounds) >= DEDUP_WINDOW:
+                seen.keep_after(seen.top - DEDUP_WINDOW // 2)
+            newest = seq > seen.top
+            if seq > seen.top + 1:
+                self.resends["seq_gap"] += 1  # a frame of source's that never came (lost, or overtaken)
+        else:
+            newest = True
+        per_round = seen.per_round
+        repeat = rnd in per_round  # (a round's count there is never 0)
+        if seq in rounds:
+            seen.add(seq, rnd)
+        else:  # seen.add's common case, inline (a new seq: nothing to uncount)
+            rounds[seq] = rnd
+            per_round[rnd] = per_round.get(rnd, 0) + 1
+            if newest:
+                seen.top = seq
         self.last_heard[source] = now
-        if upd.round > self.heard_round[source]:
-            self.heard_round[source] = upd.round
-        need = out.need
-        if need is not None and newest and self.me not in need:
+        if rnd > heard:
+            self.heard_round[source] = heard = rnd
+        if not newest:
+            pass
+        elif out.need is not None and self.me not in out.need:
             self._behind.discard(source)  # its newest frame says it holds our value
-        if newest and self.heard_round[source] == upd.round and (need is None or self.me in need) and (
-                upd.round == self.core.round - 1
-                or (repeat and upd.round == self.core.round and self._may_answer(source, now))):
+        elif heard == rnd and (rnd == self.core.round - 1
+                               or (repeat and rnd == self.core.round and self._may_answer(source, now))):
             # source's newest frame shows it lacks a value of its round r: it is one round behind
             # us (r = ours - 1), or it repeats our own round (a resend: it waits for round-r
             # values). It may lack ours (lost), or only a third robot's. Our latest frame carries
