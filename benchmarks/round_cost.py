@@ -22,6 +22,7 @@ processes (benchmarks/zenoh_exchange.py, ``asyncio`` variant) and prints the rat
     .venv/bin/python benchmarks/round_cost.py --robots 8 --robots-per-process 4
     .venv/bin/python benchmarks/round_cost.py --compute --base /tmp/main-copy --repeats 2
     .venv/bin/python benchmarks/round_cost.py --in-process --base /tmp/main-copy --repeats 2
+    .venv/bin/python benchmarks/round_cost.py --frames --base /tmp/main-copy --repeats 3
 
 ``--compute`` measures the core's cost instead (the "compute per round" section of
 results/round_cost.md): the default run (autogrid, 3 robots, complete graph) in process --
@@ -35,6 +36,12 @@ both alike; the load average is printed beside each figure.
 ``--in-process`` measures the per-round compute of the paper preset the same way (3 robots to
 convergence, 16 robots for 60 rounds; CPU ms per fleet round), this tree also with the hub's
 shared step off (what a process hosting one robot computes; agents/admm.py SHARED_STEPS_KEPT).
+
+``--frames`` measures the per-frame receive path (issue 14, branch framecost): the in-process fleet
+of ``--robots`` (32 here unless given) on the geometric graph for ``--rounds`` (200 here unless
+given) rounds -- ``simulate_fleet``'s process CPU per received frame -- and the frames it received
+replayed through fresh authenticated decoders and through the link layer (best of 3 each), with a
+digest of the robots' final values (the trees must agree bit for bit).
 
 Bounded: every run has ``max_wall_s`` and the launcher's own time bound.
 """
@@ -265,6 +272,86 @@ def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: in
     return "\n".join(lines)
 
 
+FRAMES_SNIPPET = """
+import gc, hashlib, json, os, sys, time
+sys.path.insert(0, os.getcwd())
+import numpy as np
+from launcher.simulate import simulate_fleet
+from launcher.world import Options, build_world
+from protocol import frames
+from protocol.auth import FrameAuth
+from protocol.links import LinkLayer
+from protocol.session import RobotSession
+robots, rounds = int(sys.argv[1]), int(sys.argv[2])
+_, spec = build_world(Options(fleet_id="frames", preset="paper", robots=robots, topology="geometric",
+                              max_rounds=rounds, tol=1e-12))
+log = []  # (receiver, source, payload, now) of every frame the fleet's sessions received
+orig = RobotSession.receive
+def rec(self, source, payload, now):
+    log.append((self.me, source, payload, now))
+    return orig(self, source, payload, now)
+RobotSession.receive = rec
+simulate_fleet(spec)  # warm-up run, recording the frames for the replays below
+RobotSession.receive = orig
+gc.collect()
+cpu = time.process_time()
+out = simulate_fleet(spec)
+cpu = time.process_time() - cpu
+h = hashlib.sha256()
+for r in sorted(out.robots, key=lambda r: r["id"]):
+    h.update(np.asarray(r["x"] + [r["gamma"]], "<f8").tobytes())
+def replay_decode():
+    frames._MEMO = frames._ParseMemo()
+    decs = {r: frames.FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=spec.frame_auth(r))
+            for r in spec.robot_ids}
+    t = time.process_time()
+    for me, src, payload, now in log:
+        decs[me].decode(payload, expected_sender=src)
+    t = time.process_time() - t
+    assert sum(d.accepted for d in decs.values()) == len(log)
+    return t
+def replay_links():
+    links, n = LinkLayer(spec.faults, spec.seed), 0
+    t = time.process_time()
+    for i, (me, src, payload, now) in enumerate(log):
+        links.send(src, me, payload, now)
+        if i % 512 == 511:
+            n += len(links.deliver(now))
+    n += len(links.deliver(float("inf")))
+    t = time.process_time() - t
+    assert n == len(log)
+    return t
+dec = min(replay_decode() for _ in range(3))
+lnk = min(replay_links() for _ in range(3))
+print(json.dumps({"cpu_s": cpu, "rounds": max(r["rounds"] for r in out.robots), "frames": len(log),
+                  "decode_us": 1e6 * dec / len(log), "links_us": 1e6 * lnk / len(log), "digest": h.hexdigest()[:16]}))
+"""
+
+
+def frames_table(base: Path | None, robots: int, rounds: int, repeats: int) -> str:
+    """CPU of the in-process fleet (geometric graph, paper preset, a fixed number of rounds) per
+    tree: the whole ``simulate_fleet``, and the frames it received replayed through fresh
+    decoders (authenticate, check, equivocation, fresh arrays) and through the link layer."""
+    trees = ([("before", base)] if base else []) + [("after", ROOT)]
+    lines = ["| robots | rounds | tree | frames received | simulate_fleet CPU s | us per frame received | "
+             "replay: decode us/frame | replay: links us/frame | result digest | load |",
+             "|---:|---:|---|---:|---:|---:|---:|---:|---|---:|"]
+    print("\n".join(lines), flush=True)
+    for _ in range(repeats):
+        for label, tree in trees:
+            load = os.getloadavg()[0]
+            out = subprocess.run([sys.executable, "-c", FRAMES_SNIPPET, str(robots), str(rounds)], cwd=tree,
+                                 capture_output=True, text=True, timeout=900, env={**os.environ, "PYTHONPATH": str(tree)})
+            if out.returncode != 0:
+                raise RuntimeError(f"frames run in {tree} failed: {out.stderr.strip()[-500:]}")
+            g = json.loads(out.stdout.strip().splitlines()[-1])
+            lines.append(f"| {robots} | {g['rounds']} | {label} | {g['frames']} | {g['cpu_s']:.2f} | "
+                         f"{1e6 * g['cpu_s'] / g['frames']:.1f} | {g['decode_us']:.2f} | {g['links_us']:.2f} | "
+                         f"`{g['digest']}` | {load:.1f} |")
+            print(lines[-1], flush=True)
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, default=3)
@@ -280,7 +367,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--in-process", action="store_true",
                     help="in-process CPU per fleet round of the paper preset, 3 robots to convergence and 16 "
                          "robots for 60 rounds (with --base: against another checkout; --repeats)")
+    ap.add_argument("--frames", action="store_true",
+                    help="CPU per received frame of the in-process fleet (--robots, default 32 here; --rounds, "
+                         "default 200 here; geometric graph), whole run and replays (with --base; --repeats)")
     args = ap.parse_args(argv)
+    if args.frames:
+        robots = 32 if args.robots == ap.get_default("robots") else args.robots
+        rounds = 200 if args.rounds == ap.get_default("rounds") else args.rounds
+        print(f"# in-process CPU per received frame, {os.cpu_count()} cores", flush=True)
+        frames_table(args.base, robots, rounds, args.repeats)
+        return 0
     if args.in_process:
         print(f"# in-process CPU per fleet round, {os.cpu_count()} cores", flush=True)
         per_round_table(args.base, [(3, 0), (16, 60)], args.repeats)

@@ -883,3 +883,49 @@ def test_precomputed_edge_hashers_give_the_documented_tags():
     assert auth(0).verify(1, body, tags[0]) and auth(2).verify(1, body, tags[2])
     assert not auth(0).verify(1, body, tags[2]) and not auth(0).verify(1, body + b"!", tags[0])
     assert auth(1).tags(body) == tags  # the precomputed states are copied, never consumed
+
+
+def _reference_equivocation(seen: dict[int, tuple[int, bytes]], rnd: int, claim: tuple[int, bytes],
+                            prev: tuple[int, bytes] | None) -> bool:
+    """The window rule of docs/protocol.md ("Equivocation") written plainly: check, remember, then
+    forget every round up to the newest - EQUIVOCATION_WINDOW. False: equivocation."""
+    from protocol.frames import EQUIVOCATION_WINDOW
+
+    if rnd in seen and seen[rnd] != claim:
+        return False
+    if prev is not None and rnd - 1 in seen and seen[rnd - 1] != prev:
+        return False
+    seen.setdefault(rnd, claim)
+    if prev is not None:
+        seen.setdefault(rnd - 1, prev)
+    for r in [r for r in seen if r <= max(seen) - EQUIVOCATION_WINDOW]:
+        del seen[r]
+    return True
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.tuples(st.integers(0, 30), st.integers(0, 1), st.integers(-1, 1)), min_size=1, max_size=40))
+def test_equivocation_window_matches_the_plain_rule(frames_in):
+    """The decoder's incremental window (pruned only when a sender's newest round moves) accepts and
+    refuses exactly what the plain rule does, and remembers the same rounds, frame after frame:
+    rounds jumping back and forth, values that differ (0/1), with or without prev (-1: none)."""
+    dec = auth_decoder(0)
+    model: dict[int, tuple[int, bytes]] = {}
+    for seq, (rnd, v, pv) in enumerate(frames_in):
+        prev = None if pv < 0 or rnd == 0 else X + pv
+        update = StateUpdate(1, rnd, X + v, 0, prev)
+        got = dec.decode(signed(update, seq=seq), expected_sender=1)
+        want = _reference_equivocation(model, rnd, (0, (X + v).tobytes()),
+                                       None if prev is None else (0, prev.tobytes()))
+        assert isinstance(got, Decoded) == want, (rnd, v, pv)
+        if not want:
+            assert got.reason == "equivocation"
+        assert dec._seen.get(1, {}) == model
+
+
+def test_tag_entries_are_the_sorted_tags():
+    """The envelope's tag block (built per sent frame without the dict) is each neighbour's tag of
+    ``tags`` behind its id, by ascending id."""
+    body = b"some frame body"
+    a = FrameAuth.from_secret(SECRET, 1, (7, 0, 2))
+    assert a.tag_entries(body) == b"".join(struct.pack("<I", j) + t for j, t in sorted(a.tags(body).items()))
