@@ -929,3 +929,21 @@ def test_tag_entries_are_the_sorted_tags():
     body = b"some frame body"
     a = FrameAuth.from_secret(SECRET, 1, (7, 0, 2))
     assert a.tag_entries(body) == b"".join(struct.pack("<I", j) + t for j, t in sorted(a.tags(body).items()))
+
+
+def test_a_frame_another_receiver_accepted_is_still_checked_in_full_for_each():
+    """Once a receiver of the process accepted a frame (envelope and body parsed, memoised), the
+    next receivers take decode's short path only when everything holds for *them*; otherwise they
+    get the full path's verdict: a wrong key (another fleet's secret), a frame on another robot's
+    key, a receiver that is no neighbour of the sender, and equivocation against its own memory."""
+    data = signed(StateUpdate(1, 40, X, 1, PREV), seq=5)
+    assert isinstance(auth_decoder(0).decode(data, expected_sender=1), Decoded)  # memoised now
+    assert auth_decoder(2, OTHER_SECRET).decode(data, expected_sender=1).reason == "auth"
+    wrong_key = auth_decoder(2).decode(data, expected_sender=0)
+    assert wrong_key.reason == "sender" and "robot 0's key" in wrong_key.detail
+    assert FrameDecoder(FLEET, KNOWN, DIM, TAG, auth=auth(7)).decode(data, expected_sender=1).reason == "auth"
+    dec = auth_decoder(2)
+    assert isinstance(dec.decode(signed(StateUpdate(1, 40, -X, 1, PREV), seq=4), expected_sender=1), Decoded)
+    again = dec.decode(data, expected_sender=1)  # round 40 with other values than it accepted
+    assert again.reason == "equivocation" and dec.counts == {"equivocation": 1} and dec.accepted == 1
+    assert isinstance(auth_decoder(2).decode(data, expected_sender=1), Decoded)  # a fresh receiver: fine

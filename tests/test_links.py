@@ -381,3 +381,39 @@ def test_robot_side_layer_sees_the_simulators_faults():
     faults = LinkFaults(delay=0.01, jitter=0.008, loss=0.2, duplicate=0.1, reorder=0.1)
     into2, robot2, _ = fleet_and_robot_side_schedules(faults, seed=99)
     assert into2 == robot2 and len(into2) > 200
+
+
+def test_batched_draws_give_each_frame_the_fate_of_its_own_six():
+    """The link takes its uniforms DRAW_BATCH sends at a time; frame n still gets draws 6n..6n+5
+    of its seed's stream (docs/protocol.md): the schedule equals one written from six draws per send."""
+    import numpy as np
+
+    from protocol.links import DRAW_BATCH, Link, LinkFaults
+
+    faults = LinkFaults(delay=0.01, jitter=0.004, loss=0.3, duplicate=0.2, reorder=0.1)
+    link, ref = Link(faults, seed=11), np.random.default_rng(11)
+    want = []
+    for n in range(3 * DRAW_BATCH + 5):
+        now = 0.001 * n
+        link.send(n.to_bytes(2, "little"), now)
+        u = ref.random(6).tolist()
+        if u[0] < faults.loss:
+            continue
+        for k in (0, 1) if u[1] < faults.duplicate else (0,):
+            hold = faults.reorder_hold if u[3 + 2 * k] < faults.reorder else 0.0
+            want.append((now + faults.extra_delay(u[2 + 2 * k]) + hold, n))
+    got = sorted((t, int.from_bytes(p, "little")) for t, _, p in link._queue)
+    assert got == sorted(want) and link.dropped > 0 and link.duplicated > 0 and link.reordered > 0
+
+
+def test_a_link_that_leaves_nothing_to_chance_delivers_like_the_drawn_schedule():
+    """No loss, duplicate, reorder or jitter: the link takes no draws, and every frame is due at
+    send time + delay, in send order, as a link that draws (a tiny loss never hit) schedules it."""
+    from protocol.links import Link, LinkFaults
+
+    fixed, drawn = Link(LinkFaults(delay=0.02), seed=3), Link(LinkFaults(delay=0.02, loss=1e-300), seed=3)
+    for n in range(40):
+        for link in (fixed, drawn):
+            link.send(bytes([n]), 0.005 * (n // 3), cut=n == 7)
+    assert fixed._queue == drawn._queue and fixed.stats() == drawn.stats() and fixed.dropped == 1
+    assert fixed._draws == [] and drawn._draws  # the fixed link never drew
