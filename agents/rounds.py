@@ -188,6 +188,7 @@ class RoundCore:
         check_diameter(diameter)
         self.robot_id = robot_id
         self.neighbours = tuple(sorted(neighbours))
+        self._neighbour_set = frozenset(self.neighbours)  # receive's membership test, per frame
         self.dim = dim
         self.frame_dim = dim  # length of a frame's vectors (a subclass may send more than v)
         self.round = 0
@@ -219,7 +220,7 @@ class RoundCore:
     def receive(self, update: StateUpdate) -> None:
         """Keep a neighbour's exact values for the rounds still needed; ignore the rest."""
         j = update.sender
-        if j not in self.neighbours:
+        if j not in self._neighbour_set:
             return
         if len(update.values) != self.frame_dim:  # (a StateUpdate's values are a 1-D vector)
             raise ValueError(f"robot {j} sent {update.values.shape[0]} values, expected {self.frame_dim}")
@@ -276,6 +277,7 @@ class RoundCore:
         if j not in self.neighbours:
             return
         self.neighbours = tuple(n for n in self.neighbours if n != j)
+        self._neighbour_set = frozenset(self.neighbours)
         self.dropped.append(j)
         self._inbox.forget_sender(j)
         self._forget_edge(j)
