@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import hashlib
 import math
+import operator
 import struct
 import threading
 from collections.abc import Collection
@@ -64,6 +65,7 @@ REJECTION_REASONS: tuple[str, ...] = (
 #: rounds per sender remembered for equivocation (neighbours are at most one round apart)
 EQUIVOCATION_WINDOW = 8
 _TAG_ENTRY = 4 + TAG_BYTES  # receiver id (u32 LE) + tag
+_INT_TYPE = frozenset({int})  # what each item of "need" may be (bool is not int)
 
 _FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "v": (int,),
@@ -273,12 +275,12 @@ def _parse_envelope(data: Any) -> _Envelope:
         raise _Reject("auth", "malformed authentication envelope")
     sender, body, raw = env
     tags: dict[int, bytes] = {}
-    for off in range(0, len(raw), _TAG_ENTRY):
-        tags.setdefault(_U32.unpack_from(raw, off)[0], raw[off + 4 : off + _TAG_ENTRY])
+    for j, tag in _TAG_ENTRY_STRUCT.iter_unpack(raw):
+        tags.setdefault(j, tag)
     return _Envelope(sender, body, tags)
 
 
-_U32 = struct.Struct("<I")
+_TAG_ENTRY_STRUCT = struct.Struct(f"<I{TAG_BYTES}s")  # one entry of the tag block: receiver id, tag
 
 
 class _Body:
@@ -549,7 +551,7 @@ class FrameDecoder:
                 )
         need = frame.get("need")
         if need is not None:
-            if type(need) not in _OPTIONAL_TYPES["need"] or any(type(j) is not int for j in need):
+            if type(need) not in _OPTIONAL_TYPES["need"] or not _INT_TYPE.issuperset(map(type, need)):
                 raise _Reject("field-type", "'need' is not an array of ints")
 
         if frame["fleet"] != self.fleet:
@@ -581,7 +583,7 @@ class FrameDecoder:
             self._vector("prev", frame["prev"])
         if need is not None:
             known = self.known_senders
-            if any(j not in known for j in need) or any(a >= b for a, b in zip(need, need[1:])):
+            if not known.issuperset(need) or not all(map(operator.lt, need, need[1:])):
                 raise _Reject("need", f"'need' {list(need)[:8]!r} names an unknown robot, or is not sorted")
         return (sender, frame["round"], frame["seq"], frame["flags"], frame["x"], frame["prev"], frame["pflags"],
                 need)
