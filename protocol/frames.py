@@ -84,6 +84,8 @@ _FIELD_TYPES: dict[str, tuple[type, ...]] = {
 # "need": the robots whose value of this frame's round the sender still lacks, sorted ascending
 # (protocol/session.py: a neighbour answers a repeat with a fast resend only if it is named).
 _OPTIONAL_TYPES: dict[str, tuple[type, ...]] = {"need": (tuple,)}
+_FIELDS = frozenset(_FIELD_TYPES)
+_FIELDS_NEED = _FIELDS | frozenset(_OPTIONAL_TYPES)
 MAX_NEED = 1024  # msgpack's array limit of the decoder; a longer list is left out ("not said")
 
 
@@ -538,12 +540,13 @@ class FrameDecoder:
         with the vectors as raw little-endian bytes."""
         frame = self._unpack(data)
         self._check_version_and_kind(frame)
-        unknown = [k for k in frame if k not in _FIELD_TYPES and k not in _OPTIONAL_TYPES]
-        if unknown:
-            raise _Reject("unknown-field", f"unknown field(s) {sorted(map(repr, unknown))}")
-        missing = [k for k in _FIELD_TYPES if k not in frame]
-        if missing:
-            raise _Reject("missing-field", f"missing field(s) {missing}")
+        if frame.keys() != _FIELDS and frame.keys() != _FIELDS_NEED:  # (exactly a frame's fields: neither)
+            unknown = [k for k in frame if k not in _FIELD_TYPES and k not in _OPTIONAL_TYPES]
+            if unknown:
+                raise _Reject("unknown-field", f"unknown field(s) {sorted(map(repr, unknown))}")
+            missing = [k for k in _FIELD_TYPES if k not in frame]
+            if missing:
+                raise _Reject("missing-field", f"missing field(s) {missing}")
         for name, types in _FIELD_TYPES.items():
             if type(frame[name]) not in types:
                 raise _Reject(
@@ -593,11 +596,13 @@ class FrameDecoder:
         obj = cls._unpack_object(data)
         if not isinstance(obj, list):  # arrays are tuples (use_list=False), maps are lists
             raise _Reject("not-a-map", f"top-level {type(obj).__name__}, not a map")
-        frame: dict[str, Any] = {}
-        for key, value in obj:
-            if key in frame:
-                raise _Reject("duplicate-field", f"field {key!r} appears twice")
-            frame[key] = value
+        frame: dict[str, Any] = dict(obj)
+        if len(frame) != len(obj):  # a key appeared twice: name the first repeated one
+            seen: set[Any] = set()
+            for key, _value in obj:
+                if key in seen:
+                    raise _Reject("duplicate-field", f"field {key!r} appears twice")
+                seen.add(key)
         return frame
 
     @staticmethod
