@@ -427,7 +427,14 @@ class RobotSession:
         """Drop every neighbour we wait for that is gone for good; when to look again."""
         deadline = float("inf")
         dropped = False
+        give_up, gone, too_far = self.timing.give_up_s, self._gone, self.core.round + 2
         for j in self.core.missing():
+            if j not in gone:  # _drop_due's common case, inline (per missing neighbour and wake-up):
+                give_up_at = self.last_heard.get(j, self.t0) + give_up  # its token is there and it
+                if now < give_up_at and self.heard_round.get(j, -1) < too_far:  # spoke lately
+                    if give_up_at < deadline:
+                        deadline = give_up_at
+                    continue
             when, why = self._drop_due(j, now)
             if why is None and self.heard_round.get(j, -1) >= self.core.round + 2:
                 # A live neighbour is never more than one round ahead of us unless it dropped us
