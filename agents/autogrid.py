@@ -13,6 +13,9 @@ in agents/autogrid_state.py. docs/autogrid.md tells the whole story; in short:
 2. VALIDATE (unless sigma is given): every candidate sigma = diag / d and held-out fold is its
    own soft-margin ADMM on its coarse lattice, all advanced in the same rounds from one stacked
    frame; TALLY (D rounds) sums held-out errors and "not solid" flags exactly; `choose_sigma`.
+   With `narrow_by_holdout` (off by default), where two widths would be used: WIDTHS solves every
+   fold on the seed refined at one width and at two in one stacked pass, WTALLY counts their
+   held-out errors, `choose_widths` keeps two widths only on strictly fewer.
 3. VOTE (D rounds): each robot checks its own data is separable (hard margin) and marks the
    level-0 lattice nodes near its data; a max-consensus tells every robot both.
 4. ADMM: `ConsensusADMM` as a sub-machine on the grid, warm-started (the chosen candidate's
