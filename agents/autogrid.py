@@ -13,6 +13,9 @@ in agents/autogrid_state.py. docs/autogrid.md tells the whole story; in short:
 2. VALIDATE (unless sigma is given): every candidate sigma = diag / d and held-out fold is its
    own soft-margin ADMM on its coarse lattice, all advanced in the same rounds from one stacked
    frame; TALLY (D rounds) sums held-out errors and "not solid" flags exactly; `choose_sigma`.
+   With `narrow_by_holdout` (off by default), where two widths would be used: WIDTHS solves every
+   fold on the seed refined at one width and at two in one stacked pass, WTALLY counts their
+   held-out errors, `choose_widths` keeps two widths only on strictly fewer.
 3. VOTE (D rounds): each robot checks its own data is separable (hard margin) and marks the
    level-0 lattice nodes near its data; a max-consensus tells every robot both.
 4. ADMM: `ConsensusADMM` as a sub-machine on the grid, warm-started (the chosen candidate's
@@ -33,6 +36,7 @@ flooded vector's robot id). No I/O, no clock.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -45,6 +49,7 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     SPACING_RATIO,
     AutoGridParams,
     choose_sigma,
+    choose_widths,
     coarse_lattice,
     holdout_units,
     is_solid,
@@ -58,7 +63,7 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     scale_from_bounds,
 )
 from agents.autogrid_state import load_state, save_state
-from agents.autogrid_sweep import SigmaSweep
+from agents.autogrid_sweep import SigmaSweep, SweepModel
 from agents.autogrid_warm import WarmADMM, carry_edges, carry_vector, superset_maps
 from agents.kernel import GridBasis
 from agents.problem import InfeasibleError, MarginQP
@@ -68,13 +73,14 @@ from protocol.frames import StateUpdate
 #: stands for "no data" in the max-consensus on bounds (frames carry finite values only)
 _NO_DATA = -1e300
 
-BOUNDS, VALIDATE, TALLY, SEED, VOTE, ADMM, FLOOD, DONE = (
-    "bounds", "validate", "tally", "seed", "vote", "admm", "flood", "done"
+BOUNDS, VALIDATE, TALLY, SEED, WIDTHS, WTALLY, VOTE, ADMM, FLOOD, DONE = (
+    "bounds", "validate", "tally", "seed", "widths", "wtally", "vote", "admm", "flood", "done"
 )
 
 #: how a phase's rounds are computed: a max-consensus, the stacked sweep, the ADMM sub-machine,
 #: or the flood (lowest id's vector, largest gap)
-EXCHANGE = {BOUNDS: "max", VALIDATE: "sweep", TALLY: "max", SEED: "flood", VOTE: "max", ADMM: "admm", FLOOD: "flood"}
+EXCHANGE = {BOUNDS: "max", VALIDATE: "sweep", TALLY: "max", SEED: "flood", WIDTHS: "sweep", WTALLY: "max",
+            VOTE: "max", ADMM: "admm", FLOOD: "flood"}
 
 #: (phase, outcome of its last round) -> next phase. Counted phases (max, flood) end after their
 #: rounds, VALIDATE and ADMM when their sub-machines stop (the same round on every robot).
@@ -86,6 +92,9 @@ TRANSITIONS = {
     (TALLY, "seed"): SEED,  # agree on the chosen candidate's sweep function, refine from it
     (SEED, "refined"): VOTE,
     (SEED, "not refined"): VOTE,
+    (SEED, "width test"): WIDTHS,  # narrow_by_holdout: one width or two, by the folds' held-out errors
+    (WIDTHS, "solved"): WTALLY,
+    (WTALLY, "width chosen"): VOTE,
     (VOTE, "separable"): ADMM,  # hard margin
     (VOTE, "inseparable"): ADMM,  # a robot's own data not separable: soft margin
     (VOTE, "soft"): ADMM,  # soft margin asked for (C given)
@@ -157,6 +166,8 @@ class AdaptiveGridCore(RoundCore):
         self._mode = self.margin  # margin of the current ADMM phase
         self._left, self._phase_start = 0, 0
         self._sweep: SigmaSweep | None = None
+        self._seed: np.ndarray | None = None  # the agreed seed (x, gamma) while the width test runs
+        self.width_validation: list[dict[str, Any]] = []  # the width test's records (one width, two)
         self._sub: WarmADMM | None = None
         self._warm: np.ndarray | None = None  # first iterate of the next ADMM
         self._carry: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # its edges' (z, lambda)
@@ -331,10 +342,64 @@ class AdaptiveGridCore(RoundCore):
         m = len(self.grid)
         self._allowed = self._values[m : 2 * m] > 0 if 2 * m + 3 <= self.dim else None
         seed = self._unpad(self._values)
+        if self._width_test_applies() and self.params.max_refinements >= 1:
+            self._seed = seed
+            self._sweep = self._new_width_sweep()
+            if self._sweep is not None:
+                return "width test"
+            self._seed = None
         if self.params.max_refinements < 1 or not self._move_to_refined(seed[:-1], float(seed[-1])):
             self._warm = seed
             return "not refined"
         return "refined"
+
+    def _width_test_applies(self) -> bool:
+        return self.params.narrow_by_holdout and self.params.narrow_ratio > 1 and bool(self.params.width_blocks())
+
+    def _width_models(self) -> list[SweepModel] | None:
+        """The width test's two models (one width: refined points at sigma; two: at sigma /
+        narrow_ratio), each the seed's grid refined from the agreed seed, the seed carried on as
+        the common first iterate; None when either refinement adds nothing."""
+        seed, models = self._seed, []
+        c = self._basis.c_from_x(seed[:-1])
+        for ratio in (1.0, self.params.narrow_ratio):
+            params = dataclasses.replace(self.params, narrow_ratio=ratio)
+            grid, _ = refine_grid(self.grid, self._basis, c, float(seed[-1]), self._box, self._h0, self._level,
+                                  params, self._allowed)
+            if len(grid) == len(self.grid):
+                return None
+            basis = GridBasis(grid, self.sigma, widths=grid_widths(grid, self._box, self._h0, self.sigma, params,
+                                                                    self._start_grid))
+            start = carry_vector(seed, superset_maps(self._basis, basis)[0])
+            models.append(SweepModel(ratio, self.sigma, self._box, basis, self.params.max_points, start))
+        return models
+
+    def _new_width_sweep(self) -> SigmaSweep | None:
+        models = self._width_models()
+        if models is None:
+            return None
+        share = self._share.with_data(self.neighbours, self._points, self._labels, None)
+        return SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params, dim=self.dim,
+                          models=models)
+
+    def _enter_widths(self) -> None:
+        self._mark(WIDTHS)
+        self._values, self._flags = self._sweep.stacked(), 0
+
+    def _finish_widths(self) -> str:
+        return "solved"
+
+    def _enter_wtally(self) -> None:
+        self._counted(WTALLY, self._sweep.tally_vector())
+
+    def _finish_wtally(self) -> str:
+        sweep, self._sweep = self._sweep, None
+        self.width_validation = sweep.records(self._values)
+        self.params, note = choose_widths(self.params, self.width_validation)
+        self.sigma_reason += note
+        seed, self._seed = self._seed, None
+        self._move_to_refined(seed[:-1], float(seed[-1]))
+        return "width chosen"
 
     def _finish_vote(self) -> str:
         coarse = lattice(self._box, self._h0, 0)
@@ -421,11 +486,11 @@ class AdaptiveGridCore(RoundCore):
         self._carry = carry_edges({j: _EdgeView(z, lam) for j, (z, lam) in self._edges_out.items()}, old, self._basis)
         return True
 
-    _ENTER = {VALIDATE: _enter_validate, TALLY: _enter_tally, SEED: _enter_seed, VOTE: _enter_vote, ADMM: _enter_admm,
-              FLOOD: _enter_flood, DONE: _enter_done}
+    _ENTER = {VALIDATE: _enter_validate, TALLY: _enter_tally, SEED: _enter_seed, WIDTHS: _enter_widths,
+              WTALLY: _enter_wtally, VOTE: _enter_vote, ADMM: _enter_admm, FLOOD: _enter_flood, DONE: _enter_done}
 
     _FINISH = {BOUNDS: _finish_bounds, VALIDATE: _finish_validate, TALLY: _finish_tally, SEED: _finish_seed,
-               VOTE: _finish_vote,
+               WIDTHS: _finish_widths, WTALLY: _finish_wtally, VOTE: _finish_vote,
                ADMM: _finish_admm, FLOOD: _finish_flood}
 
     # -- grids ------------------------------------------------------------------------------------
@@ -452,7 +517,7 @@ class AdaptiveGridCore(RoundCore):
     def _ended(self) -> bool:
         if EXCHANGE[self.phase] in ("max", "flood"):
             return self._left == 0
-        return (self._sweep if self.phase == VALIDATE else self._sub).finished
+        return (self._sweep if self.phase in (VALIDATE, WIDTHS) else self._sub).finished
 
     def _settle(self) -> None:
         """Leave every phase that is complete (also length-0 phases: D = 0, a lone robot)."""
@@ -562,6 +627,7 @@ class AdaptiveGridCore(RoundCore):
             "bounds": None if self.bounds is None else list(self.bounds),
             "sigma": self.sigma, "sigma_reason": self.sigma_reason,
             "sigma_validation": [dict(r) for r in self.sigma_validation],
+            "width_validation": [dict(r) for r in self.width_validation],
             "margin": self.margin, "message": self.message,
             "disagreement_before_flood": self.disagreement, "agreed": self._agreed,
             "grid_history": [dict(h) for h in self.grid_history],

@@ -97,6 +97,12 @@ class AutoGridParams:
     # 2 folds choose what 4 choose (central emulation) at half the sweep's cost
     sparse_units: int = 0
     sparse_folds: int = 2
+    # one width or two by the held-out tally (issue 15, step 7): when the run would use two widths
+    # (narrow_ratio > 1 after narrow_min_held), the seed is refined twice -- refined points at sigma
+    # (one width) and at sigma / narrow_ratio (two) -- and every fold's training data is solved on
+    # both grids in one stacked pass (WIDTHS, the sweep's machinery); the two widths are kept only
+    # when they make fewer held-out errors in all (ties -> one width)
+    narrow_by_holdout: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= 52:
@@ -145,7 +151,7 @@ class AutoGridParams:
         sweep's stacked blocks, whichever is longer (at most 16 x (max_points + 1); twice that
         with `hub_frames`: w at [max_points : 2 max_points + 1])."""
         solve = 2 * self.max_points + 4 if self.hub_frames else self.max_points + 3
-        return max(solve, sum(self.sweep_blocks()))
+        return max(solve, sum(self.sweep_blocks()), sum(self.width_blocks()))
 
     def sweep_slot(self, divisor: float) -> int:
         """Grid points of candidate diag/divisor's coarse lattice, at most (any box shape)."""
@@ -159,6 +165,21 @@ class AutoGridParams:
         extra = 1 if self.hub_frames else 0
         return [self.sweep_slot(d) + 3 + extra * (self.sweep_slot(d) + 1)
                 for d in self.validate_divisors for _ in range(self.validate_folds)]
+
+    def width_blocks(self) -> list[int]:
+        """Frame length of each task of the width test (one width, then two; each fold): a grid
+        of up to max_points, gamma, flags, verdict (and the hub's w)."""
+        if not (self.validates and self.narrow_by_holdout and self.narrow_ratio > 1):
+            return []
+        slot = self.max_points
+        return [slot + 3 + (slot + 1 if self.hub_frames else 0)] * (2 * self.validate_folds)
+
+    @property
+    def tally_slots(self) -> int:
+        """Robot ids must be below this: the tally has TALLY_BLOCKS slots per (id, candidate) (the
+        width test's two models use the same slots when there are fewer than two candidates)."""
+        models = max(1, len(self.validate_divisors), 2 if self.width_blocks() else 1)
+        return self.dim // (TALLY_BLOCKS * models)
 
     @property
     def planned_rounds(self) -> int:
@@ -175,10 +196,6 @@ class AutoGridParams:
         """True when sigma is chosen by the held-out sweep."""
         return self.sigma is None and len(self.validate_divisors) > 0
 
-    @property
-    def tally_slots(self) -> int:
-        """Robot ids must be below this: the tally has TALLY_BLOCKS slots per (id, candidate)."""
-        return self.dim // (TALLY_BLOCKS * max(1, len(self.validate_divisors)))
 
     @staticmethod
     def points_for_robot_ids(highest_id: int) -> int:
@@ -433,6 +450,20 @@ def widths_for_data(params: AutoGridParams, records: list[dict[str, Any]]) -> tu
     return dataclasses.replace(params, narrow_ratio=1.0), (
         f"; one width: {per_fold:g} held-out points per fold < {params.narrow_min_held}, too few for "
         f"narrow refined kernels (sigma / {params.narrow_ratio:g})")
+
+
+def choose_widths(params: AutoGridParams, records: list[dict[str, Any]]) -> tuple[AutoGridParams, str]:
+    """The width test's rule (`narrow_by_holdout`), the same on every robot from the agreed tally:
+    `records` are the one-width model's then the two-width model's (each every fold's training data
+    solved on the seed refined at that width, errors on the held-out points). The two widths only
+    when they make fewer held-out errors; a tie keeps one width, the model of the sweep that chose
+    sigma (measured: the two widths lose 0.028 IoU to one width at the same sigma on letter_f and
+    slotted_mm). Returns (params, a note for sigma_reason)."""
+    one, two = records
+    counts = f"held-out errors one width {one['errors']}/{one['held_out']}, two widths {two['errors']}/{two['held_out']}"
+    if two["errors"] < one["errors"]:
+        return params, f"; width test: two widths (refined points sigma / {params.narrow_ratio:g}), {counts}"
+    return dataclasses.replace(params, narrow_ratio=1.0), f"; width test: one width, {counts} (ties -> one width)"
 
 
 def tie_sign(params: AutoGridParams) -> float:

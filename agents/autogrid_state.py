@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agents.autogrid_rules import folds_for_data, widths_for_data
+from agents.autogrid_rules import choose_widths, folds_for_data, widths_for_data
 from agents.rounds import from_bytes, to_bytes
 
 if TYPE_CHECKING:
@@ -21,7 +21,7 @@ _PLAIN = ("phase", "sigma_reason", "margin", "message", "disagreement", "_diag",
           "_left", "_phase_start", "_sub_converged", "_admm_rounds", "_capped", "_agreed", "_best_norm2",
           "_refinements", "_held_units")
 #: float vectors (raw '<f8' bytes)
-_VECTORS = ("_warm", "_own", "_final")
+_VECTORS = ("_warm", "_own", "_final", "_seed")
 
 
 def _edges_out(edges: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[int, list[bytes | None]]:
@@ -40,6 +40,7 @@ def save_state(core: AdaptiveGridCore) -> dict[str, Any]:
         "bounds": None if core.bounds is None else list(core.bounds),
         "sigma": core.sigma,
         "sigma_validation": [dict(r) for r in core.sigma_validation],
+        "width_validation": [dict(r) for r in core.width_validation],
         "grid": to_bytes(None if core.grid is None else core.grid.ravel()),
         "allowed": None if core._allowed is None else to_bytes(core._allowed.astype(float)),
         "carry": _edges_out(core._carry),
@@ -69,6 +70,9 @@ def load_state(core: AdaptiveGridCore, state: dict[str, Any]) -> None:
         core.params = folds_for_data(core._given, core._held_units)[0]
     if core.sigma_validation:
         core.params = widths_for_data(core.params, core.sigma_validation)[0]
+    core.width_validation = [dict(r) for r in state.get("width_validation", [])]
+    if core.width_validation:  # the width test decided (WTALLY's end)
+        core.params = choose_widths(core.params, core.width_validation)[0]
     core.grid_history = [
         {**{k: v for k, v in h.items() if k != "grid"}, "grid": from_bytes(h["grid"]).reshape(-1, 2).tolist()}
         for h in state["history"]
@@ -83,8 +87,8 @@ def load_state(core: AdaptiveGridCore, state: dict[str, Any]) -> None:
         core._box = None if core.bounds is None else _box(core)
         core._set_grid(grid.reshape(-1, 2))
     core._sweep = None
-    if state["sweep"] is not None:
-        core._sweep = core._new_sweep()
+    if state["sweep"] is not None:  # the sigma sweep, or the width test (rebuilt from the agreed seed)
+        core._sweep = core._new_width_sweep() if core.phase in ("widths", "wtally") else core._new_sweep()
         core._sweep.restore(state["sweep"])
     core._sub = None
     if state["sub"] is not None:

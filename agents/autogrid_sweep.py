@@ -76,6 +76,20 @@ class _RasterBasis:
         return self._kernel @ np.asarray(c, dtype=float) + float(gamma)
 
 
+@dataclass
+class SweepModel:
+    """One model the sweep compares: a label (the candidate's divisor, or the width test's ratio),
+    its width, the box its solid check rasterizes, its basis, its frame slot and an optional
+    common first iterate (every robot the same)."""
+
+    divisor: float
+    sigma: float
+    box: tuple[float, float, float, float]
+    basis: GridBasis
+    slot: int
+    start: np.ndarray | None = None
+
+
 def held_mask(units: np.ndarray, fold: int, params: AutoGridParams) -> np.ndarray:
     """The points a robot holds out in `fold` (whole units, see `holdout_units`)."""
     k = params.holdout_every
@@ -85,14 +99,17 @@ def held_mask(units: np.ndarray, fold: int, params: AutoGridParams) -> np.ndarra
 class SigmaSweep:
     """One robot's share of the sweep: stacked values out, neighbours' stacked values in."""
 
+    _given_models = False  # True for the width test's models (no early drop: they share one sigma)
+
     def __init__(
         self, share: RobotShare, units: np.ndarray, *, bounds: tuple[float, float, float, float], diag: float,
-        params: AutoGridParams, dim: int | None = None,
+        params: AutoGridParams, dim: int | None = None, models: list[SweepModel] | None = None,
     ) -> None:
         points, labels = share.features, share.labels  # autogrid's share: raw points
         # dim: the fleet's frame length (the given params', when folds_for_data ran fewer folds)
         self.robot_id, self.params, self.dim = share.robot_id, params, params.dim if dim is None else dim
-        self._slots = self.dim // (TALLY_BLOCKS * max(1, len(params.validate_divisors)))  # = the fleet's tally_slots
+        n_models = max(len(params.validate_divisors), len(models or ()))
+        self._slots = self.dim // (TALLY_BLOCKS * max(1, n_models))  # = the fleet's tally_slots
         self._points, self._labels = points, labels
         sub_params = ADMMParams(
             rho=params.rho, relax=params.relax, tol=params.validate_tol,
@@ -101,20 +118,29 @@ class SigmaSweep:
         self.tasks: list[SweepTask] = []
         self._raster: dict[int, _RasterBasis] = {}  # per candidate (its folds share the basis)
         self._outcomes: dict[tuple[int, int], tuple[bytes, tuple[int, int, float, bool]]] = {}  # per task: last iterate's
+        # the models compared: by default one per sigma candidate on its coarse lattice; the width test
+        # (autogrid.py, WIDTHS) passes its own (one width and two, on grids refined from the seed)
+        self._given_models = models is not None  # early drop ranks sigma candidates only
+        if models is None:
+            models = []
+            for d in params.validate_divisors:
+                sigma = diag / d
+                slot = params.sweep_slot(d)
+                box, _, grid = coarse_lattice(bounds, sigma, params.spacing_ratio, slot)
+                models.append(SweepModel(float(d), sigma, box, GridBasis(grid, sigma), slot))
+        self.models = models
         offset = 0
-        for cand, d in enumerate(params.validate_divisors):
-            sigma = diag / d
-            slot = params.sweep_slot(d)
-            box, _, grid = coarse_lattice(bounds, sigma, params.spacing_ratio, slot)
-            basis = GridBasis(grid, sigma)
+        for cand, model in enumerate(models):
+            basis, slot = model.basis, model.slot
             self._raster[cand] = _RasterBasis(basis)
             for fold in range(params.validate_folds):
                 held = held_mask(units, fold, params)
                 train = points[~held]
-                feats = basis.features(train) if len(train) else np.zeros((0, len(grid)))
+                feats = basis.features(train) if len(train) else np.zeros((0, basis.size))
                 fold_share = share.with_data(share.neighbours, feats, labels[~held], params.soft_C)
-                sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames)
-                self.tasks.append(SweepTask(cand, fold, float(d), sigma, box, basis, held, sub, offset, slot))
+                sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames, start=model.start)
+                self.tasks.append(SweepTask(cand, fold, model.divisor, model.sigma, model.box, basis, held, sub,
+                                            offset, slot))
                 offset += slot + 3 + (slot + 1 if params.hub_frames else 0)
 
     @property
@@ -167,7 +193,7 @@ class SigmaSweep:
         ties go to the smaller sigma, narrower ones when to the larger) once every candidate that
         would win a tie against it has stopped (see the module docstring); the same round on
         every robot."""
-        if not self.params.early_drop:
+        if not self.params.early_drop or self._given_models:
             return
         sign = tie_sign(self.params)
         cands = sorted({t.cand for t in self.tasks}, key=lambda c: sign * self.task(c, 0).sigma)  # tie winners first
@@ -221,7 +247,8 @@ class SigmaSweep:
         """The fleet-wide record of every candidate from the agreed tally (identical everywhere)."""
         s = self._slots
         out = []
-        for cand, d in enumerate(self.params.validate_divisors):
+        for cand, model in enumerate(self.models):
+            d = model.divisor
             base = cand * TALLY_BLOCKS * s
             packed = int(round(float(np.sum(tally[base : base + s]))))
             tasks = [t for t in self.tasks if t.cand == cand]

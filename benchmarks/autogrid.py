@@ -67,6 +67,9 @@ SIGMA4 = {**PROPOSED, "holes_allowed": True, "narrow_min_held": 16}
 #: --sigma4 --sparse-folds: the same, and 2 folds instead of 4 when the fleet holds fewer than 60 held-out units
 #: (3 x 20 points: 30; 5 x 40: 100, where it is SIGMA4 exactly): added after the held-out-2 freeze (593e5b4)
 SIGMA4_SPARSE = {**SIGMA4, "sparse_units": 60, "sparse_folds": 2}
+#: issue 15 step 7 (--sigma5; benchmarks/results/autogrid.md "step 7"): SIGMA4_SPARSE, and where it would use two
+#: widths the fleet tests one width against two on its held-out folds and keeps two only when they make fewer errors
+SIGMA5 = {**SIGMA4_SPARSE, "narrow_by_holdout": True}
 #: the default before issue 15 (--previous): diag/{4, 6, 8, 12, 16}, 2 folds, ties -> smaller, no holes, one width
 PREVIOUS = {"validate_divisors": (4.0, 6.0, 8.0, 12.0, 16.0), "validate_folds": 2, "sigma_ties": "smaller",
             "holes_allowed": False, "narrow_ratio": 1.0}
@@ -211,7 +214,10 @@ def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tupl
         "rounds": core.round, "wall": wall, "err": err, "rank_ok": basis.rank == len(grid), "grid": len(grid),
         "converged": all(k.converged for k in cores), "margin": core.margin,
         "val": " ".join(f"{r['errors']}{'' if r['solid'] else '*'}{'d' if r.get('dropped') else ''}"
-                        for r in core.sigma_validation),
+                        for r in core.sigma_validation)
+        + ("" if not core.width_validation else "; widths r=1: {} r={:g}: {} -> {}".format(
+            core.width_validation[0]["errors"], core.width_validation[1]["divisor"], core.width_validation[1]["errors"],
+            "one" if core._basis.widths is None else "two")),
         "ours": scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds),
         "svc_same": svc_iou(world, bounds, core.sigma),
         "best": max(sweep), "cv": sweep[int(np.argmax(scores))],
@@ -332,6 +338,8 @@ def _rule(args) -> dict | None:
     """The AutoGridParams fields of the rule the flags ask for (None: the spec's defaults)."""
     if args.previous:
         return dict(PREVIOUS)
+    if args.sigma5:
+        return dict(SIGMA5)
     if args.sigma4:
         return dict(SIGMA4_SPARSE if args.sparse_folds else SIGMA4)
     return dict(PROPOSED, holes_allowed=args.holes_allowed) if args.proposed else None
@@ -355,6 +363,8 @@ def main() -> None:
     ap.add_argument("--previous", action="store_true", help="the default rule before issue 15 (PREVIOUS)")
     ap.add_argument("--sigma4", action="store_true", help="issue 15 step 6: the rule of SIGMA4 (PROPOSED + holes "
                     "allowed + one width when fewer than 16 points per fold are held out)")
+    ap.add_argument("--sigma5", action="store_true", help="issue 15 step 7: the rule of SIGMA5 (SIGMA4_SPARSE + "
+                    "one width or two by the held-out folds' errors)")
     ap.add_argument("--sparse-folds", action="store_true", help="with --sigma4: SIGMA4_SPARSE (2 folds below 60 units)")
     args = ap.parse_args()
     if args.emulate_widths:

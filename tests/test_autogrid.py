@@ -872,3 +872,50 @@ def test_sparse_fleet_runs_fewer_folds_one_width_and_resumes_bit_for_bit():
         for a, b in zip(ref, resumed):
             assert a.round == b.round and a.grid_history == b.grid_history, key
             assert np.array_equal(a.function()[1], b.function()[1]), key
+
+
+def test_choose_widths_keeps_two_widths_only_when_they_make_fewer_held_out_errors():
+    """narrow_by_holdout (issue 15, step 7): the rule on the agreed width tally: two widths only
+    on strictly fewer held-out errors; a tie keeps one width."""
+    from agents.autogrid_rules import choose_widths
+
+    params = AutoGridParams(narrow_ratio=3.0, narrow_by_holdout=True)
+    rec = lambda e: {"errors": e, "held_out": 40}  # noqa: E731
+    assert choose_widths(params, [rec(3), rec(2)])[0] is params
+    one, note = choose_widths(params, [rec(2), rec(2)])
+    assert one.narrow_ratio == 1.0 and "one width" in note and "2/40" in note
+    assert choose_widths(params, [rec(1), rec(4)])[0].narrow_ratio == 1.0
+
+
+def test_width_test_is_one_stacked_pass_agreed_by_every_robot_and_resumes_bit_for_bit():
+    """narrow_by_holdout: after the seed, one width against two on the held-out folds, in two
+    phases (WIDTHS: the folds on both refined grids at once; WTALLY: exact counts). Every robot
+    decides the same; the counts are the folds' held-out errors of each model's iterate; the
+    final grid's widths follow the decision; restarts in both phases end bit for bit."""
+    from agents.autogrid_sweep import held_mask
+
+    world, spec = build_world(Options(fleet_id="t"))
+    params = fast_params(spec, validate_divisors=(4.0,), validate_folds=2, validate_rounds=60, narrow_ratio=3.0,
+                         narrow_by_holdout=True, max_points=60, tol=1e-3, max_refinements=1)
+    robots = robots_of(spec)
+    ref = run_fleet(make_cores(robots, params))
+    first = ref[0]
+    names = [p for p, _ in first.phases]
+    assert names[:6] == ["bounds", "validate", "tally", "seed", "widths", "wtally"] and names[6] == "vote"
+    recs = first.width_validation
+    assert [r["divisor"] for r in recs] == [1.0, 3.0] and all(r["folds"] == 2 for r in recs)
+    assert all(k.width_validation == recs and k.params == first.params for k in ref[1:])
+    held = sum(int(np.sum(held_mask(holdout_units(p, y), f, params))) for _, p, y in robots.values() for f in range(2))
+    assert recs[0]["held_out"] == recs[1]["held_out"] == held > 0
+    two = recs[1]["errors"] < recs[0]["errors"]
+    assert (first.params.narrow_ratio == 3.0) == two and ("widths" in first.result()) == two
+    assert "width test: " + ("two widths" if two else "one width") in first.sigma_reason
+    assert all(np.array_equal(k.function()[1], first.function()[1]) for k in ref[1:])
+    w0, w1 = _phase_rounds(first, "widths")
+    stops = {"widths": (w0 + w1) // 2, "wtally": _phase_rounds(first, "wtally")[0]}
+    for key, (in_phase, blobs) in _checkpoints_at(robots, params, stops).items():
+        assert in_phase == key
+        resumed = _resume_from_checkpoints(None, robots, params, blobs)
+        for a, b in zip(ref, resumed):
+            assert a.round == b.round and a.grid_history == b.grid_history and a.width_validation == b.width_validation
+            assert np.array_equal(a.function()[1], b.function()[1]), key
