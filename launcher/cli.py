@@ -386,7 +386,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
         if early is not None:
             early.discard()  # when launch_fleet did not adopt it
         if robots is not None:
-            robots.discard()
+            robots.close()  # the zygote: its forked robots were stopped by launch_fleet
 
 
 def _free_algorithm(args: argparse.Namespace) -> str:

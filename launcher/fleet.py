@@ -568,7 +568,7 @@ class _Fleet:
         p.reader.start()
 
     def start_all(self) -> None:
-        if self.early is not None and len(self.early.procs) < len(self.procs):
+        if self.early is not None and self.early.capacity < len(self.procs):
             # every robot process an early one, or none: robots that start a second before their
             # neighbours count them dead after a short --dead-after (seen: 2 early of 4 processes)
             self.early = None

@@ -26,7 +26,7 @@ from typing import Any
 
 from protocol.zenoh_config import TLSFiles, free_loopback_port, router_config, router_endpoint
 
-__all__ = ["run_router", "write_json_atomic", "main", "EarlyRouter", "EarlyRobots", "spawn", "child_env", "ROOT"]
+__all__ = ["run_router", "write_json_atomic", "main", "EarlyRouter", "EarlyRobots", "ForkedRobot", "spawn", "child_env", "ROOT"]
 
 ROOT = Path(__file__).resolve().parent.parent
 HOST = "127.0.0.1"
@@ -152,38 +152,52 @@ def _launch_out(argv: Sequence[str]) -> str | None | bool:
 
 
 class EarlyRobots:
-    """Robot processes of a `shapefleet launch`, started with its early router, before the
-    launcher's own imports (issue 14: launch wall time).
+    """The robot processes of a `shapefleet launch`, forked from one "zygote" started with its early
+    router, before the launcher's own imports (issue 14: launch wall time).
 
-    Each one imports what a robot needs (numpy, the algorithms, Zenoh: ~0.3 s of CPU, the longest
-    step of a robot's start) while the launcher imports and builds the world, then waits on its
-    stdin for one line naming its arguments and log (agents/robot.py ``--early``). launch_fleet
-    adopts them as its robot processes (launcher/fleet.py ``_Fleet.start_all``) when there are as
-    many as it needs (one per core, at most EARLY_ROBOTS_MAX), else none of them. One not adopted (a smaller fleet, bad input, a free-running or user
-    algorithm fleet) is stopped by its PID (``discard``); one whose launcher is gone reads the end
-    of its stdin and exits.
+    The zygote (agents/robot.py ``serve_forks``) imports what a robot needs (numpy, the algorithms,
+    Zenoh: ~0.3 s of CPU, the longest step of a robot's start) once, while the launcher imports and
+    builds the world; then each robot process the launcher hands over (:meth:`take`) is forked from
+    it, single-threaded and before any Zenoh session exists, instead of starting an interpreter of
+    its own. launch_fleet adopts them as its first robot processes (launcher/fleet.py
+    ``_Fleet.start_all``) when there are at most ``capacity`` (one per core, at most
+    EARLY_ROBOTS_MAX), else none. Each child is a :class:`ForkedRobot`: stopped by its PID like any
+    process of the launcher (a pidfd: never another process), its exit code reported by the zygote.
+    A zygote not used (a smaller fleet, bad input, a user algorithm) or no longer needed is stopped
+    by its PID (``discard``, ``close``); one whose launcher is gone stops its children and exits.
     """
 
     def __init__(self, count: int, run_folder: str | None = None) -> None:
-        self.procs: list[subprocess.Popen] = []
-        argv = [sys.executable, "-m", "agents.robot", "--early"]
-        if run_folder:  # in its command line, as its router has (ps, tests' leftover checks)
+        import socket
+
+        self.capacity = count
+        self.forked: list[ForkedRobot] = []
+        self.exits: dict[int, int] = {}
+        self._lock = threading.Lock()
+        self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        argv = [sys.executable, "-m", "agents.robot", "--early", "--parent-pid", str(os.getpid())]
+        if run_folder:  # in its command line (and its children's), as its router has (ps, tests)
             argv += ["--run-folder", run_folder]
         try:
-            for _ in range(count):
-                self.procs.append(spawn(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                        stderr=subprocess.DEVNULL))
+            with theirs:
+                self.proc: subprocess.Popen | None = spawn(argv, stdin=theirs.fileno(), stdout=subprocess.DEVNULL,
+                                                           stderr=subprocess.DEVNULL)
         except BaseException:
-            self.discard()
+            self._sock.close()
             raise
+
+    @property
+    def procs(self) -> list[subprocess.Popen]:
+        """The zygote while it can still fork (for ps-like checks and tests)."""
+        return [self.proc] if self.proc is not None and self.proc.poll() is None else []
 
     @classmethod
     def for_command_line(cls, argv: Sequence[str]) -> EarlyRobots | None:
-        """One early robot per core for a plain ``launch`` (as :meth:`EarlyRouter.for_command_line`),
-        not with ``--sync free`` (another robot program)."""
+        """A zygote for a plain ``launch`` (as :meth:`EarlyRouter.for_command_line`), not with
+        ``--sync free`` (another robot program)."""
         out = _launch_out(argv)
         args = list(argv[1:])
-        if os.environ.get("SHAPEFLEET_NO_EARLY_ROBOTS"):  # for A/B comparisons (benchmarks)
+        if os.environ.get("SHAPEFLEET_NO_EARLY_ROBOTS") or not hasattr(os, "pidfd_open"):  # A/B; Linux only
             return None
         if out is False or any(a == "free" and b in ("--sync",) for b, a in zip(args, args[1:])) \
                 or "--sync=free" in args:
@@ -194,37 +208,139 @@ class EarlyRobots:
         except OSError:  # launch_fleet starts its robots as always
             return None
 
-    def take(self, args: list[str], log_path: Path) -> subprocess.Popen | None:
-        """A waiting robot process, handed ``args`` (agents/robot.py's, after ``-m agents.robot``)
-        and its log; None when none is left (start one as usual)."""
-        while self.procs:
-            proc = self.procs.pop(0)
-            try:
-                if proc.poll() is not None:
-                    raise BrokenPipeError
-                proc.stdin.write((json.dumps({"argv": args, "log": str(log_path)}) + "\n").encode())
-                proc.stdin.close()
-                return proc
-            except (BrokenPipeError, OSError, ValueError):  # it died meanwhile: try the next
-                self._stop(proc)
-        return None
+    def take(self, args: list[str], log_path: Path, timeout_s: float = 30.0) -> ForkedRobot | None:
+        """A robot process forked with ``args`` (agents/robot.py's, after ``-m agents.robot``) and
+        its log; None when the zygote cannot (gone, or ``capacity`` used): start one as usual."""
+        import socket
 
-    @staticmethod
-    def _stop(proc: subprocess.Popen) -> None:
+        if self.proc is None or len(self.forked) >= self.capacity:
+            return None
+        read_end, write_end = os.pipe()
         try:
-            if proc.stdin is not None:
-                proc.stdin.close()
-        except OSError:
-            pass
-        _terminate(proc)
-        if proc.stdout is not None:
-            proc.stdout.close()
+            with self._lock:
+                socket.send_fds(self._sock, [json.dumps({"argv": args, "log": str(log_path)}).encode()], [write_end])
+            os.close(write_end)
+            write_end = -1
+            end = time.monotonic() + timeout_s  # the zygote may still be importing
+            pid = None
+            while pid is None and time.monotonic() < end and self.proc.poll() is None:
+                pid = self._pump(min(0.5, max(0.0, end - time.monotonic())), want_pid=True)
+            if pid is None:
+                raise OSError("the robot zygote did not fork")
+        except OSError:  # it died or hangs: stop it; the launcher starts its robots as usual
+            os.close(read_end)
+            if write_end >= 0:
+                os.close(write_end)
+            self.close()
+            return None
+        child = ForkedRobot(self, pid, os.fdopen(read_end, "rb"))
+        self.forked.append(child)
+        return child
+
+    def _pump(self, timeout_s: float, want_pid: bool = False) -> int | None:
+        """Read the zygote's reports for up to ``timeout_s`` (exit codes into ``exits``); with
+        ``want_pid``, return as soon as a ``{"pid": N}`` arrives."""
+        import select
+
+        end = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                if self._sock.fileno() < 0 or not select.select([self._sock], [], [], max(0.0, end - time.monotonic()))[0]:
+                    return None
+                try:
+                    msg = self._sock.recv(1 << 16)
+                except OSError:
+                    msg = b""
+                if not msg:  # the zygote is gone: its children's ends are seen by their pidfds
+                    self._sock.close()
+                    return None
+                got = json.loads(msg)
+                if "exit" in got:
+                    self.exits[int(got["exit"])] = int(got["code"])
+                elif want_pid and "pid" in got:
+                    return int(got["pid"])
+                if not want_pid:
+                    end = time.monotonic()  # drain what is there, do not wait again
 
     def discard(self) -> None:
-        """Stop every robot process not adopted, by its PID."""
-        procs, self.procs = self.procs, []
-        for proc in procs:
-            self._stop(proc)
+        """No more robot processes will be asked for: stop the zygote now if it forked none
+        (else it stays, to report its children's ends, until :meth:`close`)."""
+        if not self.forked:
+            self.close()
+
+    def close(self) -> None:
+        """Stop the zygote by its PID: closing its socket ends it (it SIGTERMs and reaps any child
+        still running); SIGTERM, then SIGKILL, when it does not end within STOP bounds."""
+        proc, self.proc = self.proc, None
+        with self._lock:
+            self._sock.close()
+        for child in self.forked:
+            child.release()
+        if proc is not None:
+            try:
+                proc.wait(5.0)  # its children had ZYGOTE_STOP_GRACE_S (3 s) after SIGTERM
+            except subprocess.TimeoutExpired:
+                pass
+            _terminate(proc)
+
+
+class ForkedRobot:
+    """A robot process forked by the zygote of :class:`EarlyRobots`: what launch_fleet uses of a
+    ``subprocess.Popen`` (pid, stdout, poll, wait, signals). Signals go through a pidfd (the zygote
+    keeps the child a zombie until it ends, so the pidfd is opened on the right process); its exit
+    code is the zygote's report (1 if the zygote vanished before saying it)."""
+
+    stdin = None
+
+    def __init__(self, owner: EarlyRobots, pid: int, stdout: Any) -> None:
+        self.owner, self.pid, self.stdout = owner, pid, stdout
+        self.returncode: int | None = None
+        self.args = ["agents.robot", "--early", str(pid)]
+        self._pidfd: int | None = os.pidfd_open(pid)
+
+    def _ended(self, timeout_s: float) -> bool:
+        import select
+
+        if self._pidfd is None:
+            return True
+        return bool(select.select([self._pidfd], [], [], max(0.0, timeout_s))[0])
+
+    def poll(self) -> int | None:
+        """Its exit code once it ended (as Popen's), else None."""
+        if self.returncode is None and self._ended(0.0):
+            end = time.monotonic() + 2.0  # the zygote says the code as soon as it sees the end
+            while self.pid not in self.owner.exits and time.monotonic() < end and self.owner._sock.fileno() >= 0:
+                self.owner._pump(0.05)
+            self.returncode = self.owner.exits.get(self.pid, 1)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Wait for its end (subprocess.TimeoutExpired after ``timeout`` s)."""
+        if self.returncode is None and not self._ended(1e9 if timeout is None else timeout):
+            raise subprocess.TimeoutExpired(self.args, timeout)
+        return self.poll()  # type: ignore[return-value]
+
+    def send_signal(self, sig: int) -> None:
+        """Signal it by its pidfd (nothing once it ended)."""
+        if self.poll() is None and self._pidfd is not None:
+            try:
+                signal.pidfd_send_signal(self._pidfd, sig)
+            except ProcessLookupError:
+                pass
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def release(self) -> None:
+        """Close its pidfd (the zygote is being stopped; it reaps the child)."""
+        if self.returncode is None and self._pidfd is not None and self._ended(0.0):
+            self.returncode = self.owner.exits.get(self.pid, 1)
+        if self._pidfd is not None:
+            os.close(self._pidfd)
+            self._pidfd = None
 
 
 def write_json_atomic(path: Path, obj: object) -> None:

@@ -94,32 +94,107 @@ def test_no_early_robots_for_a_free_running_fleet():  # another robot program (a
 
 
 def test_an_early_robot_runs_with_the_arguments_and_log_it_is_handed(tmp_path):
-    """The launcher's line gives the robot its arguments and its log: a fleet file that is not
-    there is the robot's usual one-line refusal (exit 2), written to the log it was handed."""
+    """The launcher's message gives the forked robot its arguments and its log: a fleet file that
+    is not there is the robot's usual one-line refusal (exit 2), written to the log it was handed."""
     early, proc = EarlyRobots(1, str(tmp_path)), None
     try:
         log = tmp_path / "robot-0.log"
         proc = early.take(["--fleet-file", str(tmp_path / "nowhere.json"), "--id", "0", "--connect",
                            "tcp/127.0.0.1:7447", "--workdir", str(tmp_path)], log)
-        assert proc is not None and early.take([], log) is None  # one process, handed once
-        assert proc.wait(30) == 2
+        assert proc is not None and early.take([], log) is None  # capacity 1: handed once
+        assert proc.pid != early.proc.pid and proc.wait(30) == 2 and proc.poll() == 2
+        assert proc.stdout.read() == b""  # its stdout: the pipe handed with it, at its end
         said = log.read_text()
         assert said.count("\n") == 1 and "nowhere.json" in said, said
     finally:
-        early.discard()
-        if proc is not None and proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
+        zygote = early.proc
+        early.close()
         if proc is not None:
             proc.stdout.close()
+    assert zygote.returncode == 0 and processes_with(str(tmp_path)) == []
 
 
 def test_early_robots_not_adopted_are_stopped_by_pid(tmp_path):
     early = EarlyRobots(2, str(tmp_path))
     procs = list(early.procs)
-    assert len(procs) == 2 and processes_with(str(tmp_path))  # waiting, named by their run folder
+    end = time.monotonic() + 10  # exec'd by now, or soon
+    while not processes_with(str(tmp_path)) and time.monotonic() < end:
+        time.sleep(0.01)
+    assert len(procs) == 1 and processes_with(str(tmp_path)) == [procs[0].pid]  # one zygote, named by its run folder
     early.discard()
     assert all(p.returncode is not None for p in procs) and processes_with(str(tmp_path)) == []
+
+
+def _fleet_file(tmp_path: Path) -> Path:
+    from tests.conftest import make_run
+
+    _, spec, _ = make_run(fleet_id="zygote")
+    fleet = tmp_path / "fleet.json"
+    spec.save(fleet)
+    return fleet
+
+
+@pytest.mark.parametrize("how", ["sigterm", "sigkill"])
+def test_forked_robots_are_stopped_by_their_pid(tmp_path, how):
+    """Two robots forked by the zygote (no router: they wait for one) are each a process of their
+    own, stopped by its PID as launch_fleet stops any robot (SIGTERM: the robot's own stop, exit
+    code as Popen's; SIGKILL: -9); the zygote then ends and nothing is left behind."""
+    import signal
+
+    from launcher.fleet import _stop_all
+
+    fleet, early, procs = _fleet_file(tmp_path), EarlyRobots(2, str(tmp_path)), []
+    try:
+        for i in (0, 1):
+            procs.append(early.take(["--fleet-file", str(fleet), "--id", str(i), "--connect",
+                                     f"tcp/127.0.0.1:{free_loopback_port()}", "--workdir", str(tmp_path)],
+                                    tmp_path / f"robot-{i}.log"))
+        assert all(p is not None for p in procs) and len({p.pid for p in procs} | {early.proc.pid}) == 3
+        assert all(p.poll() is None for p in procs)
+        if how == "sigterm":
+            codes = _stop_all(procs, grace_s=10.0)
+            assert all(c is not None and c != -signal.SIGKILL for c in codes), codes
+        else:
+            for p in procs:
+                p.kill()
+            assert [p.wait(10) for p in procs] == [-signal.SIGKILL] * 2
+        procs[0].kill()  # once it ended: nothing (its PID is still a zombie of the zygote's, never another's)
+    finally:
+        early.close()
+        for p in procs:
+            if p is not None:
+                p.stdout.close()
+    assert processes_with(str(tmp_path)) == []
+
+
+def test_the_zygote_stops_its_robots_when_its_launcher_is_gone(tmp_path):
+    """A launcher killed by SIGKILL: its zygote sees its socket end, SIGTERMs the robots it forked
+    and ends; nothing is left (robots waiting for a router that will never come)."""
+    fleet = _fleet_file(tmp_path)
+    script = (f"import sys, time; sys.path.insert(0, {str(ROOT)!r}); from launcher.router import EarlyRobots; "
+              f"e = EarlyRobots(2, {str(tmp_path)!r}); "
+              f"[e.take(['--fleet-file', {str(fleet)!r}, '--id', str(i), '--connect', "
+              f"'tcp/127.0.0.1:{free_loopback_port()}', '--workdir', {str(tmp_path)!r}], "
+              f"__import__('pathlib').Path({str(tmp_path)!r}) / f'robot-{{i}}.log') for i in (0, 1)]; "
+              "print('forked', flush=True); time.sleep(60)")
+    launcher = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, env=child_env(), stdout=subprocess.PIPE)
+    try:
+        assert launcher.stdout.readline() == b"forked\n"
+        assert len(set(processes_with(str(tmp_path))) - {launcher.pid}) == 3  # the zygote and its two robots
+        launcher.kill()
+        launcher.wait(10)
+        end = time.monotonic() + 20
+        while processes_with(str(tmp_path)) and time.monotonic() < end:
+            time.sleep(0.05)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait(10)
+        launcher.stdout.close()
+        left = processes_with(str(tmp_path))
+        for pid in left:
+            os.kill(pid, 9)
+    assert left == []
 
 
 @pytest.mark.parametrize("program", ["agents.robot", "agents.free_robot"])
