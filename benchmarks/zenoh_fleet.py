@@ -220,8 +220,9 @@ def wrap(mod, name):
         mark(name + " start"); r = f(*a, **k); mark(name + " end"); return r
     setattr(mod, name, g)
 for mod, name in ((fleet, "launch_fleet"), (report, "write_json"), (report, "plot_shapes"),
-                  (report, "plot_convergence")):
-    wrap(mod, name)
+                  (report, "plot_convergence"), (report, "_fork_drawing"), (report, "_wait_drawing")):
+    if hasattr(mod, name):  # the last two: a tree that draws shapes.png in a forked child
+        wrap(mod, name)
 try:
     code = cli.main()
 except SystemExit as e:
@@ -264,8 +265,11 @@ def cli_timeline(tree: Path) -> dict:
         "fleet_start": m["launch_fleet start"][0], "first_round": slowest["first_round"],
         "last_round": slowest["last_round"], "stopped": m["launch_fleet end"][0],
         "result_json": m["write_json end"][0],
-        "shapes": m["plot_shapes end"][0] - m["plot_shapes start"][0],
+        # drawn in a forked child (report.drawn_aside): from the fork to the end of the wait for it
+        "shapes": (m["plot_shapes end"][0] - m["plot_shapes start"][0] if "plot_shapes end" in m
+                   else m["_wait_drawing end"][0] - m["_fork_drawing end"][0]),
         "convergence": m["plot_convergence end"][0] - m["plot_convergence start"][0],
+        "pictures": max(m[k][0] for k in ("plot_shapes end", "plot_convergence end", "_wait_drawing end") if k in m),
         "returned": m["main returned"][0],
         "cpu_start": m["launch_fleet start"][1],
         "cpu_fleet": m["launch_fleet end"][1] - m["launch_fleet start"][1],
@@ -277,7 +281,7 @@ _TIMELINE_COLUMNS = (
     ("load", "load"), ("imports", "launcher imported"), ("robots_imported", "robots imported"),
     ("fleet_start", "fleet handed over"), ("first_round", "first round"), ("last_round", "last round"),
     ("stopped", "every process stopped"), ("result_json", "result.json"), ("shapes", "shapes.png s"),
-    ("convergence", "convergence.png s"), ("returned", "main returns"), ("wall", "wall (outside)"),
+    ("convergence", "convergence.png s"), ("pictures", "pictures written"), ("returned", "main returns"), ("wall", "wall (outside)"),
     ("cpu_start", "launcher CPU to hand-over"), ("cpu_fleet", "launcher CPU during fleet"),
     ("cpu_finish", "launcher CPU after"), ("cpu_all", "CPU all processes"),
 )

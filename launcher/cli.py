@@ -181,16 +181,17 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
         references = _autogrid_references(world, spec, robots, extra)
         bases = {i: ref.basis for i, ref in references.items()}
         result = report.build_autogrid_result(world, robots, references, wall_s=wall_s, extra=extra)
-    report.write_json(out / "result.json", result)
-    report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None, result, bases=bases)
     written = ["result.json", "data.csv", "shapes.png"]
-    if result["history"]:
-        report.plot_convergence(out / "convergence.png", result["history"])
-        written.append("convergence.png")
-    elif not spec.fixed_grid and robots and robots[0].get("residuals"):
-        hist = report.autogrid_progress(robots[0], result["robots"][0].get("function_error"))
-        report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases"))
-        written.append("convergence.png")
+    with report.drawn_aside(lambda: report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None,
+                                                       result, bases=bases)):
+        report.write_json(out / "result.json", result)  # meanwhile, on the other core
+        if result["history"]:
+            report.plot_convergence(out / "convergence.png", result["history"])
+            written.append("convergence.png")
+        elif not spec.fixed_grid and robots and robots[0].get("residuals"):
+            hist = report.autogrid_progress(robots[0], result["robots"][0].get("function_error"))
+            report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases"))
+            written.append("convergence.png")
     first = next((r for r in robots if r.get("trace")), None)
     if spec.algorithm == "ct-admm" and first is not None:
         from launcher.trajectory import plot_trajectory, trajectory_from_trace
