@@ -1069,6 +1069,12 @@ def serve_forks(argv: list[str], run: Callable[[list[str]], int] | None = None, 
         import zenoh  # noqa: F401
 
         from agents.spec import FleetSpec  # noqa: F401
+
+        # and what each child imported after the fork (PYTHONPROFILEIMPORTTIME in a robot's log):
+        # main()'s parser, asyncio's default executor, the result file's copy: ~20 ms each
+        import argparse  # noqa: F401
+        import concurrent.futures.thread  # noqa: F401
+        import shutil  # noqa: F401
     except Exception:  # noqa: BLE001
         pass
     gc.freeze()  # the children's collections skip (and do not copy) what was imported here
@@ -1123,6 +1129,10 @@ def _fork_robot(req: dict[str, Any], fds: list[int], close: list[int], handlers:
         return pid
     code = 1
     try:
+        # a session of its own, as a robot process the launcher spawns: a terminal's Ctrl-C reaches
+        # the launcher only, and the scheduler's autogroup is its own (robots sharing the zygote's
+        # would share one process's CPU share against the launcher's)
+        os.setsid()
         for sig, handler in handlers.items():
             signal.signal(sig, handler)
         for fd in close:
