@@ -164,8 +164,6 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     """result.json, the pictures and the summary of a run. `central` is the reference of a
     fixed-grid run; an autogrid run (central None) is measured per robot on its final grid; a
     user algorithm's against its own ``reference`` (launcher/custom.py). ``quiet``: no terminal output."""
-    from rich.console import Console
-
     from launcher import report
 
     if spec.custom:
@@ -192,6 +190,8 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
             hist = report.autogrid_progress(robots[0], result["robots"][0].get("function_error"))
             report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases"))
             written.append("convergence.png")
+        from rich.console import Console  # the summary's imports (~0.08 s) while shapes.png is drawn aside
+        from rich.table import Table  # noqa: F401
     first = next((r for r in robots if r.get("trace")), None)
     if spec.algorithm == "ct-admm" and first is not None:
         from launcher.trajectory import plot_trajectory, trajectory_from_trace
@@ -563,15 +563,14 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     fleet_dir = out / "fleet"
-    if not spec.custom:  # the pictures' imports run while the launcher only waits for its robots
-        from launcher.report import preload_pictures
-
-        preload_pictures()
+    # the pictures' imports run while the launcher only waits for its robots, from the hand-over on
+    # (started before it, the import thread and the hand-over shared the GIL)
+    preload = None if spec.custom else (lambda _endpoint: __import__("launcher.report").report.preload_pictures())
     try:
         with _algorithm_importable(spec):
             outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
                                    restart=not args.no_restart, zenoh_port=args.zenoh_port, progress=not quiet,
-                                   router=router, robots_per_process=args.robots_per_process,
+                                   router=router, robots_per_process=args.robots_per_process, on_running=preload,
                                    early_router=early_router, early_robots=None if spec.custom else early_robots,
                                    **(_launch_free(args) if free else {}))
     except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag

@@ -581,19 +581,17 @@ _POWER = re.compile(r"\^\{(-?\d+)\}")
 
 
 def preload_pictures() -> None:
-    """Import what the run's pictures and summary need in a daemon thread, now, for later.
+    """Import what the run's pictures need in a daemon thread, now, for later.
 
-    `launch` calls it when its fleet starts: the launcher then only waits for its robots, and the
-    imports (matplotlib ~0.25-0.4 s of CPU, rich's console and table ~0.03 s) run while they do
-    instead of after them. The first ``_figure`` call that needs the modules waits for the import
+    `launch` calls it once its robots were handed over: the launcher then only waits for them, and
+    the import (matplotlib ~0.25-0.4 s of CPU) runs while they do instead of after them (rich, for
+    the summary, is imported at the end while shapes.png is drawn aside: launcher/cli.py ``_finish``). The first ``_figure`` call that needs the modules waits for the import
     (import_picture_modules' lock, then Python's module locks: nothing to join); a failed import
     fails again there, in the drawing thread."""
 
     def load() -> None:
         try:
             import_picture_modules()
-            import rich.console  # noqa: F401
-            import rich.table  # noqa: F401
         except Exception:  # noqa: BLE001 - reported by the drawing's own import
             pass
 
