@@ -265,16 +265,22 @@ def cli_timeline(tree: Path) -> dict:
         "fleet_start": m["launch_fleet start"][0], "first_round": slowest["first_round"],
         "last_round": slowest["last_round"], "stopped": m["launch_fleet end"][0],
         "result_json": m["write_json end"][0],
-        # drawn in a forked child (report.drawn_aside): from the fork to the end of the wait for it
-        "shapes": (m["plot_shapes end"][0] - m["plot_shapes start"][0] if "plot_shapes end" in m
-                   else m["_wait_drawing end"][0] - m["_fork_drawing end"][0]),
-        "convergence": m["plot_convergence end"][0] - m["plot_convergence start"][0],
+        # drawn in a forked child (report.drawn_aside): from the fork to the end of the wait for it;
+        # by the painter (report.Painter): the launcher's wait for it after result.json
+        "shapes": _span(m, "plot_shapes start", "plot_shapes end") if "plot_shapes end" in m
+        else _span(m, "_fork_drawing end" if "_fork_drawing end" in m else "_wait_drawing start", "_wait_drawing end"),
+        "convergence": _span(m, "plot_convergence start", "plot_convergence end"),
         "pictures": max(m[k][0] for k in ("plot_shapes end", "plot_convergence end", "_wait_drawing end") if k in m),
         "returned": m["main returned"][0],
         "cpu_start": m["launch_fleet start"][1],
         "cpu_fleet": m["launch_fleet end"][1] - m["launch_fleet start"][1],
         "cpu_finish": m["main returned"][1] - m["launch_fleet end"][1],
     }
+
+
+def _span(marks: dict, start: str, end: str) -> float:
+    """Seconds between two marks of the timeline (nan when one is missing: drawn in another process)."""
+    return marks[end][0] - marks[start][0] if start in marks and end in marks else float("nan")
 
 
 _TIMELINE_COLUMNS = (
@@ -300,6 +306,7 @@ def cli_timeline_table(trees: list[tuple[str, Path]], runs: int) -> str:
         cells = []
         for label, _t in trees:
             values = [r[key] for r in got[label]]
+            values = [v for v in values if v == v] or [float("nan")]  # nan: not in the launcher
             cells.append(f"{min(values):.1f}-{max(values):.1f}" if key == "load" else f"{statistics.median(values):.2f}")
         lines.append(f"| {title} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
