@@ -160,11 +160,10 @@ def _out_dir(args: argparse.Namespace, mode: str) -> Path:
 
 # -- jobs -------------------------------------------------------------------------------------
 def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[str, Any]], *, wall_s: float,
-            extra: dict[str, Any], quiet: bool = False, painter: Any = None) -> dict[str, Any]:
+            extra: dict[str, Any], quiet: bool = False) -> dict[str, Any]:
     """result.json, the pictures and the summary of a run. `central` is the reference of a
     fixed-grid run; an autogrid run (central None) is measured per robot on its final grid; a
-    user algorithm's against its own ``reference`` (launcher/custom.py). ``quiet``: no terminal output.
-    ``painter``: a launcher/report.py Painter forked for this run (it draws the pictures meanwhile)."""
+    user algorithm's against its own ``reference`` (launcher/custom.py). ``quiet``: no terminal output."""
     from launcher import report
 
     if spec.custom:
@@ -181,22 +180,18 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
         bases = {i: ref.basis for i, ref in references.items()}
         result = report.build_autogrid_result(world, robots, references, wall_s=wall_s, extra=extra)
     written = ["result.json", "data.csv", "shapes.png"]
-    if _convergence_trace(spec, result, robots) is not None:
-        written.append("convergence.png")
-
-    def meanwhile() -> None:  # while the pictures are drawn (by the painter, or a fork of ours)
-        report.write_json(out / "result.json", result)
-        from rich.console import Console  # noqa: F401 -- the summary's imports, ~0.08 s
+    with report.drawn_aside(lambda: report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None,
+                                                       result, bases=bases)):
+        report.write_json(out / "result.json", result)  # meanwhile, on the other core
+        if result["history"]:
+            report.plot_convergence(out / "convergence.png", result["history"])
+            written.append("convergence.png")
+        elif not spec.fixed_grid and robots and robots[0].get("residuals"):
+            hist = report.autogrid_progress(robots[0], result["robots"][0].get("function_error"))
+            report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases"))
+            written.append("convergence.png")
+        from rich.console import Console  # the summary's imports (~0.08 s) while shapes.png is drawn aside
         from rich.table import Table  # noqa: F401
-
-    if painter is not None and painter.paint((result, bases, robots[:1])):
-        meanwhile()
-        if not painter.finish():  # it failed or hung: drawn here (an error shows here)
-            _draw_pictures(out, world, spec, result, bases, robots)
-    else:
-        _draw_pictures(out, world, spec, result, bases, robots, meanwhile=meanwhile)
-    from rich.console import Console
-
     first = next((r for r in robots if r.get("trace")), None)
     if spec.algorithm == "ct-admm" and first is not None:
         from launcher.trajectory import plot_trajectory, trajectory_from_trace
@@ -213,33 +208,6 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     if not result["converged"] and not quiet:
         print(f"shapefleet: NOT converged: {result.get('verdict', 'see result.json')}", file=sys.stderr)
     return result
-
-
-def _convergence_trace(spec: Any, result: dict[str, Any], robots: list[dict[str, Any]]) -> tuple[list, Any] | None:
-    """What convergence.png shows (the rounds, autogrid's phases), None when there is nothing."""
-    from launcher import report
-
-    if result["history"]:
-        return result["history"], None
-    if not spec.fixed_grid and robots and robots[0].get("residuals"):
-        return report.autogrid_progress(robots[0], result["robots"][0].get("function_error")), robots[0].get("phases")
-    return None
-
-
-def _draw_pictures(out: Path, world: World, spec: Any, result: dict[str, Any], bases: dict[int, Any] | None,
-                   robots: list[dict[str, Any]], meanwhile: Callable[[], None] = lambda: None,
-                   busy: int = 0) -> None:
-    """shapes.png and convergence.png: the first drawn aside (report.drawn_aside: a fork, when a
-    core is idle) while ``meanwhile`` then the second run here. ``busy``: other processes of ours
-    that count as running (report._core_idle)."""
-    from launcher import report
-
-    trace = _convergence_trace(spec, result, robots)
-    with report.drawn_aside(lambda: report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None,
-                                                       result, bases=bases), busy=busy):
-        meanwhile()
-        if trace is not None:
-            report.plot_convergence(out / "convergence.png", trace[0], phases=trace[1])
 
 
 def _exit_code(result: dict[str, Any]) -> int:
@@ -581,7 +549,7 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
     already runs (launcher/pytest_plugin.py's ``zenoh_router``) instead of one of its own;
     ``early_router`` / ``early_robots``: the router and robot processes `shapefleet launch` started
     before its imports (adopted when they fit, else stopped)."""
-    from launcher.fleet import _port_in_use
+    from launcher.fleet import LaunchError, _port_in_use, launch_fleet
 
     crashes = _crash_plan(args)
     _robots_bound(args)
@@ -594,40 +562,10 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
     out, world, spec, central = _prepare(args, "launch", check=check, fleet_id=args.fleet_id)
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
-    # the pictures' imports run while the launcher only waits for its robots (from the hand-over on),
-    # in a painter forked now, which holds the world (launcher/report.py Painter)
-    painter = None
-    if not spec.custom:
-        from launcher import report as pictures
-
-        painter = pictures.Painter.fork(lambda job: _draw_pictures(out, world, spec, *job, busy=1),
-                                        out / ".pictures.pickle")
-    try:
-        return _launch_and_finish(args, out, world, spec, central, crashes, t0, quiet=quiet, router=router,
-                                  early_router=early_router, early_robots=early_robots, painter=painter)
-    finally:
-        if painter is not None:
-            painter.close()  # by its PID, if it still runs (an error, Ctrl-C)
-
-
-def _launch_and_finish(args: argparse.Namespace, out: Path, world: World, spec: Any, central: Any,
-                       crashes: list[Any], t0: float, *, quiet: bool, router: str | None,
-                       early_router: EarlyRouter | None, early_robots: EarlyRobots | None,
-                       painter: Any) -> RunReport:
-    """run_launch from the fleet's start: the fleet, then result.json, pictures and summary."""
-    from launcher.fleet import LaunchError, launch_fleet
-
-    free = getattr(args, "sync", "lockstep") == "free"
     fleet_dir = out / "fleet"
-
-    def preload(_endpoint: str) -> None:  # the robots were handed over (before, an import thread shared the GIL)
-        from launcher.report import preload_pictures
-
-        if painter is not None:
-            painter.go()
-        elif not spec.custom:
-            preload_pictures()
-
+    # the pictures' imports run while the launcher only waits for its robots, from the hand-over on
+    # (started before it, the import thread and the hand-over shared the GIL)
+    preload = None if spec.custom else (lambda _endpoint: __import__("launcher.report").report.preload_pictures())
     try:
         with _algorithm_importable(spec):
             outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
@@ -662,7 +600,7 @@ def _launch_and_finish(args: argparse.Namespace, out: Path, world: World, spec: 
         print(f"shapefleet: {line}", file=sys.stderr)
     central = _participants(world, spec, central, outcome.robots, extra)
     report.result = _finish(out, world, spec, central, outcome.robots, wall_s=time.perf_counter() - t0,
-                            extra=extra, quiet=quiet, painter=painter)
+                            extra=extra, quiet=quiet)
     report.code = _exit_code(report.result)
     if outcome.interrupted is not None:
         import signal as _signal

@@ -607,7 +607,7 @@ ASIDE_WAIT_S = 60.0
 
 
 @contextlib.contextmanager
-def drawn_aside(draw: Callable[[], None], busy: int = 0) -> Iterator[None]:
+def drawn_aside(draw: Callable[[], None]) -> Iterator[None]:
     """Run ``draw`` (one picture) in a forked child while the ``with`` block runs here.
 
     Why: the end of a run -- result.json and two pictures -- was serial on one core while the
@@ -616,9 +616,8 @@ def drawn_aside(draw: Callable[[], None], busy: int = 0) -> Iterator[None]:
     no other thread (a fork beside a running thread can copy a lock it holds); else, or when the
     child fails or outlasts ASIDE_WAIT_S, ``draw`` runs here after the block, as before. The child
     is this process's own: waited for by its PID on every path, SIGKILLed and reaped when the block
-    raises (Ctrl-C included). Its picture is the same file as one drawn here. ``busy``: processes
-    of ours that count as running (a painter's launcher, which only writes result.json meanwhile)."""
-    pid = _fork_drawing(draw, busy)
+    raises (Ctrl-C included). Its picture is the same file as one drawn here."""
+    pid = _fork_drawing(draw)
     try:
         yield
     except BaseException:
@@ -629,7 +628,7 @@ def drawn_aside(draw: Callable[[], None], busy: int = 0) -> Iterator[None]:
         draw()
 
 
-def _fork_drawing(draw: Callable[[], None], busy: int = 0) -> int | None:
+def _fork_drawing(draw: Callable[[], None]) -> int | None:
     """The PID of a child running ``draw`` then exiting (0: drawn), None when not safe to fork."""
     if not hasattr(os, "fork"):
         return None
@@ -637,7 +636,7 @@ def _fork_drawing(draw: Callable[[], None], busy: int = 0) -> int | None:
         _PRELOAD.join(ASIDE_WAIT_S)
     try:
         import_picture_modules()  # once, here: both processes draw with it
-        if len(os.listdir("/proc/self/task")) != 1 or not _core_idle(busy):  # a thread (ours or a library's) runs
+        if len(os.listdir("/proc/self/task")) != 1 or not _core_idle():  # a thread (ours or a library's) runs
             return None
         pid = os.fork()
     except Exception:  # noqa: BLE001 -- no /proc, no fork, a failed import: draw here (its error shows there)
@@ -657,127 +656,8 @@ def _fork_drawing(draw: Callable[[], None], busy: int = 0) -> int | None:
         os._exit(code)
 
 
-class Painter:
-    """The run's pictures drawn by a child forked from the launcher before its fleet starts.
-
-    Why (issue 14): matplotlib's import (~0.3-0.4 s of CPU) ran in a thread of the launcher while
-    the robots ran, and its rest after they stopped, holding the GIL the launcher's result.json
-    needed. The child holds the world and spec already (the fork); at :meth:`go` (the hand-over)
-    it imports the picture modules in a process of its own, then waits for :meth:`paint`'s job
-    (what only the fleet's end knows, pickled to ``job_path``), draws (``draw(job)``: shapes.png
-    aside in a fork of its own when a core is idle) and exits 0. It is the launcher's child: waited
-    for by its PID (:meth:`finish`), SIGKILLed and reaped by :meth:`close` on every other path; a
-    launcher that dies closes its pipe, and it exits. :meth:`fork` returns None where a fork is not
-    safe (another thread runs) or possible: the caller draws in process."""
-
-    def __init__(self, pid: int, pipe: int, job_path: Path) -> None:
-        self.pid, self._pipe, self.job_path = pid, pipe, job_path
-        self.code: int | None = None
-        self._going = False
-
-    @classmethod
-    def fork(cls, draw: Callable[[Any], None], job_path: Path) -> Painter | None:
-        """Fork the painter (single-threaded callers only)."""
-        try:
-            if not hasattr(os, "fork") or len(os.listdir("/proc/self/task")) != 1:
-                return None
-            read_end, write_end = os.pipe()
-            pid = os.fork()
-        except OSError:
-            return None
-        if pid:
-            os.close(read_end)
-            return cls(pid, write_end, Path(job_path))
-        code = 1
-        try:  # the child: nothing of the launcher's but the pipe and stdio
-            os.closerange(3, read_end)
-            os.closerange(read_end + 1, 1 << 16)
-            code = _paint(read_end, draw)
-        except BaseException:  # noqa: BLE001 -- the launcher draws in process and shows the error
-            import traceback
-
-            traceback.print_exc()
-        finally:
-            os._exit(code)
-
-    def go(self) -> None:
-        """Start importing the picture modules (the robots were handed over)."""
-        if not self._going:
-            self._going = True
-            self._send(b"g")
-
-    def paint(self, job: Any) -> bool:
-        """Hand the job over (False when the painter is gone)."""
-        import pickle
-
-        try:
-            with open(self.job_path, "wb") as fh:
-                pickle.dump(job, fh, protocol=pickle.HIGHEST_PROTOCOL)
-            self.go()
-            self._send(b"j" + os.fsencode(self.job_path))
-            self._close_pipe()
-            return True
-        except (OSError, pickle.PicklingError, TypeError, AttributeError):
-            self.close()
-            return False
-
-    def finish(self, wait_s: float = ASIDE_WAIT_S) -> bool:
-        """Wait for the pictures (True: drawn); SIGKILLed and reaped after ``wait_s``."""
-        if self.code is None:
-            self.code = _wait_drawing(self.pid, wait_s)
-        _remove(self.job_path)
-        return self.code == 0
-
-    def close(self) -> None:
-        """Stop it by its PID if it still runs, reap it, remove the job file."""
-        self._close_pipe()
-        if self.code is None:
-            _kill_drawing(self.pid)
-            self.code = -9
-        _remove(self.job_path)
-
-    def _send(self, data: bytes) -> None:
-        if self._pipe >= 0:
-            os.write(self._pipe, data)
-
-    def _close_pipe(self) -> None:
-        if self._pipe >= 0:
-            os.close(self._pipe)
-            self._pipe = -1
-
-
-#: the painter's exit code when it was given no job
-PAINTER_NO_JOB = 3
-
-
-def _paint(pipe: int, draw: Callable[[Any], None]) -> int:
-    """The painter's life (launcher/report.py Painter): wait for go, import, wait for the job, draw."""
-    import pickle
-
-    if os.read(pipe, 1) != b"g":
-        return PAINTER_NO_JOB  # never started: the launcher is done, or gone
-    import_picture_modules()
-    data = b""
-    while chunk := os.read(pipe, 1 << 16):
-        data += chunk
-    if not data.startswith(b"j"):
-        return PAINTER_NO_JOB  # the launcher draws nothing, or is gone
-    with open(os.fsdecode(data[1:]), "rb") as fh:
-        job = pickle.load(fh)
-    draw(job)
-    return 0
-
-
-def _remove(path: Path) -> None:
-    try:
-        os.unlink(path)
-    except FileNotFoundError:
-        pass
-
-
-def _core_idle(busy: int = 0) -> bool:
-    """A core runs nothing but us now (/proc/loadavg's runnable count, this process and ``busy``
-    others of ours included).
+def _core_idle() -> bool:
+    """A core runs nothing but us now (/proc/loadavg's runnable count, this process included).
 
     Why: the child costs ~0.06 s of CPU more than drawing here (the fork, and the pages both
     processes then copy as they write); with a core idle that buys ~0.1 s of wall, on a machine
@@ -788,14 +668,14 @@ def _core_idle(busy: int = 0) -> bool:
     except (OSError, ValueError, IndexError):
         return False
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return runnable - busy < cores
+    return runnable < cores
 
 
-def _wait_drawing(pid: int, wait_s: float = ASIDE_WAIT_S) -> int:
-    """The child's exit code (-1 when it outlasted ``wait_s``: then it was SIGKILLed and reaped)."""
+def _wait_drawing(pid: int) -> int:
+    """The child's exit code (-1 when it outlasted ASIDE_WAIT_S: then it was SIGKILLed and reaped)."""
     import time
 
-    end = time.monotonic() + wait_s
+    end = time.monotonic() + ASIDE_WAIT_S
     while time.monotonic() < end:
         done, status = os.waitpid(pid, os.WNOHANG)
         if done:

@@ -21,7 +21,7 @@ from launcher import report
 from tests.conftest import make_run
 
 out = Path(sys.argv[1])
-report._core_idle = lambda busy=0: True  # fork even when other jobs keep the cores busy (CI)
+report._core_idle = lambda: True  # fork even when other jobs keep the cores busy (CI)
 world, spec, central = make_run()
 rows = [{"id": r.id, "c": list(central.c + 0.02 * r.id), "gamma": central.gamma} for r in world.robots]
 result = {"robots": rows, "grid": spec.basis.grid.tolist()}
@@ -81,7 +81,7 @@ def test_a_picture_drawn_aside_is_the_file_drawn_here_and_its_child_never_outliv
 def test_nothing_is_forked_without_an_idle_core(monkeypatch, tmp_path):
     from launcher import report
 
-    monkeypatch.setattr(report, "_core_idle", lambda busy=0: False)
+    monkeypatch.setattr(report, "_core_idle", lambda: False)
     drawn = []
     with report.drawn_aside(lambda: drawn.append(os.getpid())):
         assert drawn == []  # drawn after the block, here
