@@ -67,7 +67,7 @@ __all__ = [
     "check_iterate",
     "DIVERGED_ABS",
     "GIVE_UP_FACTOR",
-    "serve_forks",
+    "run_forked",
     "watch_parent",
 ]
 
@@ -1004,7 +1004,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     run = run_robots(spec, ids, connect=args.connect, workdir=args.workdir, handle_signals=True,
                      zenoh_config=config, status_interval_s=args.status_interval,
-                     shared_session=args.shared_session, crash_at=args.crash_at)
+                     shared_session=args.shared_session, crash_at=args.crash_at,
+                     status_stream=sys.stdout)  # today's (a forked robot's is new: launcher/fleet.py)
     results = _profiled(asyncio.run, run, args.workdir / f"robots-{ids[0]}-{ids[-1]}.cprofile")
     ok = True
     for rid in ids:
@@ -1041,150 +1042,16 @@ def robot_config_dict_for(connect: list[str], *, loopback_only: bool = True) -> 
     return robot_config_dict(connect, loopback_only=loopback_only)
 
 
-#: a zygote whose launcher is gone gives its robots this long to stop after SIGTERM, then SIGKILL
-ZYGOTE_STOP_GRACE_S = 3.0
-
-
-def serve_forks(argv: list[str], run: Callable[[list[str]], int] | None = None, sock_fd: int = 0) -> int:
-    """``python -m agents.robot --early [--parent-pid L] [--run-folder F]``: the one robot "zygote" of a
-    `shapefleet launch` (launcher/router.py ``EarlyRobots``), started before its launcher knows the fleet.
-
-    Why: every robot process used to start an interpreter and import numpy, the algorithms and Zenoh
-    (~0.3 s of CPU each) on the 2 cores the launcher needs too (issue 14). Here that is done once;
-    each robot process is then ``os.fork``ed, single-threaded, with no Zenoh session or runtime yet.
-    Its socket ``sock_fd`` (SOCK_SEQPACKET, from the launcher) carries one message per robot process:
-    ``{"argv": [...], "log": path}`` (:func:`main`'s arguments; stderr goes to the log) with the write
-    end of its stdout pipe; the answer is ``{"pid": N}``, and ``{"exit": N, "code": C}`` (as Popen's
-    returncode) once it ended. A child stays a zombie (its PID reserved: the launcher's signals never
-    reach another process) until the zygote ends: when the socket closes, on SIGTERM/SIGINT, or when
-    its launcher ``L`` is gone; it then SIGTERMs the children still running (SIGKILL after
-    ZYGOTE_STOP_GRACE_S) and reaps them. A child's ``--parent-pid`` names the zygote: it stops when
-    the zygote is gone."""
-    import gc
-    import select
-    import socket
-
-    parent = int(argv[argv.index("--parent-pid") + 1]) if "--parent-pid" in argv else None
-    try:  # what main() and a robot's first round import; a failure shows again there, in the log
-        import zenoh  # noqa: F401
-
-        from agents.spec import FleetSpec  # noqa: F401
-
-        # and what each child imported after the fork (PYTHONPROFILEIMPORTTIME in a robot's log):
-        # main()'s parser, asyncio's default executor, the result file's copy: ~20 ms each
-        import argparse  # noqa: F401
-        import concurrent.futures.thread  # noqa: F401
-        import shutil  # noqa: F401
-    except Exception:  # noqa: BLE001
-        pass
-    gc.freeze()  # the children's collections skip (and do not copy) what was imported here
-    sock = socket.socket(fileno=sock_fd)
-    wake_r, wake_w = os.pipe()
-    os.set_blocking(wake_w, False)
-    stop: list[int] = []
-    previous = {sig: signal.signal(sig, lambda signum, _f: stop.append(signum)) for sig in (signal.SIGTERM, signal.SIGINT)}
-    signal.set_wakeup_fd(wake_w)
-    running: dict[int, int] = {}  # pid -> pidfd, exit not reported yet
-    children: list[int] = []
-    try:
-        while not stop and (parent is None or os.getppid() == parent):
-            ready = select.select([sock, wake_r, *running.values()], [], [], 0.5)[0]
-            if wake_r in ready:
-                os.read(wake_r, 512)
-            for pid, pidfd in list(running.items()):
-                if pidfd in ready:  # it ended: report its code, keep it a zombie
-                    info = os.waitid(os.P_PID, pid, os.WEXITED | os.WNOWAIT)
-                    code = info.si_status if info.si_code == os.CLD_EXITED else -info.si_status
-                    os.close(running.pop(pid))
-                    sock.send(json.dumps({"exit": pid, "code": code}).encode())
-            if sock in ready:
-                msg, fds, _flags, _addr = socket.recv_fds(sock, 1 << 16, 1)
-                if not msg:
-                    break  # the launcher closed it: done, or gone
-                try:
-                    pid = _fork_robot(json.loads(msg), fds, [sock.fileno(), wake_r, wake_w, *running.values()],
-                                      previous, run or main)
-                finally:
-                    for fd in fds:
-                        os.close(fd)
-                children.append(pid)
-                running[pid] = os.pidfd_open(pid)
-                sock.send(json.dumps({"pid": pid}).encode())
-    except OSError:  # the launcher's end of the socket is gone
-        pass
-    finally:
-        signal.set_wakeup_fd(-1)
-        _stop_children(list(running), children)
-        for pidfd in running.values():
-            os.close(pidfd)
-    return 0
-
-
-def _fork_robot(req: dict[str, Any], fds: list[int], close: list[int], handlers: dict[int, Any],
-                run: Callable[[list[str]], int]) -> int:
-    """Fork one robot process of :func:`serve_forks`; the child never returns."""
-    argv = [str(a) for a in req["argv"]]
-    pid = os.fork()
-    if pid:
-        return pid
-    code = 1
-    try:
-        # a session of its own, as a robot process the launcher spawns: a terminal's Ctrl-C reaches
-        # the launcher only, and the scheduler's autogroup is its own (robots sharing the zygote's
-        # would share one process's CPU share against the launcher's)
-        os.setsid()
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
-        for fd in close:
-            os.close(fd)
-        os.dup2(fds[0], 1)
-        fd = os.open(req["log"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-        os.dup2(fd, 2)
-        os.close(fd)
-        _STARTED["process"] = _process_start()
-        _STARTED["adopted"] = time.monotonic()
-        if "--parent-pid" in argv:  # our parent is the zygote, which follows the launcher
-            argv[argv.index("--parent-pid") + 1] = str(os.getppid())
-        code = run(argv)
-    except SystemExit as exc:  # argparse's refusal (2)
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    except BaseException:  # noqa: BLE001 -- said in the log, as an interpreter would
-        import traceback
-
-        traceback.print_exc()
-    finally:
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except Exception:  # noqa: BLE001
-                pass
-        os._exit(code)
-
-
-def _stop_children(running: list[int], children: list[int]) -> None:
-    """SIGTERM the children still running, SIGKILL them after ZYGOTE_STOP_GRACE_S; reap every child."""
-    for pid in running:
-        os.kill(pid, signal.SIGTERM)  # not reaped yet: the PID is still our child's
-    end = time.monotonic() + ZYGOTE_STOP_GRACE_S
-    left = set(running)
-    while left and time.monotonic() < end:
-        left = {pid for pid in left if os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is None}
-        if left:
-            time.sleep(0.02)
-    for pid in left:
-        os.kill(pid, signal.SIGKILL)
-    for pid in children:
-        try:
-            os.waitpid(pid, 0)
-        except ChildProcessError:
-            pass
+def run_forked(argv: list[str]) -> int:
+    """:func:`main` in a robot process forked from its launcher (launcher/fleet.py ``fork_robot``):
+    its marks start at the fork."""
+    _STARTED["process"] = _process_start()
+    _STARTED["adopted"] = time.monotonic()
+    return main(argv)
 
 
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--early"]:
-        code = serve_forks(sys.argv[2:])
-    else:
-        code = main()
+    code = main()
     # the process ends next: objects in the permanent generation are not walked by the
     # interpreter's last collections (0.06-0.09 s -> 0.02 s of exit, see launcher.cli.freeze_before_exit)
     __import__("gc").freeze()

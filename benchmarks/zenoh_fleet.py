@@ -196,8 +196,8 @@ def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -
 
 
 #: run in a child interpreter (``python -c``, PYTHONPATH = the tree measured): `shapefleet launch
-#: --preset paper --out OUT` as the program runs it (argv[0] "shapefleet": the early router and robots
-#: start before the imports), with the launcher's phases marked on the robots' monotonic clock in
+#: --preset paper --out OUT` as the program runs it (argv[0] "shapefleet": the early router
+#: starts before the imports; the robots are forked from the launcher), with the launcher's phases marked on the robots' monotonic clock in
 #: seconds from this process's start (/proc), and its own CPU at each mark; written to OUT/timeline.json
 _TIMELINE_CHILD = r"""
 import json, os, sys, threading, time
