@@ -153,7 +153,11 @@ def test_forked_robots_are_stopped_by_their_pid(tmp_path, router_port):
     proc = _forker(tmp_path, router_port, "stop")
     try:
         pids = json.loads(proc.stdout.readline())
-        assert len(set(pids) | {proc.pid}) == 3 and all(os.getsid(p) == p for p in pids)
+        assert len(set(pids) | {proc.pid}) == 3
+        end = time.monotonic() + 10  # each calls setsid first thing after the fork
+        while not all(os.getsid(p) == p for p in pids) and time.monotonic() < end:
+            time.sleep(0.01)
+        assert all(os.getsid(p) == p for p in pids)
         codes = json.loads(proc.stdout.readline())
         assert proc.wait(30) == 0
     finally:
