@@ -453,7 +453,11 @@ class ForkedChild:
 
     def poll(self) -> int | None:
         if self.returncode is None:
-            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            try:
+                pid, status = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped by someone else (a SIGCHLD handler): it has ended
+                self.returncode = 1
+                return self.returncode
             if pid:
                 self.returncode = os.waitstatus_to_exitcode(status)
         return self.returncode
@@ -529,6 +533,7 @@ def fork_robot(args: list[str], log: IO[bytes]) -> ForkedChild | None:
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, signal.SIG_DFL)
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        os.dup2(os.open(os.devnull, os.O_RDONLY), 0)  # as a spawned robot's stdin
         os.dup2(write_end, 1)
         os.dup2(log.fileno(), 2)
         os.closerange(3, 1 << 16)  # none of the launcher's files (pipes of other robots, the router's log)
