@@ -67,7 +67,7 @@ __all__ = [
     "check_iterate",
     "DIVERGED_ABS",
     "GIVE_UP_FACTOR",
-    "early_argv",
+    "run_forked",
     "watch_parent",
 ]
 
@@ -1004,7 +1004,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     run = run_robots(spec, ids, connect=args.connect, workdir=args.workdir, handle_signals=True,
                      zenoh_config=config, status_interval_s=args.status_interval,
-                     shared_session=args.shared_session, crash_at=args.crash_at)
+                     shared_session=args.shared_session, crash_at=args.crash_at,
+                     status_stream=sys.stdout)  # today's (a forked robot's is new: launcher/fleet.py)
     results = _profiled(asyncio.run, run, args.workdir / f"robots-{ids[0]}-{ids[-1]}.cprofile")
     ok = True
     for rid in ids:
@@ -1041,35 +1042,16 @@ def robot_config_dict_for(connect: list[str], *, loopback_only: bool = True) -> 
     return robot_config_dict(connect, loopback_only=loopback_only)
 
 
-def early_argv(stdin: TextIO = sys.stdin) -> list[str] | None:
-    """``python -m agents.robot --early``: a robot process started before its launcher knows the
-    fleet (launcher/router.py ``EarlyRobots``). Import what a robot needs now, then wait for the
-    launcher's one line ``{"argv": [...], "log": path}``: the arguments :func:`main` takes and the
-    file stderr goes to from then on. None when the launcher closed our stdin without a line (not
-    adopted, or gone): the process ends quietly."""
-    try:  # what main() and a robot's first round import; a failure shows again there, in the log
-        import zenoh  # noqa: F401
-
-        from agents.spec import FleetSpec  # noqa: F401
-    except Exception:  # noqa: BLE001
-        pass
-    line = stdin.readline()
-    if not line.strip():
-        return None
-    msg = json.loads(line)
-    fd = os.open(msg["log"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-    os.dup2(fd, 2)
-    os.close(fd)
+def run_forked(argv: list[str]) -> int:
+    """:func:`main` in a robot process forked from its launcher (launcher/fleet.py ``fork_robot``):
+    its marks start at the fork."""
+    _STARTED["process"] = _process_start()
     _STARTED["adopted"] = time.monotonic()
-    return [str(a) for a in msg["argv"]]
+    return main(argv)
 
 
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--early"]:
-        early = early_argv()
-        code = 0 if early is None else main(early)
-    else:
-        code = main()
+    code = main()
     # the process ends next: objects in the permanent generation are not walked by the
     # interpreter's last collections (0.06-0.09 s -> 0.02 s of exit, see launcher.cli.freeze_before_exit)
     __import__("gc").freeze()

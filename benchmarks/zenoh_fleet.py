@@ -196,8 +196,8 @@ def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -
 
 
 #: run in a child interpreter (``python -c``, PYTHONPATH = the tree measured): `shapefleet launch
-#: --preset paper --out OUT` as the program runs it (argv[0] "shapefleet": the early router and robots
-#: start before the imports), with the launcher's phases marked on the robots' monotonic clock in
+#: --preset paper --out OUT` as the program runs it (argv[0] "shapefleet": the early router
+#: starts before the imports; the robots are forked from the launcher), with the launcher's phases marked on the robots' monotonic clock in
 #: seconds from this process's start (/proc), and its own CPU at each mark; written to OUT/timeline.json
 _TIMELINE_CHILD = r"""
 import json, os, sys, threading, time
@@ -220,8 +220,9 @@ def wrap(mod, name):
         mark(name + " start"); r = f(*a, **k); mark(name + " end"); return r
     setattr(mod, name, g)
 for mod, name in ((fleet, "launch_fleet"), (report, "write_json"), (report, "plot_shapes"),
-                  (report, "plot_convergence")):
-    wrap(mod, name)
+                  (report, "plot_convergence"), (report, "_fork_drawing"), (report, "_wait_drawing")):
+    if hasattr(mod, name):  # the last two: a tree that draws shapes.png in a forked child
+        wrap(mod, name)
 try:
     code = cli.main()
 except SystemExit as e:
@@ -264,8 +265,12 @@ def cli_timeline(tree: Path) -> dict:
         "fleet_start": m["launch_fleet start"][0], "first_round": slowest["first_round"],
         "last_round": slowest["last_round"], "stopped": m["launch_fleet end"][0],
         "result_json": m["write_json end"][0],
-        "shapes": m["plot_shapes end"][0] - m["plot_shapes start"][0],
-        "convergence": m["plot_convergence end"][0] - m["plot_convergence start"][0],
+        # drawn in a forked child (report.drawn_aside): from the fork to the end of the wait for it;
+        # by the painter (report.Painter): the launcher's wait for it after result.json
+        "shapes": _span(m, "plot_shapes start", "plot_shapes end") if "plot_shapes end" in m
+        else _span(m, "_fork_drawing end" if "_fork_drawing end" in m else "_wait_drawing start", "_wait_drawing end"),
+        "convergence": _span(m, "plot_convergence start", "plot_convergence end"),
+        "pictures": max(m[k][0] for k in ("plot_shapes end", "plot_convergence end", "_wait_drawing end") if k in m),
         "returned": m["main returned"][0],
         "cpu_start": m["launch_fleet start"][1],
         "cpu_fleet": m["launch_fleet end"][1] - m["launch_fleet start"][1],
@@ -273,11 +278,16 @@ def cli_timeline(tree: Path) -> dict:
     }
 
 
+def _span(marks: dict, start: str, end: str) -> float:
+    """Seconds between two marks of the timeline (nan when one is missing: drawn in another process)."""
+    return marks[end][0] - marks[start][0] if start in marks and end in marks else float("nan")
+
+
 _TIMELINE_COLUMNS = (
     ("load", "load"), ("imports", "launcher imported"), ("robots_imported", "robots imported"),
     ("fleet_start", "fleet handed over"), ("first_round", "first round"), ("last_round", "last round"),
     ("stopped", "every process stopped"), ("result_json", "result.json"), ("shapes", "shapes.png s"),
-    ("convergence", "convergence.png s"), ("returned", "main returns"), ("wall", "wall (outside)"),
+    ("convergence", "convergence.png s"), ("pictures", "pictures written"), ("returned", "main returns"), ("wall", "wall (outside)"),
     ("cpu_start", "launcher CPU to hand-over"), ("cpu_fleet", "launcher CPU during fleet"),
     ("cpu_finish", "launcher CPU after"), ("cpu_all", "CPU all processes"),
 )
@@ -296,6 +306,7 @@ def cli_timeline_table(trees: list[tuple[str, Path]], runs: int) -> str:
         cells = []
         for label, _t in trees:
             values = [r[key] for r in got[label]]
+            values = [v for v in values if v == v] or [float("nan")]  # nan: not in the launcher
             cells.append(f"{min(values):.1f}-{max(values):.1f}" if key == "load" else f"{statistics.median(values):.2f}")
         lines.append(f"| {title} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

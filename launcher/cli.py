@@ -24,15 +24,12 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, NoReturn
 
-from launcher.router import EarlyRobots, EarlyRouter
+from launcher.router import EarlyRouter
 
 #: `shapefleet launch` (the program, not a caller of main(argv)): its router starts now, before the
 #: imports below (numpy, the world, the algorithms: ~0.3 s on one core), on the core they leave free
 _EARLY_ROUTER = (EarlyRouter.for_command_line(sys.argv)
                  if __name__ == "__main__" or Path(sys.argv[0]).name == "shapefleet" else None)
-#: and its first robot processes, which import while the launcher does and then wait for their
-#: arguments (launcher/router.py EarlyRobots): the robots' start is no longer after the launcher's
-_EARLY_ROBOTS = EarlyRobots.for_command_line(sys.argv) if _EARLY_ROUTER is not None else None
 
 import gc  # noqa: E402
 
@@ -164,8 +161,6 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     """result.json, the pictures and the summary of a run. `central` is the reference of a
     fixed-grid run; an autogrid run (central None) is measured per robot on its final grid; a
     user algorithm's against its own ``reference`` (launcher/custom.py). ``quiet``: no terminal output."""
-    from rich.console import Console
-
     from launcher import report
 
     if spec.custom:
@@ -181,16 +176,19 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
         references = _autogrid_references(world, spec, robots, extra)
         bases = {i: ref.basis for i, ref in references.items()}
         result = report.build_autogrid_result(world, robots, references, wall_s=wall_s, extra=extra)
-    report.write_json(out / "result.json", result)
-    report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None, result, bases=bases)
     written = ["result.json", "data.csv", "shapes.png"]
-    if result["history"]:
-        report.plot_convergence(out / "convergence.png", result["history"])
-        written.append("convergence.png")
-    elif not spec.fixed_grid and robots and robots[0].get("residuals"):
-        hist = report.autogrid_progress(robots[0], result["robots"][0].get("function_error"))
-        report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases"))
-        written.append("convergence.png")
+    with report.drawn_aside(lambda: report.plot_shapes(out / "shapes.png", world, spec.basis if bases is None else None,
+                                                       result, bases=bases)):
+        report.write_json(out / "result.json", result)  # meanwhile, on the other core
+        if result["history"]:
+            report.plot_convergence(out / "convergence.png", result["history"])
+            written.append("convergence.png")
+        elif not spec.fixed_grid and robots and robots[0].get("residuals"):
+            hist = report.autogrid_progress(robots[0], result["robots"][0].get("function_error"))
+            report.plot_convergence(out / "convergence.png", hist, phases=robots[0].get("phases"))
+            written.append("convergence.png")
+        from rich.console import Console  # the summary's imports (~0.08 s) while shapes.png is drawn aside
+        from rich.table import Table  # noqa: F401
     first = next((r for r in robots if r.get("trace")), None)
     if spec.algorithm == "ct-admm" and first is not None:
         from launcher.trajectory import plot_trajectory, trajectory_from_trace
@@ -377,16 +375,13 @@ def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
 
 def cmd_launch(args: argparse.Namespace) -> int:
     """The Zenoh fleet: a router and one process per robot on this machine."""
-    global _EARLY_ROUTER, _EARLY_ROBOTS
+    global _EARLY_ROUTER
     early, _EARLY_ROUTER = _EARLY_ROUTER, None  # handed on once
-    robots, _EARLY_ROBOTS = _EARLY_ROBOTS, None
     try:
-        return _say(run_launch(args, early_router=early, early_robots=robots), quiet=False)
+        return _say(run_launch(args, early_router=early), quiet=False)
     finally:
         if early is not None:
             early.discard()  # when launch_fleet did not adopt it
-        if robots is not None:
-            robots.discard()
 
 
 def _free_algorithm(args: argparse.Namespace) -> str:
@@ -543,11 +538,12 @@ def _algorithm_importable(spec: Any) -> Any:
 
 
 def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | None = None,
-               early_router: EarlyRouter | None = None, early_robots: EarlyRobots | None = None) -> RunReport:
+               early_router: EarlyRouter | None = None) -> RunReport:
     """The Zenoh fleet on the parsed options; ``router``: a loopback router endpoint that
     already runs (launcher/pytest_plugin.py's ``zenoh_router``) instead of one of its own;
-    ``early_router`` / ``early_robots``: the router and robot processes `shapefleet launch` started
-    before its imports (adopted when they fit, else stopped)."""
+    ``early_router``: the router `shapefleet launch` started before its imports (adopted when it
+    fits, else stopped). The robot processes are forked from this process when it runs no other
+    thread (launcher/fleet.py ``fork_robot``), else spawned."""
     from launcher.fleet import LaunchError, _port_in_use, launch_fleet
 
     crashes = _crash_plan(args)
@@ -562,16 +558,15 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     fleet_dir = out / "fleet"
-    if not spec.custom:  # the pictures' imports run while the launcher only waits for its robots
-        from launcher.report import preload_pictures
-
-        preload_pictures()
+    # the pictures' imports run while the launcher only waits for its robots, from the hand-over on
+    # (started before it, the import thread and the hand-over shared the GIL)
+    preload = None if spec.custom else (lambda _endpoint: __import__("launcher.report").report.preload_pictures())
     try:
         with _algorithm_importable(spec):
             outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
                                    restart=not args.no_restart, zenoh_port=args.zenoh_port, progress=not quiet,
-                                   router=router, robots_per_process=args.robots_per_process,
-                                   early_router=early_router, early_robots=None if spec.custom else early_robots,
+                                   router=router, robots_per_process=args.robots_per_process, on_running=preload,
+                                   early_router=early_router,
                                    **(_launch_free(args) if free else {}))
     except ValueError as exc:  # e.g. --zenoh-port in use: the message names the flag
         raise UsageError(str(exc)) from None
@@ -881,8 +876,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if _EARLY_ROUTER is not None and argv is None:  # not handed to a launch (bad input, --help)
             _EARLY_ROUTER.discard()
-        if _EARLY_ROBOTS is not None and argv is None:
-            _EARLY_ROBOTS.discard()
         if argv is None:
             freeze_before_exit()
 

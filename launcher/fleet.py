@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from agents.spec import FleetSpec
-from launcher.router import EarlyRobots, EarlyRouter
+from launcher.router import EarlyRouter
 from launcher.router import spawn as _spawn
 from launcher.simulate import FleetOutcome
 from protocol.zenoh_config import free_loopback_port, parse_endpoint, router_endpoint, validate_endpoint
@@ -417,6 +417,144 @@ def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, star
 
 # --------------------------------------------------------------------------- robots
 
+#: robot processes forked from the launcher (after its imports, before any thread of its own) instead
+#: of each starting an interpreter and importing numpy, the algorithms and Zenoh (~0.3 s of CPU each,
+#: issue 14); SHAPEFLEET_SPAWN_ROBOTS=1 spawns them (A/B comparisons)
+FORK_ROBOTS = os.environ.get("SHAPEFLEET_SPAWN_ROBOTS", "") == "" and hasattr(os, "fork")
+#: at most this many robot processes forked (two is what `auto` starts for 3 or 5+ robots on 2
+#: cores): a forked process keeps the launcher's command line, so a fleet whose robots are found
+#: by their ``--id`` (ps, tests/test_reliability.py's pause of robot 2 of 4) is spawned
+FORK_MAX_PROCESSES = 2
+
+
+def can_fork() -> bool:
+    """This process runs no other thread (a fork beside one can copy a lock it holds) and no event
+    loop (a robot's own ``asyncio.run`` would refuse to start inside a copy of it)."""
+    asyncio = sys.modules.get("asyncio")
+    if asyncio is not None and asyncio._get_running_loop() is not None:
+        return False
+    try:
+        return len(os.listdir("/proc/self/task")) == 1
+    except OSError:
+        return False
+
+
+class ForkedChild:
+    """A robot process forked from the launcher: what launch_fleet uses of a ``subprocess.Popen``
+    (pid, stdout, poll, wait, signals). It is our child: reaped by waitpid, so its PID is never
+    another process's while we may signal it."""
+
+    stdin = None
+
+    def __init__(self, pid: int, stdout: IO[bytes]) -> None:
+        self.pid, self.stdout = pid, stdout
+        self.returncode: int | None = None
+        self.args = ["agents.robot", str(pid)]
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                pid, status = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped by someone else (a SIGCHLD handler): it has ended
+                self.returncode = 1
+                return self.returncode
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        import select
+
+        if self.poll() is None:
+            fd = os.pidfd_open(self.pid)
+            try:
+                select.select([fd], [], [], timeout)
+            finally:
+                os.close(fd)
+        code = self.poll()
+        if code is None:
+            raise subprocess.TimeoutExpired(self.args, timeout)
+        return code
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            os.kill(self.pid, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+
+def _fresh_stdio() -> None:
+    """sys.stdout and sys.stderr on file descriptors 1 and 2, as an interpreter starts them (the
+    launcher's may be something else: pytest's capture, a terminal's line buffering)."""
+    import faulthandler
+    import io
+
+    sys.stdout = io.TextIOWrapper(io.FileIO(1, "w", closefd=False), encoding="utf-8")
+    sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), encoding="utf-8", errors="backslashreplace",
+                                  line_buffering=True)
+    if faulthandler.is_enabled():
+        faulthandler.enable(sys.stderr)
+
+
+def fork_robot(args: list[str], log: IO[bytes]) -> ForkedChild | None:
+    """A robot process forked from this one running ``agents.robot.main(args)``, its stdout a pipe
+    to us and its stderr ``log`` (None when the fork fails: spawn one)."""
+    import concurrent.futures.thread  # noqa: F401 -- what a robot imports before its first round:
+    import gc
+
+    import zenoh  # noqa: F401 -- once here, not in each child
+
+    from agents import robot
+
+    for stream in (sys.stdout, sys.stderr):  # nothing of ours printed twice by the child
+        stream.flush()
+    frozen = gc.get_freeze_count()
+    gc.freeze()  # the child's collections skip (and do not copy) what we imported; ours, as before
+    read_end, write_end = os.pipe()
+    try:
+        pid = os.fork()
+    except OSError:
+        pid = -1
+    if pid:
+        if not frozen:
+            gc.unfreeze()
+        os.close(write_end)
+        if pid < 0:
+            os.close(read_end)
+            return None
+        return ForkedChild(pid, os.fdopen(read_end, "rb"))
+    code = 1
+    try:
+        os.setsid()  # a session (and scheduler autogroup) of its own, as a spawned robot's
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        os.dup2(os.open(os.devnull, os.O_RDONLY), 0)  # as a spawned robot's stdin
+        os.dup2(write_end, 1)
+        os.dup2(log.fileno(), 2)
+        os.closerange(3, 1 << 16)  # none of the launcher's files (pipes of other robots, the router's log)
+        _fresh_stdio()
+        logging.root.handlers.clear()  # the robot's own logging.basicConfig
+        code = robot.run_forked(args)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except BaseException:  # noqa: BLE001 -- said in its log, as an interpreter would
+        import traceback
+
+        traceback.print_exc()
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001
+                pass
+        os._exit(code)
+
+
 
 @dataclass
 class _Proc:
@@ -496,9 +634,9 @@ class _Fleet:
     def __init__(self, spec: FleetSpec, workdir: Path, fleet_file: Path, endpoint: str,
                  crashes: list[CrashPlan], restart: bool, restart_after: float,
                  started: list[int], console: Any | None, per_process: int = 1,
-                 robot_argv: tuple[str, ...] = ("-m", "agents.robot"), early: EarlyRobots | None = None) -> None:
+                 robot_argv: tuple[str, ...] = ("-m", "agents.robot")) -> None:
         self.spec = spec
-        self.early = early  # robot processes already started, waiting for their arguments
+        self.fork = FORK_ROBOTS and tuple(robot_argv) == ("-m", "agents.robot")
         self.restart = restart
         self.restart_after = restart_after
         self.events: queue.SimpleQueue = queue.SimpleQueue()
@@ -541,7 +679,7 @@ class _Fleet:
                     link.symlink_to(proc.log_path.name)
 
     # -- process life ------------------------------------------------------------------------
-    def start(self, p: _Proc) -> None:
+    def start(self, p: _Proc, read: bool = True) -> None:
         if p.log_fh is None:
             p.log_fh = open(p.log_path, "ab")
         if p.proc is not None:  # a restart: the killed process's pipe has reached its end
@@ -555,25 +693,38 @@ class _Fleet:
         if plans:  # the robot dies at the planned round itself; the launcher restarts it
             argv += ["--crash-at", str(plans[0].round)]
         adopted = None
-        if p.proc is None and self.early is not None:  # a first start: an early process if one waits
-            adopted = self.early.take(argv[3:], p.log_path)  # after [python, -m, agents.robot]
-        p.proc = adopted or _spawn(argv, stdout=subprocess.PIPE, stderr=p.log_fh)
+        forked = None
+        if p.proc is None and self.fork:  # a first start, no thread running: forked from us
+            forked = fork_robot(argv[3:], p.log_fh)  # after [python, -m, agents.robot]
+        p.proc = forked or _spawn(argv, stdout=subprocess.PIPE, stderr=p.log_fh)
         self.started.append(p.proc.pid)
         p.killed = False
         p.exit_code = None
         p.restart_at = None
+        if read:
+            self.read(p)
+
+    def read(self, p: _Proc) -> None:
+        """Follow the status lines of ``p``'s process (a thread)."""
+        assert p.proc is not None
         key = self.procs.index(p)
         p.reader = threading.Thread(target=_read_lines, args=(p.proc.stdout, key, p.generation, self.events),
                                     name=f"robots-{p.ids[0]}-stdout", daemon=True)
         p.reader.start()
 
     def start_all(self) -> None:
-        if self.early is not None and len(self.early.procs) < len(self.procs):
-            # every robot process an early one, or none: robots that start a second before their
-            # neighbours count them dead after a short --dead-after (seen: 2 early of 4 processes)
-            self.early = None
-        for p in self.procs:
-            self.start(p)
+        # forked from this process when it runs no other thread (then each is forked before any
+        # reader thread starts), else spawned; a restart is always spawned
+        self.fork = self.fork and len(self.procs) <= FORK_MAX_PROCESSES and can_fork()
+        try:
+            for p in self.procs:
+                self.start(p, read=not self.fork)
+        finally:
+            if self.fork:
+                self.fork = False
+                for p in self.procs:
+                    if p.proc is not None:
+                        self.read(p)
 
     def live(self) -> list[subprocess.Popen]:
         return [p.proc for p in self.procs if p.proc is not None and p.proc.poll() is None]
@@ -757,7 +908,6 @@ def launch_fleet(
     robots_per_process: int | str | None = "auto",
     robot_argv: tuple[str, ...] = ("-m", "agents.robot"),
     early_router: EarlyRouter | None = None,
-    early_robots: EarlyRobots | None = None,
 ) -> LaunchOutcome:
     """Run ``spec`` as one process per robot plus a router on 127.0.0.1; see the module doc.
 
@@ -776,8 +926,6 @@ def launch_fleet(
     ``early_router``: a router the CLI started before its imports (launcher/router.py): used
     instead of starting one when it fits (no ``zenoh_port``/``router``, its bound long enough),
     else stopped.
-    ``early_robots``: robot processes the CLI started before its imports (launcher/router.py),
-    adopted as the first robot processes of a ``-m agents.robot`` fleet; the others are stopped.
 
     Returns a :class:`LaunchOutcome` (a ``FleetOutcome``): ``robots`` holds the result of every
     robot that wrote one, sorted by id; a robot dead for good is absent.
@@ -794,15 +942,9 @@ def launch_fleet(
                      progress and sys.stdout.isatty())
     run.catch_stop_signals()
 
-    early = early_robots if tuple(robot_argv) == ("-m", "agents.robot") else None
-
     def start_robots(endpoint: str) -> _Fleet:
-        try:
-            return run.start_robots(_Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
-                                           run.started, run.console, per_process, robot_argv, early))
-        finally:
-            if early_robots is not None:
-                early_robots.discard()  # those not adopted (a port retry starts its robots anew)
+        return run.start_robots(_Fleet(run_spec, workdir, fleet_file, endpoint, crashes, restart, restart_after,
+                                       run.started, run.console, per_process, robot_argv))
 
     try:  # also when the router or a robot fails to start: our signal handlers are put back
         run.start(zenoh_port, router, start_robots, early_router)

@@ -26,19 +26,13 @@ from typing import Any
 
 from protocol.zenoh_config import TLSFiles, free_loopback_port, router_config, router_endpoint
 
-__all__ = ["run_router", "write_json_atomic", "main", "EarlyRouter", "EarlyRobots", "spawn", "child_env", "ROOT"]
+__all__ = ["run_router", "write_json_atomic", "main", "EarlyRouter", "spawn", "child_env", "ROOT"]
 
 ROOT = Path(__file__).resolve().parent.parent
 HOST = "127.0.0.1"
 #: an early router's own lifetime bound (it also ends when the launcher that started it is gone);
 #: a launch that needs a longer-lived router starts its own instead
 EARLY_ROUTER_BOUND_S = 3600.0
-#: early robot processes: one per core, at most this many; launch_fleet adopts them only when they
-#: are all its robot processes (else robots would start a second apart). An adopted process keeps its
-#: ``--early`` command line (its robots' ids are only in its stdin): a fleet whose robots are found
-#: by their ``--id`` (ps, tests/test_reliability.py's pause of robot 2 of 4) has more processes than
-#: this and starts them the usual way; two is what `auto` starts for 3 or 5+ robots on 2 cores
-EARLY_ROBOTS_MAX = 2
 
 
 def child_env() -> dict[str, str]:
@@ -149,82 +143,6 @@ def _launch_out(argv: Sequence[str]) -> str | None | bool:
         elif a.startswith("--out="):
             out = a.split("=", 1)[1]
     return out
-
-
-class EarlyRobots:
-    """Robot processes of a `shapefleet launch`, started with its early router, before the
-    launcher's own imports (issue 14: launch wall time).
-
-    Each one imports what a robot needs (numpy, the algorithms, Zenoh: ~0.3 s of CPU, the longest
-    step of a robot's start) while the launcher imports and builds the world, then waits on its
-    stdin for one line naming its arguments and log (agents/robot.py ``--early``). launch_fleet
-    adopts them as its robot processes (launcher/fleet.py ``_Fleet.start_all``) when there are as
-    many as it needs (one per core, at most EARLY_ROBOTS_MAX), else none of them. One not adopted (a smaller fleet, bad input, a free-running or user
-    algorithm fleet) is stopped by its PID (``discard``); one whose launcher is gone reads the end
-    of its stdin and exits.
-    """
-
-    def __init__(self, count: int, run_folder: str | None = None) -> None:
-        self.procs: list[subprocess.Popen] = []
-        argv = [sys.executable, "-m", "agents.robot", "--early"]
-        if run_folder:  # in its command line, as its router has (ps, tests' leftover checks)
-            argv += ["--run-folder", run_folder]
-        try:
-            for _ in range(count):
-                self.procs.append(spawn(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                        stderr=subprocess.DEVNULL))
-        except BaseException:
-            self.discard()
-            raise
-
-    @classmethod
-    def for_command_line(cls, argv: Sequence[str]) -> EarlyRobots | None:
-        """One early robot per core for a plain ``launch`` (as :meth:`EarlyRouter.for_command_line`),
-        not with ``--sync free`` (another robot program)."""
-        out = _launch_out(argv)
-        args = list(argv[1:])
-        if os.environ.get("SHAPEFLEET_NO_EARLY_ROBOTS"):  # for A/B comparisons (benchmarks)
-            return None
-        if out is False or any(a == "free" and b in ("--sync",) for b, a in zip(args, args[1:])) \
-                or "--sync=free" in args:
-            return None
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-        try:
-            return cls(min(cores, EARLY_ROBOTS_MAX), out)
-        except OSError:  # launch_fleet starts its robots as always
-            return None
-
-    def take(self, args: list[str], log_path: Path) -> subprocess.Popen | None:
-        """A waiting robot process, handed ``args`` (agents/robot.py's, after ``-m agents.robot``)
-        and its log; None when none is left (start one as usual)."""
-        while self.procs:
-            proc = self.procs.pop(0)
-            try:
-                if proc.poll() is not None:
-                    raise BrokenPipeError
-                proc.stdin.write((json.dumps({"argv": args, "log": str(log_path)}) + "\n").encode())
-                proc.stdin.close()
-                return proc
-            except (BrokenPipeError, OSError, ValueError):  # it died meanwhile: try the next
-                self._stop(proc)
-        return None
-
-    @staticmethod
-    def _stop(proc: subprocess.Popen) -> None:
-        try:
-            if proc.stdin is not None:
-                proc.stdin.close()
-        except OSError:
-            pass
-        _terminate(proc)
-        if proc.stdout is not None:
-            proc.stdout.close()
-
-    def discard(self) -> None:
-        """Stop every robot process not adopted, by its PID."""
-        procs, self.procs = self.procs, []
-        for proc in procs:
-            self._stop(proc)
 
 
 def write_json_atomic(path: Path, obj: object) -> None:

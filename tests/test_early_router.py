@@ -1,8 +1,10 @@
-"""`shapefleet launch` starts its router and its first robot processes before its imports
-(launcher/router.py EarlyRouter, EarlyRobots): a launch refused for bad input leaves neither behind
-(nor the router's folder), an early router whose launcher is gone ends by itself, and an early robot
-runs with the arguments and log its launcher hands it."""
+"""`shapefleet launch` starts its router before its imports (launcher/router.py EarlyRouter) and
+forks its robot processes from itself (launcher/fleet.py fork_robot): a launch refused for bad input
+leaves no router behind (nor its folder), an early router whose launcher is gone ends by itself, and
+a forked robot runs with the arguments and log it is given, is stopped by its PID, and stops by
+itself when its launcher is gone."""
 
+import json
 import os
 import subprocess
 import sys
@@ -11,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from launcher.router import EarlyRobots, EarlyRouter, child_env
+from launcher.router import EarlyRouter, child_env
 from protocol.zenoh_config import free_loopback_port
 
 from .conftest import processes_with
@@ -30,11 +32,10 @@ def test_bad_input_stops_the_early_router_and_removes_its_folder(tmp_path):
     assert not list(tmp_path.glob("shapefleet-router-*")) and not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("early", [EarlyRouter, EarlyRobots])
-def test_an_early_router_or_robot_is_only_for_a_plain_launch(early):
+def test_an_early_router_is_only_for_a_plain_launch():
     for args in (["simulate", "--preset", "paper"], ["launch", "--zenoh-port", "7447"], ["launch", "--config=s.toml"],
                  ["launch", "-h"]):
-        assert early.for_command_line(["shapefleet", *args]) is None, args
+        assert EarlyRouter.for_command_line(["shapefleet", *args]) is None, args
 
 
 def run_orphaned(args: str, log: Path, *, marker: str, wait_s: float = 20.0) -> list[int]:
@@ -85,41 +86,106 @@ def test_an_early_router_bound_shorter_than_the_run_is_not_adopted(tmp_path):
             router.stop()
 
 
-# ----------------------------------------------------------------------------- early robots
+# ----------------------------------------------------------------------------- forked robots
+
+_FORKER = r"""
+import json, sys, time
+from pathlib import Path
+from launcher.fleet import fork_robot
+folder, fleet, port, then = Path(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4]
+args = lambda i: ["--fleet-file", fleet, "--id", str(i), "--connect", f"tcp/127.0.0.1:{port}", "--workdir", str(folder),
+                  "--parent-pid", str(__import__("os").getpid())]
+robots = [fork_robot(args(i), open(folder / f"robot-{i}.log", "ab")) for i in (0, 1)]
+print(json.dumps([r.pid for r in robots]), flush=True)
+if then == "stop":  # as launch_fleet stops its robots: by PID, SIGTERM then SIGKILL, reaped
+    from launcher.fleet import _stop_all
+    time.sleep(1.0)
+    print(json.dumps(_stop_all(robots, grace_s=10.0)), flush=True)
+else:  # wait to be SIGKILLed, as a launcher can be
+    time.sleep(60)
+"""
 
 
-def test_no_early_robots_for_a_free_running_fleet():  # another robot program (agents/free_robot.py)
-    assert EarlyRobots.for_command_line(["shapefleet", "launch", "--sync", "free"]) is None
-    assert EarlyRobots.for_command_line(["shapefleet", "launch", "--sync=free"]) is None
+@pytest.fixture
+def router_port(tmp_path):
+    """A router for the forked robots (without one, a robot's Zenoh session takes ~9 s to give up)."""
+    from launcher.fleet import stop_process
+    from tests.conftest import start_router
+
+    port = free_loopback_port()
+    router = start_router(tmp_path, port, max_wall_s=60)
+    yield port
+    stop_process(router)
 
 
-def test_an_early_robot_runs_with_the_arguments_and_log_it_is_handed(tmp_path):
-    """The launcher's line gives the robot its arguments and its log: a fleet file that is not
-    there is the robot's usual one-line refusal (exit 2), written to the log it was handed."""
-    early, proc = EarlyRobots(1, str(tmp_path)), None
+def _forker(tmp_path: Path, port: int, then: str) -> subprocess.Popen:
+    from tests.conftest import make_run
+
+    _, spec, _ = make_run(fleet_id="forked")
+    fleet = tmp_path / "fleet.json"
+    spec.save(fleet)  # robots 0 and 1 of 3: they wait for robot 2
+    return subprocess.Popen([sys.executable, "-c", _FORKER, str(tmp_path), str(fleet), str(port), then],
+                            cwd=ROOT, env=child_env(), stdout=subprocess.PIPE, text=True)
+
+
+def _leftovers(pids: list[int], wait_s: float = 20.0) -> list[int]:
+    """Those of ``pids`` still running (not zombies) after up to ``wait_s``; each then SIGKILLed."""
+    def running(pid: int) -> bool:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    end = time.monotonic() + wait_s
+    while any(running(p) for p in pids) and time.monotonic() < end:
+        time.sleep(0.05)
+    left = [p for p in pids if running(p)]
+    for pid in left:
+        os.kill(pid, 9)
+    return left
+
+
+def test_forked_robots_are_stopped_by_their_pid(tmp_path, router_port):
+    """Two robots forked from one process (no router: they wait for one) are each a process of
+    their own in a session of its own, and stop on their launcher's SIGTERM as robots do (code 0
+    or 1 as Popen's, not SIGKILL's -9), their stderr in the log each was given."""
+    proc = _forker(tmp_path, router_port, "stop")
     try:
-        log = tmp_path / "robot-0.log"
-        proc = early.take(["--fleet-file", str(tmp_path / "nowhere.json"), "--id", "0", "--connect",
-                           "tcp/127.0.0.1:7447", "--workdir", str(tmp_path)], log)
-        assert proc is not None and early.take([], log) is None  # one process, handed once
-        assert proc.wait(30) == 2
-        said = log.read_text()
-        assert said.count("\n") == 1 and "nowhere.json" in said, said
+        pids = json.loads(proc.stdout.readline())
+        assert len(set(pids) | {proc.pid}) == 3
+        end = time.monotonic() + 10  # each calls setsid first thing after the fork
+        while not all(os.getsid(p) == p for p in pids) and time.monotonic() < end:
+            time.sleep(0.01)
+        assert all(os.getsid(p) == p for p in pids)
+        codes = json.loads(proc.stdout.readline())
+        assert proc.wait(30) == 0
     finally:
-        early.discard()
-        if proc is not None and proc.poll() is None:
+        if proc.poll() is None:
             proc.kill()
             proc.wait(10)
-        if proc is not None:
-            proc.stdout.close()
+        proc.stdout.close()
+    assert all(c in (0, 1) for c in codes), codes
+    assert all(json.loads((tmp_path / f"robot-{i}.json").read_text())["stopped"] == "signal" for i in (0, 1))
+    assert _leftovers(pids, 0.0) == []
+    assert all("Traceback" not in (tmp_path / f"robot-{i}.log").read_text() for i in (0, 1))
 
 
-def test_early_robots_not_adopted_are_stopped_by_pid(tmp_path):
-    early = EarlyRobots(2, str(tmp_path))
-    procs = list(early.procs)
-    assert len(procs) == 2 and processes_with(str(tmp_path))  # waiting, named by their run folder
-    early.discard()
-    assert all(p.returncode is not None for p in procs) and processes_with(str(tmp_path)) == []
+def test_forked_robots_stop_by_themselves_when_their_launcher_is_gone(tmp_path, router_port):
+    """A launcher killed by SIGKILL cannot stop its robots: forked ones, too, see it gone
+    (``--parent-pid``) and stop as on SIGTERM."""
+    proc = _forker(tmp_path, router_port, "wait")
+    try:
+        pids = json.loads(proc.stdout.readline())
+        proc.kill()
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        proc.stdout.close()
+    assert _leftovers(pids) == []
+    assert all("gone: stopping" in (tmp_path / f"robot-{i}.log").read_text() for i in (0, 1))
 
 
 @pytest.mark.parametrize("program", ["agents.robot", "agents.free_robot"])

@@ -581,15 +581,10 @@ def test_cli_launch_end_to_end(tmp_path):
                        "--delay", "2ms", "--crash", "1@30", "--restart-after", "0.3", timeout=50,
                        SHAPEFLEET_PROFILE="1")
     assert proc.returncode == 0, proc.stderr
-    # robot 0's process is one the program started before its imports and handed its arguments to
-    # (launcher/router.py EarlyRobots) when there were enough of those for every robot process
-    from launcher.fleet import _groups, choose_robots_per_process
-    from launcher.router import EARLY_ROBOTS_MAX
-
-    procs = len(_groups([0, 1, 2], choose_robots_per_process(3), {1}))  # robot 1 (a crash plan) alone
-    early = min(len(os.sched_getaffinity(0)), EARLY_ROBOTS_MAX)
+    # robot 0's process (robots 0 and 2; robot 1, with a crash plan, alone) was forked from the
+    # launcher (launcher/fleet.py fork_robot: its marks start at the fork); robot 1's restart is spawned
     marks = json.loads((out / "fleet" / "robot-0.json.profile.json").read_text())["marks"]
-    assert ("adopted" in marks) == (procs <= early), (procs, early)
+    assert "adopted" in marks and marks["adopted"] - marks["process"] < 5.0
     for name in ("result.json", "data.csv", "shapes.png", "convergence.png", "fleet/fleet.json"):
         assert (out / name).stat().st_size > 0, name
     result = json.loads((out / "result.json").read_text())
