@@ -308,7 +308,8 @@ def build_result(
 
 # -- autogrid: every robot measured on its own final grid and sigma -----------------------------
 #: what autogrid adds at the top level of result.json, taken from robot 0's result
-AUTOGRID_FIELDS = ("sigma_reason", "sigma_validation", "grid_history", "margin", "message", "phases")
+AUTOGRID_FIELDS = ("sigma_reason", "sigma_validation", "width_validation", "grid_history", "margin", "message",
+                   "phases")
 
 
 @dataclass(frozen=True)
