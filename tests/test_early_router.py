@@ -42,15 +42,29 @@ def run_orphaned(args: str, log: Path, *, marker: str, wait_s: float = 20.0) -> 
     """Start ``python ARGS --parent-pid <a shell>`` from a shell that exits at once (the process is
     orphaned, as when its launcher is SIGKILLed); the PIDs still running ``wait_s`` later (each then
     killed by its PID: never left running, even when the test fails)."""
-    script = f"{sys.executable} {args} --parent-pid $$ > {log} 2>&1 &"
-    subprocess.run(["sh", "-c", script], cwd=ROOT, env=child_env(), timeout=10, check=True)
+    script = f"{sys.executable} {args} --parent-pid $$ > {log} 2>&1 & echo $!"
+    said = subprocess.run(["sh", "-c", script], cwd=ROOT, env=child_env(), timeout=10, check=True,
+                          capture_output=True, text=True).stdout
+    started = int(said.split()[-1])
     end = time.monotonic() + wait_s
-    while processes_with(marker) and time.monotonic() < end:
+    # the started PID itself, not only a command-line scan: a scan that runs while the process is
+    # between fork and exec can read an empty command line and miss it (once in CI: the test then
+    # found the router "gone" before it had printed anything)
+    while (_running(started) or processes_with(marker)) and time.monotonic() < end:
         time.sleep(0.05)
-    left = processes_with(marker)
+    left = sorted(set(processes_with(marker)) | ({started} if _running(started) else set()))
     for pid in left:
         os.kill(pid, 9)
     return left
+
+
+def _running(pid: int) -> bool:
+    """``pid`` exists and is not a zombie (an orphan whose new parent has not reaped it yet)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
 
 
 def test_a_router_ends_when_its_parent_is_gone(tmp_path):
