@@ -253,15 +253,8 @@ class RobotSession:
                 self.resends["seq_gap"] += 1  # a frame of source's that never came (lost, or overtaken)
         else:
             newest = True
-        per_round = seen.per_round
-        repeat = rnd in per_round  # (a round's count there is never 0)
-        if seq in rounds:
-            seen.add(seq, rnd)
-        else:  # seen.add's common case, inline (a new seq: nothing to uncount)
-            rounds[seq] = rnd
-            per_round[rnd] = per_round.get(rnd, 0) + 1
-            if newest:
-                seen.top = seq
+        repeat = rnd in seen.per_round  # (a round's count there is never 0)
+        seen.add(seq, rnd)
         self.last_heard[source] = now
         if rnd > heard:
             self.heard_round[source] = heard = rnd
@@ -427,14 +420,7 @@ class RobotSession:
         """Drop every neighbour we wait for that is gone for good; when to look again."""
         deadline = float("inf")
         dropped = False
-        give_up, gone, too_far = self.timing.give_up_s, self._gone, self.core.round + 2
         for j in self.core.missing():
-            if j not in gone:  # _drop_due's common case, inline (per missing neighbour and wake-up):
-                give_up_at = self.last_heard.get(j, self.t0) + give_up  # its token is there and it
-                if now < give_up_at and self.heard_round.get(j, -1) < too_far:  # spoke lately
-                    if give_up_at < deadline:
-                        deadline = give_up_at
-                    continue
             when, why = self._drop_due(j, now)
             if why is None and self.heard_round.get(j, -1) >= self.core.round + 2:
                 # A live neighbour is never more than one round ahead of us unless it dropped us
