@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from agents.spec import FleetSpec
+from launcher.cores import runs_alone, usable_cores
 from launcher.router import EarlyRouter
 from launcher.router import spawn as _spawn
 from launcher.simulate import FleetOutcome
@@ -433,10 +434,7 @@ def can_fork() -> bool:
     asyncio = sys.modules.get("asyncio")
     if asyncio is not None and asyncio._get_running_loop() is not None:
         return False
-    try:
-        return len(os.listdir("/proc/self/task")) == 1
-    except OSError:
-        return False
+    return runs_alone()
 
 
 class ForkedChild:
@@ -614,7 +612,7 @@ def choose_robots_per_process(n_robots: int, setting: int | str | None = "auto",
         if k < 1:
             raise ValueError(f"--robots-per-process: {setting!r} must be at least 1 or 'auto'")
         return k
-    cores = cores or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    cores = cores or usable_cores()
     if n_robots <= cores or (n_robots <= AUTO_SOLO_PER_CORE * cores and n_robots % cores == 0):
         return 1
     return -(-n_robots // cores)

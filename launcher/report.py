@@ -25,6 +25,7 @@ import numpy as np
 from agents.kernel import GridBasis
 from agents.problem import CentralSolution, solve_central
 from launcher import scenario
+from launcher.cores import runs_alone, usable_cores
 from launcher.topology import components as connected_groups
 from launcher.world import World
 
@@ -637,7 +638,7 @@ def _fork_drawing(draw: Callable[[], None]) -> int | None:
         _PRELOAD.join(ASIDE_WAIT_S)
     try:
         import_picture_modules()  # once, here: both processes draw with it
-        if len(os.listdir("/proc/self/task")) != 1 or not _core_idle():  # a thread (ours or a library's) runs
+        if not runs_alone() or not _core_idle():  # a thread (ours or a library's) runs
             return None
         pid = os.fork()
     except Exception:  # noqa: BLE001 -- no /proc, no fork, a failed import: draw here (its error shows there)
@@ -668,8 +669,7 @@ def _core_idle() -> bool:
             runnable = int(fh.read().split()[3].split("/")[0])
     except (OSError, ValueError, IndexError):
         return False
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return runnable < cores
+    return runnable < usable_cores()
 
 
 def _wait_drawing(pid: int) -> int:
