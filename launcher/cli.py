@@ -537,6 +537,13 @@ def _algorithm_importable(spec: Any) -> Any:
             os.environ["PYTHONPATH"] = before
 
 
+def _preload_pictures(_endpoint: str) -> None:
+    """launch_fleet's ``on_running``: the picture modules' import thread, once the robots run."""
+    from launcher.report import preload_pictures
+
+    preload_pictures()
+
+
 def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | None = None,
                early_router: EarlyRouter | None = None) -> RunReport:
     """The Zenoh fleet on the parsed options; ``router``: a loopback router endpoint that
@@ -560,7 +567,7 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
     fleet_dir = out / "fleet"
     # the pictures' imports run while the launcher only waits for its robots, from the hand-over on
     # (started before it, the import thread and the hand-over shared the GIL)
-    preload = None if spec.custom else (lambda _endpoint: __import__("launcher.report").report.preload_pictures())
+    preload = None if spec.custom else _preload_pictures
     try:
         with _algorithm_importable(spec):
             outcome = launch_fleet(spec, workdir=fleet_dir, crashes=crashes, restart_after=args.restart_after,
