@@ -17,6 +17,12 @@ The first argument is the fleet (launcher Options on the paper preset), the seco
   ANDERSON_REG r, REG_AFTER r   the regularisation always / after the first firing
   RELAX_AFTER a     over-relaxation a after the first firing
 Prints one JSON line: rounds to 1e-3, at stop, error at stop, the rounds the mode changed.
+
+    .venv/bin/python benchmarks/stall_variants.py --affine-piece
+
+runs the 32-robot fleet (main's rule) to its re-arm at round 1447, where every robot's active set
+stays the same until round 2087 (the hub's map is affine there), and continues 300 rounds from that
+state under Anderson variants and the plain map; prints the error every 50 rounds.
 """
 
 from __future__ import annotations
@@ -116,6 +122,49 @@ def run(kwargs: dict[str, Any], variant: dict[str, Any], max_rounds: int = 5000)
             "mode_changes": modes, "restarts": restarts if act is not None else None}
 
 
+#: (name, hub attributes, admm module constants) continued from the affine piece
+PIECE_VARIANTS: list[tuple[str, dict[str, Any], dict[str, Any]]] = [
+    ("main (memory 30, reg 1e-5, safeguard 2)", {}, {}),
+    ("memory 60", {"memory": 60}, {}),
+    ("memory 10", {"memory": 10}, {}),
+    ("no restarts (safeguard and stall off)", {"safeguard": math.inf}, {"STALL": 1e9}),
+    ("regularisation 1e-10", {}, {"ANDERSON_REG": 1e-10}),
+    ("regularisation 1e-3", {}, {"ANDERSON_REG": 1e-3}),
+    ("plain map", {"plain": True, "since": -(10 ** 9)}, {}),
+]
+
+
+def affine_piece(start: int = 1447, rounds: int = 300) -> None:
+    """Anderson against the plain map on one affine piece of the 32-robot fleet's map (docs)."""
+    import copy
+
+    cores, error, _ = fleet_probe({"robots": 32, "topology": "geometric"}, 5000)
+    while cores[0].round < start:
+        lockstep_round(cores)
+    print(f"round {cores[0].round}, error {error():.3g}, plain {cores[0]._hub.plain}")
+    base = copy.deepcopy(cores)
+    for name, attrs, constants in PIECE_VARIANTS:
+        A._SHARED_STEPS.clear()  # no step may be adopted across variants
+        saved = {k: getattr(A, k) for k in constants}
+        for k, v in constants.items():
+            setattr(A, k, v)
+        cores[:] = copy.deepcopy(base)  # (`error` reads this list)
+        for c in cores:
+            for k, v in attrs.items():
+                setattr(c._hub, k, v)
+        errors = []
+        for k in range(rounds):
+            lockstep_round(cores)
+            if k % 50 == 49:
+                errors.append(f"{error():.3g}")
+        for k, v in saved.items():
+            setattr(A, k, v)
+        print(f"{name}: {' '.join(errors)}", flush=True)
+
+
 if __name__ == "__main__":
+    if sys.argv[1:] == ["--affine-piece"]:
+        affine_piece()
+        sys.exit(0)
     fleet, variant = json.loads(sys.argv[1]), json.loads(sys.argv[2]) if len(sys.argv) > 2 else {}
     print(json.dumps({"fleet": fleet, "variant": variant, **run(fleet, variant)}), flush=True)
