@@ -11,6 +11,7 @@ real one would). The figures and the verdicts are in docs/algorithm.md ("Complet
 The first argument is the fleet (launcher Options on the paper preset), the second the variant:
   STALL_PLAIN n     plain stretch of n rounds after a firing (main: STALL_WINDOW = 300)
   DOUBLE true       the k-th plain stretch lasts STALL_PLAIN x 2^(k-1) rounds
+  JUMP f            at a re-arm, s jumps f x the plain map's geometric tail along its last step
   STALL_RETRY n     the re-armed watch's window after the first firing (main: 300)
   ACT 0 | k | "after"   every copy clears Anderson's memory when any robot's active set changed
                     (0), after it has been stable for k rounds, or on changes after the first firing
@@ -42,7 +43,7 @@ from benchmarks.common import lockstep_round  # noqa: E402
 from benchmarks.rounds import fleet_probe  # noqa: E402
 
 #: the variant's knobs (module attributes the patched hub reads), main's values by default
-KNOBS: dict[str, Any] = {"STALL_PLAIN": A.STALL_WINDOW, "DOUBLE": False, "STALL_RETRY": A.STALL_WINDOW, "REG_AFTER": None,
+KNOBS: dict[str, Any] = {"STALL_PLAIN": A.STALL_WINDOW, "DOUBLE": False, "JUMP": None, "STALL_RETRY": A.STALL_WINDOW, "REG_AFTER": None,
                          "RELAX_AFTER": None}
 
 
@@ -51,8 +52,12 @@ def _watch(self: A._Hub, residual: float) -> None:
     if self.plain:
         self.since += 1
         plain = KNOBS["STALL_PLAIN"] * (2 ** (getattr(self, "firings", 1) - 1) if KNOBS["DOUBLE"] else 1)
+        if KNOBS["JUMP"] is not None:
+            self.trail = (getattr(self, "trail", []) + [self.s])[-22:]
         if self.since >= plain:
             self.plain, self.mark, self.since = False, math.inf, 0
+            if KNOBS["JUMP"] is not None and len(self.trail) == 22:
+                self.s = _jump(self.trail, KNOBS["JUMP"])
         return
     if self.resync:
         self.mark, self.since = math.inf, 0
@@ -67,6 +72,16 @@ def _watch(self: A._Hub, residual: float) -> None:
         self.firings = getattr(self, "firings", 0) + 1
         self.plain, self.since = True, 0
         self._forget()
+
+
+def _jump(trail: list[np.ndarray], share: float) -> np.ndarray:
+    """The plain map's geometric tail extrapolated: s + share x lam / (1 - lam) x (s - s_prev), lam
+    the steps' contraction over the last 20 plain rounds (a prototype in plain numpy arithmetic)."""
+    last, old = trail[-1] - trail[-2], trail[1] - trail[0]
+    lam = (float(np.linalg.norm(last)) / float(np.linalg.norm(old))) ** (1.0 / 20)
+    if not 0 < lam < 1:
+        return trail[-1]
+    return trail[-1] + share * lam / (1.0 - lam) * last
 
 
 _EXTRAPOLATE = A._Hub._extrapolate
