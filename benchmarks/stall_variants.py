@@ -75,13 +75,14 @@ def _watch(self: A._Hub, residual: float) -> None:
 
 
 def _jump(trail: list[np.ndarray], share: float) -> np.ndarray:
-    """The plain map's geometric tail extrapolated: s + share x lam / (1 - lam) x (s - s_prev), lam
-    the steps' contraction over the last 20 plain rounds (a prototype in plain numpy arithmetic)."""
-    last, old = trail[-1] - trail[-2], trail[1] - trail[0]
-    lam = (float(np.linalg.norm(last)) / float(np.linalg.norm(old))) ** (1.0 / 20)
-    if not 0 < lam < 1:
+    """The plain map's geometric tail extrapolated from 10-round displacements (they average out
+    over-relaxation's period-2 swings): D = s - s_10 and D_old = s_10 - s_20, q = |D| / |D_old|,
+    s + share x q / (1 - q) x D (a prototype in plain numpy arithmetic)."""
+    d, d_old = trail[-1] - trail[-11], trail[-11] - trail[-21]
+    q = float(np.linalg.norm(d)) / float(np.linalg.norm(d_old))
+    if not 0 < q < 1:
         return trail[-1]
-    return trail[-1] + share * lam / (1.0 - lam) * last
+    return trail[-1] + share * q / (1.0 - q) * d
 
 
 _EXTRAPOLATE = A._Hub._extrapolate
