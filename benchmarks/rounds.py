@@ -16,12 +16,15 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
                                                         # the relay hub, or with --edge the edge form
     .venv/bin/python benchmarks/rounds.py --complete-large  # complete fleets of 16-48 robots, the hub's
                                                             # stall switch (~8 minutes)
+    .venv/bin/python benchmarks/rounds.py --stall-stretches  # where a stalled fleet's rounds go: its
+                                                             # Anderson and plain stretches (~3 minutes)
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -165,6 +168,75 @@ def complete_large(max_rounds: int) -> list[str]:
     return lines
 
 
+# -- where a stalled fleet's rounds go ------------------------------------------------------------
+#: the fleets analysed stretch by stretch (issue 14's 32-robot fleet and the slowest other stalled one)
+STRETCH_FLEETS = [
+    ("32 robots, geometric", {"robots": 32, "topology": "geometric"}),
+    ("24 robots", {"robots": 24}),
+]
+#: a margin row counts as active in a robot's local solve when rows @ v <= 1 + ACTIVE_EPS (the QP is
+#: solved to 1e-10; rows well inside the margin sit at >= 1 + 1e-3)
+ACTIVE_EPS = 1e-7
+
+
+def fleet_probe(kwargs: dict, max_rounds: int) -> tuple[list, Callable[[], float], Callable[[], list[frozenset]]]:
+    """A fleet's cores in process (the paper preset), its error against the exact central QP and
+    its active set: every robot's set of margin rows at equality in its local solve
+    (rows @ v <= 1 + ACTIVE_EPS), read from the cores' data -- an analysis, not a protocol."""
+    import numpy as np
+
+    from agents.problem import margin_rows
+
+    world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
+    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    b = spec.basis
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    rows = [margin_rows(c._features, c._labels) for c in cores]
+
+    def error() -> float:
+        return max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores)
+
+    def active() -> list[frozenset]:
+        return [frozenset(np.flatnonzero(r @ c.values <= 1 + ACTIVE_EPS).tolist()) for r, c in zip(rows, cores)]
+
+    return cores, error, active
+
+
+def stall_stretches(kwargs: dict, max_rounds: int) -> list[tuple]:
+    """The hub's run split into its Anderson and plain stretches (agents/admm.py, `watch`): per
+    stretch (mode, first round, last round, error at both ends vs the exact QP, the rounds in it
+    whose fleet active set changed, the fleet's active rows at its end; `fleet_probe`)."""
+    cores, error, active = fleet_probe(kwargs, max_rounds)
+    stretches: list[tuple] = []
+    mode, start, e_start, changes = "anderson", 0, error(), 0
+    seen = active()
+    while not all(c.finished for c in cores):
+        lockstep_round(cores)
+        now = "plain" if cores[0]._hub.plain else "anderson"
+        a = active()
+        changed, seen = a != seen, a
+        if now != mode:  # the round the watch fired or re-armed: the stretch before it ends here
+            e = error()
+            stretches.append((mode, start, cores[0].round, e_start, e, changes, sum(map(len, a))))
+            mode, start, e_start, changes = now, cores[0].round, e, 0
+        changes += changed
+    stretches.append((mode, start, cores[0].round, e_start, error(), changes, sum(map(len, seen))))
+    return stretches
+
+
+def stretch_table(max_rounds: int) -> list[str]:
+    lines = [
+        "| fleet | stretch | rounds | error at start -> end | error's rate per round | rounds with an active-set change | active rows at end |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for label, kwargs in STRETCH_FLEETS:
+        for mode, start, end, e0, e1, changes, n_active in stall_stretches(kwargs, max_rounds):
+            rate = (e1 / e0) ** (1.0 / max(end - start, 1)) if e0 > 0 and e1 > 0 else float("nan")
+            add_row(lines, f"| {label} | {mode} {start}-{end} | {end - start} | {e0:.3g} -> {e1:.3g} | {rate:.5f} | "
+                           f"{changes} | {n_active} |")
+    return lines
+
+
 # -- the stopping rule's safety on sparse fleets -------------------------------------------------
 #: (topology, robots): a ring and a line, the edge form's slow cases; every built-in shape x seeds
 STOP_CHECK_FLEETS = [("ring", 6), ("line", 4)]
@@ -223,7 +295,12 @@ def main() -> None:
                     help="only the stopping rule's error at stop on sparse fleets (shapes x seeds)")
     ap.add_argument("--complete-large", action="store_true",
                     help="only the complete fleets of 16-48 robots (the hub's stall switch), rounds-complete.md")
+    ap.add_argument("--stall-stretches", action="store_true",
+                    help="only the stalled fleets' Anderson and plain stretches (printed, not written)")
     args = ap.parse_args()
+    if args.stall_stretches:
+        stretch_table(args.max_rounds)
+        return
     if args.complete_large:
         write_results("rounds-complete.md", "# Decentralized ADMM: complete fleets of 16-48 robots\n\n"
                       + "\n".join(complete_large(args.max_rounds)) + "\n")
