@@ -178,9 +178,30 @@ def affine_piece(start: int = 1447, rounds: int = 300) -> None:
         print(f"{name}: {' '.join(errors)}", flush=True)
 
 
-if __name__ == "__main__":
-    if sys.argv[1:] == ["--affine-piece"]:
+def _json_object(text: str) -> dict[str, Any]:
+    """An argument that must be a JSON object (argparse turns the ValueError into exit 2)."""
+    value = json.loads(text)
+    if not isinstance(value, dict):
+        raise ValueError(text)
+    return value
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("fleet", nargs="?", type=_json_object, help='the fleet, e.g. \'{"robots": 32, "topology": "geometric"}\'')
+    ap.add_argument("variant", nargs="?", type=_json_object, default={}, help='the variant, e.g. \'{"ACT": 0}\'')
+    ap.add_argument("--affine-piece", action="store_true", help="the 32-robot fleet's affine piece (docs)")
+    args = ap.parse_args(argv)
+    if args.affine_piece:
         affine_piece()
-        sys.exit(0)
-    fleet, variant = json.loads(sys.argv[1]), json.loads(sys.argv[2]) if len(sys.argv) > 2 else {}
-    print(json.dumps({"fleet": fleet, "variant": variant, **run(fleet, variant)}), flush=True)
+        return
+    if args.fleet is None:
+        ap.error("give a fleet (a JSON object) or --affine-piece")
+    print(json.dumps({"fleet": args.fleet, "variant": args.variant, **run(args.fleet, args.variant)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
