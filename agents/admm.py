@@ -810,5 +810,4 @@ class ConsensusADMM(RoundCore):
             q = -self._hub.penalty * self._hub.center(self.robot_id)
         for edge in self._edges.values():
             q += edge.sign * edge.lam - edge.rho * edge.z
-        sol = self._qp.solve(q)
-        return np.append(sol.x, sol.gamma)
+        return self._qp.solve_v(q)
