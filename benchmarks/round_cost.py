@@ -35,7 +35,10 @@ both alike; the load average is printed beside each figure.
 
 ``--in-process`` measures the per-round compute of the paper preset the same way (3 robots to
 convergence, 16 robots for 60 rounds; CPU ms per fleet round), this tree also with the hub's
-shared step off (what a process hosting one robot computes; agents/admm.py SHARED_STEPS_KEPT).
+shared step off (what a process hosting one robot computes; agents/admm.py SHARED_STEPS_KEPT),
+with a digest of every robot's result (both trees must print the same). With ``--robots N``
+(and ``--rounds``, ``--topology``) it measures that one fleet instead, every round run (``tol``
+1e-14), sharing on: ``--in-process --robots 32 --rounds 300 --topology geometric``.
 
 ``--frames`` measures the per-frame receive path (issue 14, branch framecost): the in-process fleet
 of ``--robots`` (32 here unless given) on the geometric graph for ``--rounds`` (200 here unless
@@ -240,34 +243,46 @@ robots, rounds, share = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1"
 if not share and hasattr(admm, "SHARED_STEPS_KEPT"):
     admm.SHARED_STEPS_KEPT = 0
 kw = {} if rounds <= 0 else {"max_rounds": rounds, "tol": 1e-12}
+if len(sys.argv) > 4:  # one named fleet (--robots): its topology, every round run
+    kw.update(topology=sys.argv[4], tol=1e-14)
 _, spec = build_world(Options(fleet_id="per-round", preset="paper", robots=robots, **kw))
 simulate_fleet(spec)  # warm: first-call imports and caches
 cpu = time.process_time()
 out = simulate_fleet(spec)
 cpu = time.process_time() - cpu
-print(json.dumps({"cpu_s": cpu, "rounds": max(r["rounds"] for r in out.robots)}))
+import hashlib
+h = hashlib.sha256()  # every robot's final (x, gamma), rounds, residual and how it stopped: trees must agree
+for r in sorted(out.robots, key=lambda r: r["id"]):
+    h.update(repr((r["id"], r["x"], r["gamma"], r["rounds"], r["residual"], r["converged"])).encode())
+print(json.dumps({"cpu_s": cpu, "rounds": max(r["rounds"] for r in out.robots), "digest": h.hexdigest()[:16]}))
 """
 
 
-def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: int) -> str:
-    """In-process CPU per fleet round of the paper preset (``simulate_fleet``, no report), per tree;
-    this tree also with the hub's shared step turned off (agents/admm.py SHARED_STEPS_KEPT = 0: what
-    one robot per process computes)."""
-    runs = ([("before", base, True)] if base else []) + [("after", ROOT, True), ("after, no sharing", ROOT, False)]
-    lines = ["| robots | rounds | tree | CPU ms per fleet round | per robot-round | load |", "|---:|---:|---|---:|---:|---:|"]
+def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: int, *, topology: str | None = None,
+                    unshared: bool = True) -> str:
+    """In-process CPU per fleet round of the paper preset (``simulate_fleet``, no report), per tree,
+    with a digest of the result (the trees must agree bit for bit); with ``unshared`` this tree
+    also with the hub's shared step turned off (agents/admm.py SHARED_STEPS_KEPT = 0: what one
+    robot per process computes)."""
+    runs = (([("before", base, True)] if base else []) + [("after", ROOT, True)]
+            + ([("after, no sharing", ROOT, False)] if unshared else []))
+    lines = ["| robots | rounds | tree | CPU ms per fleet round | per robot-round | result digest | load |",
+             "|---:|---:|---|---:|---:|---|---:|"]
     print("\n".join(lines), flush=True)
     for robots, rounds in sizes:
         for _ in range(repeats):
             for label, tree, share in runs:
                 load = os.getloadavg()[0]
-                out = subprocess.run([sys.executable, "-c", PER_ROUND_SNIPPET, str(robots), str(rounds), "1" if share else "0"],
+                argv = [str(robots), str(rounds), "1" if share else "0"] + ([topology or "complete"] if not unshared else [])
+                out = subprocess.run([sys.executable, "-c", PER_ROUND_SNIPPET, *argv],
                                      cwd=tree, capture_output=True, text=True, timeout=900,
                                      env={**os.environ, "PYTHONPATH": str(tree)})
                 if out.returncode != 0:
                     raise RuntimeError(f"in-process run in {tree} failed: {out.stderr.strip()[-500:]}")
                 got = json.loads(out.stdout.strip().splitlines()[-1])
                 ms = 1e3 * got["cpu_s"] / got["rounds"]
-                lines.append(f"| {robots} | {got['rounds']} | {label} | {ms:.2f} | {ms / robots:.3f} | {load:.1f} |")
+                lines.append(f"| {robots} | {got['rounds']} | {label} | {ms:.2f} | {ms / robots:.3f} | `{got['digest']}` "
+                             f"| {load:.1f} |")
                 print(lines[-1], flush=True)
     return "\n".join(lines)
 
@@ -379,7 +394,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.in_process:
         print(f"# in-process CPU per fleet round, {os.cpu_count()} cores", flush=True)
-        per_round_table(args.base, [(3, 0), (16, 60)], args.repeats)
+        if args.robots != ap.get_default("robots"):  # one fleet: --robots, --rounds, --topology; sharing on
+            per_round_table(args.base, [(args.robots, args.rounds)], args.repeats, topology=args.topology,
+                            unshared=False)
+        else:
+            per_round_table(args.base, [(3, 0), (16, 60)], args.repeats)
         return 0
     if args.compute:
         print(f"# compute per round, {os.cpu_count()} cores", flush=True)
