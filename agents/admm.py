@@ -813,9 +813,10 @@ class ConsensusADMM(RoundCore):
             self._qp.set_prox(self._prox_weight())
 
     def _primal_step(self) -> np.ndarray:
+        hub = self._hub
+        if hub is not None and hub.s is not None:  # (a hub has no edges)
+            return self._qp.solve_v(-hub.penalty * hub.center(self.robot_id))
         q = np.zeros(self.dim)
-        if self._hub is not None and self._hub.s is not None:
-            q = -self._hub.penalty * self._hub.center(self.robot_id)
         for edge in self._edges.values():
             q += edge.sign * edge.lam - edge.rho * edge.z
         return self._qp.solve_v(q)

@@ -43,12 +43,15 @@ def check_iterate(values: np.ndarray) -> str | None:
     v = np.asarray(values, dtype=float)
     if not v.size:
         return None
-    big = float(np.abs(v).max())
+    big = float(_max_reduce(np.abs(v)))  # (ndarray.max's own reduction, without its Python wrapper)
     if big <= DIVERGED_ABS:
         return None
     if not math.isfinite(big):
         return "non-finite iterate (NaN or inf)"
     return f"exploding iterate (largest component {big:.3g} > {DIVERGED_ABS:g})"
+
+
+_max_reduce = np.maximum.reduce
 
 
 def to_bytes(a: np.ndarray | None) -> bytes | None:
@@ -70,8 +73,11 @@ def relative_gaps(v: np.ndarray, w: np.ndarray) -> np.ndarray:
     """`relative_gap` of each row of w to v (one call for several gaps: each row's value is the
     same bits as on its own)."""
     d = np.atleast_2d(w) - v
-    dx = np.sqrt(np.einsum("ij,ij->i", d[:, :-1], d[:, :-1])) / max(float(np.sqrt(v[:-1] @ v[:-1])), _TINY)
-    return dx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))
+    dx = d[:, :-1]
+    x = v[:-1]
+    # (math.sqrt of the float and np.sqrt of the float64: both the correctly rounded root)
+    gx = np.sqrt(np.einsum("ij,ij->i", dx, dx)) / max(math.sqrt(float(x @ x)), _TINY)
+    return gx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))
 
 
 def check_neighbours(robot_id: int, neighbours: tuple[int, ...]) -> None:

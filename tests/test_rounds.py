@@ -32,3 +32,25 @@ def test_check_iterate_gives_the_plain_verdicts():
         cases.append(v)
     for v in cases:
         assert check_iterate(v) == _plain_check(v), v
+
+
+def test_relative_gaps_keep_their_bits():
+    """`relative_gaps` (the residual of every round) against its first form, bit for bit: the
+    norm of v by math.sqrt instead of np.sqrt, rows given as one vector, a stack or a strided
+    view (the hub passes the v-half of its frames), tiny and huge scales."""
+    from agents.rounds import _TINY, relative_gaps
+
+    def plain(v, w):
+        d = np.atleast_2d(w) - v
+        dx = np.sqrt(np.einsum("ij,ij->i", d[:, :-1], d[:, :-1])) / max(float(np.sqrt(v[:-1] @ v[:-1])), _TINY)
+        return dx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))
+
+    rng = np.random.default_rng(4)
+    for _ in range(500):
+        dim, n = int(rng.integers(2, 40)), int(rng.integers(1, 33))
+        scale = 10.0 ** rng.integers(-150, 150)
+        v = rng.normal(size=dim) * scale
+        frames = rng.normal(size=(n, 2 * dim)) * scale
+        for w in (frames[:, :dim], np.ascontiguousarray(frames[:, :dim]), frames[0, :dim]):
+            assert relative_gaps(v, w).tobytes() == plain(v, w).tobytes()
+    assert relative_gaps(np.zeros(3), np.ones((2, 3))).tobytes() == plain(np.zeros(3), np.ones((2, 3))).tobytes()
