@@ -307,8 +307,10 @@ class _Hub:
         (`message` for every robot at once: the same elementwise operations.)"""
         assert self.s is not None
         d = self.dim
-        h = self.relax * np.array(values) + (1.0 - self.relax) * self.s[:d]
-        return np.array_equal(h + self.s[d:].reshape(h.shape), np.array(ws))
+        h = self.relax * np.asarray(values) + (1.0 - self.relax) * self.s[:d]  # (elementwise: any layout)
+        h += self.s[d:].reshape(h.shape)
+        w = np.asarray(ws)
+        return h.shape == w.shape and bool((h == w).all())  # np.array_equal, without its wrapper
 
     def step(self, ws: list[np.ndarray], synced: bool = True) -> float:
         """Fold in the robots' w at s, move s to the next point; returns |T - s|.
