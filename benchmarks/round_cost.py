@@ -39,6 +39,11 @@ shared step off (what a process hosting one robot computes; agents/admm.py SHARE
 with a digest of every robot's result (both trees must print the same). With ``--robots N``
 (and ``--rounds``, ``--topology``) it measures that one fleet instead, every round run (``tol``
 1e-14), sharing on: ``--in-process --robots 32 --rounds 300 --topology geometric``.
+``--in-process --interleaved --base DIR`` loads both trees into one process and alternates their
+runs of ``--robots`` (``--rounds``, every round run, ``--repeats`` pairs; ``--no-sharing``: the hub
+step computed by every robot, as a process hosting one robot does): thread CPU per fleet round and
+the ratio within each pair, which a machine shared with other jobs leaves far steadier than runs in
+separate processes (branch corecost, results/round_cost.md).
 
 ``--frames`` measures the per-frame receive path (issue 14, branch framecost): the in-process fleet
 of ``--robots`` (32 here unless given) on the geometric graph for ``--rounds`` (200 here unless
@@ -287,6 +292,59 @@ def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: in
     return "\n".join(lines)
 
 
+INTERLEAVED_SNIPPET = """
+import hashlib, importlib, json, os, statistics, sys, time
+def load(tree):  # a tree's modules under their own names, then out of sys.modules for the next tree
+    for m in [m for m in sys.modules if m.split(".")[0] in ("agents", "protocol", "launcher")]:
+        del sys.modules[m]
+    sys.path.insert(0, tree)
+    mods = [importlib.import_module(m) for m in ("launcher.simulate", "launcher.world", "agents.admm")]
+    sys.path.remove(tree)
+    return mods
+robots, rounds, reps, share, trees = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1", sys.argv[5:]
+runs = []
+for tree in trees:
+    sim, world, admm = load(tree)
+    if not share:
+        admm.SHARED_STEPS_KEPT = 0
+    kw = {"preset": "paper", "robots": robots, "max_rounds": rounds, "tol": 1e-300}
+    if robots > 16:
+        kw["topology"] = "geometric"
+    spec = world.build_world(world.Options(fleet_id="interleaved", **kw))[1]
+    out = sim.simulate_fleet(spec)  # warm, and the digest
+    h = hashlib.sha256(repr([(r["id"], r["x"], r["gamma"], r["rounds"], r["residual"]) for r in out.robots]).encode())
+    runs.append((sim.simulate_fleet, spec, max(r["rounds"] for r in out.robots), h.hexdigest()[:16]))
+ms, loads = [[] for _ in trees], []
+for i in range(reps):
+    for k in (range(len(trees)) if i % 2 == 0 else reversed(range(len(trees)))):
+        fn, spec, n, _ = runs[k]
+        t = time.thread_time()
+        fn(spec)
+        ms[k].append(1e3 * (time.thread_time() - t) / n)
+    loads.append(os.getloadavg()[0])
+print(json.dumps({"ms": ms, "rounds": [r[2] for r in runs], "digests": [r[3] for r in runs], "load": [min(loads), max(loads)]}))
+"""
+
+
+def interleaved_table(base: Path, robots: int, rounds: int, repeats: int, share: bool) -> str:
+    """Both trees in ONE process, their `simulate_fleet` runs alternating (thread CPU per fleet round,
+    every round run): the other helpers' load then hits both alike within each pair, which separate
+    processes minutes apart do not. Per pair the ratio before/after; the digests must agree."""
+    out = subprocess.run([sys.executable, "-c", INTERLEAVED_SNIPPET, str(robots), str(rounds), str(repeats),
+                          "1" if share else "0", str(base), str(ROOT)], capture_output=True, text=True, timeout=3600)
+    if out.returncode != 0:
+        raise RuntimeError(f"interleaved run failed: {out.stderr.strip()[-500:]}")
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    (before, after), ratios = got["ms"], [b / a for b, a in zip(*got["ms"])]
+    lines = ["| robots | rounds | sharing | before ms/fleet round (min, median) | after | ratio per pair (min, median, max) "
+             "| digests | load |", "|---:|---:|---|---:|---:|---:|---|---:|",
+             f"| {robots} | {got['rounds'][1]} | {'on' if share else 'off'} | {min(before):.3f}, {statistics.median(before):.3f} "
+             f"| {min(after):.3f}, {statistics.median(after):.3f} | {min(ratios):.3f}, {statistics.median(ratios):.3f}, "
+             f"{max(ratios):.3f} | `{got['digests'][0]}` / `{got['digests'][1]}` | {got['load'][0]:.1f}-{got['load'][1]:.1f} |"]
+    print("\n".join(lines), flush=True)
+    return "\n".join(lines)
+
+
 FRAMES_SNIPPET = """
 import gc, hashlib, json, os, sys, time
 sys.path.insert(0, os.getcwd())
@@ -382,6 +440,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--in-process", action="store_true",
                     help="in-process CPU per fleet round of the paper preset, 3 robots to convergence and 16 "
                          "robots for 60 rounds (with --base: against another checkout; --repeats)")
+    ap.add_argument("--interleaved", action="store_true",
+                    help="with --in-process and --base: both trees in one process, runs alternating (--robots, "
+                         "--rounds, --repeats pairs; module doc)")
+    ap.add_argument("--no-sharing", action="store_true", help="with --interleaved: the hub's shared step off")
     ap.add_argument("--frames", action="store_true",
                     help="CPU per received frame of the in-process fleet (--robots, default 32 here; --rounds, "
                          "default 200 here; geometric graph), whole run and replays (with --base; --repeats)")
@@ -391,6 +453,12 @@ def main(argv: list[str] | None = None) -> int:
         rounds = 200 if args.rounds == ap.get_default("rounds") else args.rounds
         print(f"# in-process CPU per received frame, {os.cpu_count()} cores", flush=True)
         frames_table(args.base, robots, rounds, args.repeats)
+        return 0
+    if args.in_process and args.interleaved:
+        if args.base is None:
+            ap.error("--interleaved needs --base")
+        print(f"# in-process thread CPU per fleet round, both trees in one process, {os.cpu_count()} cores", flush=True)
+        interleaved_table(args.base, args.robots, args.rounds, max(args.repeats, 2), not args.no_sharing)
         return 0
     if args.in_process:
         print(f"# in-process CPU per fleet round, {os.cpu_count()} cores", flush=True)
