@@ -43,7 +43,7 @@ def check_iterate(values: np.ndarray) -> str | None:
     v = np.asarray(values, dtype=float)
     if not v.size:
         return None
-    big = float(_max_reduce(np.abs(v)))  # (ndarray.max's own reduction, without its Python wrapper)
+    big = float(_max_reduce(np.abs(v), axis=None))  # (np.max's own reduction, without its Python wrapper)
     if big <= DIVERGED_ABS:
         return None
     if not math.isfinite(big):

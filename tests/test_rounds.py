@@ -24,7 +24,8 @@ def test_check_iterate_gives_the_plain_verdicts():
     non-finite: these vectors include that), and on empty and integer input."""
     rng = np.random.default_rng(11)
     specials = [np.nan, np.inf, -np.inf, 1e308, -1e308, DIVERGED_ABS, np.nextafter(DIVERGED_ABS, np.inf), -0.0, 5e-324]
-    cases = [np.zeros(0), np.arange(5), np.array([1e308, 1e308]), np.array([np.inf, np.nan]), np.array([np.nan, -np.inf])]
+    cases = [np.zeros(0), np.arange(5), np.array([1e308, 1e308]), np.array([np.inf, np.nan]), np.array([np.nan, -np.inf]),
+             np.array([[1.0, 2e12], [3.0, 4.0]]), np.array([[1.0, np.nan], [3.0, 4.0]]), np.ones((2, 3)), [1.0, 2.0]]
     for _ in range(1500):
         v = rng.normal(scale=10.0 ** rng.integers(0, 14), size=rng.integers(1, 33))
         for i in rng.integers(0, len(v), size=rng.integers(0, 4)):
