@@ -41,7 +41,7 @@ import operator
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -271,7 +271,7 @@ class _Hub:
         return self.s[: self.dim] - self.s[(k + 1) * self.dim : (k + 2) * self.dim]
 
     @staticmethod
-    def _mean(rows: list[np.ndarray]) -> np.ndarray:
+    def _mean(rows: np.ndarray | list[np.ndarray]) -> np.ndarray:
         """The rows' mean, added one row after another in id order (numpy's reduction over the
         first, slow axis adds row by row: the same bits as a loop, in one call)."""
         return np.add.reduce(np.array(rows), axis=0) / len(rows)
@@ -302,13 +302,15 @@ class _Hub:
         np.subtract(w, z_new, out=out[d:].reshape(w.shape))
         return out
 
-    def synced(self, values: list[np.ndarray], ws: list[np.ndarray]) -> bool:
+    def synced(self, values: np.ndarray | list[np.ndarray], ws: np.ndarray | list[np.ndarray]) -> bool:
         """True when every robot's w is what this copy computes for it: all copies agree (bits).
         (`message` for every robot at once: the same elementwise operations.)"""
         assert self.s is not None
         d = self.dim
-        h = self.relax * np.array(values) + (1.0 - self.relax) * self.s[:d]
-        return np.array_equal(h + self.s[d:].reshape(h.shape), np.array(ws))
+        h = self.relax * np.asarray(values) + (1.0 - self.relax) * self.s[:d]  # (elementwise: any layout)
+        h += self.s[d:].reshape(h.shape)
+        w = np.asarray(ws)
+        return h.shape == w.shape and bool((h == w).all())  # np.array_equal, without its wrapper
 
     def step(self, ws: list[np.ndarray], synced: bool = True) -> float:
         """Fold in the robots' w at s, move s to the next point; returns |T - s|.
@@ -667,12 +669,13 @@ class ConsensusADMM(RoundCore):
             self.residual = 0.0
 
     def outgoing(self) -> StateUpdate:
-        """v, and in the hub form w beside it: [v; w] (the function and result stay v)."""
-        up = super().outgoing()
+        """v, and in the hub form w beside it: [v; w] (the function and result stay v). One
+        message built (its checks run once), from fresh concatenations: no copies of v first."""
         if not self._hub_frames:
-            return up
-        prev = None if up.prev_values is None or self._prev_w is None else np.concatenate([up.prev_values, self._prev_w])
-        return replace(up, values=np.concatenate([up.values, self._w]), prev_values=prev)
+            return super().outgoing()
+        prev = None if self._prev_values is None or self._prev_w is None else np.concatenate([self._prev_values, self._prev_w])
+        return StateUpdate(sender=self.robot_id, round=self.round, values=np.concatenate([self._values, self._w]),
+                           flags=self._flags, prev_values=prev, prev_flags=self._prev_flags)
 
     def status(self) -> dict[str, Any]:
         if self._hub is not None and self._hub.plain:
@@ -709,10 +712,12 @@ class ConsensusADMM(RoundCore):
         """A complete graph: everyone's values are here, so run the fleet's accelerated hub ADMM."""
         hub = self._hub
         assert hub is not None
-        d, me = self.dim, self.robot_id
-        values = [mine if i == me else theirs[i][:d] for i in hub.ids]
-        ws = [self._w if i == me else theirs[i][d:] for i in hub.ids] if self._hub_frames else None
-        self._prev_mean, self.residual = self._shared_step(values, ws)
+        me = self.robot_id
+        # every robot's frame in id order as one (robots x frame) array: one concatenation instead
+        # of slicing v and w out of each frame and joining each half (the rows hold the same numbers)
+        own = np.concatenate([mine, self._w]) if self._hub_frames else mine
+        frames = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
+        self._prev_mean, self.residual = self._shared_step(frames)
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW :]
         if hub.plain:  # after the stall switch: the plain map's stop rule, safe on its slow modes
             self._held = plain_stop_held(self._residuals, self._held, self.params.tol)
@@ -724,22 +729,27 @@ class ConsensusADMM(RoundCore):
         self._prev_w, self._w = self._w, hub.message(me, new)
         return new, below
 
-    def _shared_step(self, values: list[np.ndarray], ws: list[np.ndarray] | None) -> tuple[np.ndarray, float]:
+    def _shared_step(self, frames: np.ndarray) -> tuple[np.ndarray, float]:
         """The part of a hub round every copy computes alike -- the hub's step on the robots' v and
-        w (None: no w in the frames, each copy computes them), the mean of the v's and the residual
-        -- taken once per process: a copy with the same token and inputs adopts the step already
-        taken (`_SHARED_STEPS`). Returns (mean, residual)."""
+        w (a row [v; w] per robot in id order; rows of v alone: no w in the frames, each copy
+        computes them), the mean of the v's and the residual -- taken once per process: a copy with
+        the same token and inputs adopts the step already taken (`_SHARED_STEPS`). Returns (mean,
+        residual). The helpers take the rows as arrays where they took lists of rows: each stacks
+        them into a fresh contiguous array first, so the arithmetic and its order are unchanged."""
         hub = self._hub
         assert hub is not None
         prev = self._prev_mean
-        key = _digest(hub.token, b"w" if ws is not None else b"-", b"p" if prev is not None else b"-",
-                      b"" if prev is None else prev, np.concatenate(values), b"" if ws is None else np.concatenate(ws))
+        d, with_w = self.dim, frames.shape[1] != self.dim
+        key = _digest(hub.token, b"w" if with_w else b"-", b"p" if prev is not None else b"-",
+                      b"" if prev is None else prev, frames)
 
         def compute() -> tuple[Any, ...]:
-            if ws is None:
+            values = frames[:, :d]
+            if not with_w:
                 shares = values if hub.s is None else [hub.message(i, v) for i, v in zip(hub.ids, values)]
                 synced = True
             else:
+                ws = frames[:, d:]
                 shares, synced = ws, hub.s is None or hub.synced(values, ws)
             if hub.s is None:
                 hub.start(shares)
@@ -747,7 +757,7 @@ class ConsensusADMM(RoundCore):
                 hub.step(shares, synced)
             mean = hub._mean(values)
             # primal: the v's spread around their mean; dual: the mean's move since last round
-            gaps = relative_gaps(mean, np.array(values if prev is None else values + [prev]))
+            gaps = relative_gaps(mean, values if prev is None else np.concatenate([values, prev[None]]))
             primal = float(np.max(gaps[: len(values)]))
             dual = 0.0 if prev is None else float(gaps[-1])
             residual = max(primal, dual)
@@ -805,10 +815,10 @@ class ConsensusADMM(RoundCore):
             self._qp.set_prox(self._prox_weight())
 
     def _primal_step(self) -> np.ndarray:
+        hub = self._hub
+        if hub is not None and hub.s is not None:  # (a hub has no edges)
+            return self._qp.solve_v(-hub.penalty * hub.center(self.robot_id))
         q = np.zeros(self.dim)
-        if self._hub is not None and self._hub.s is not None:
-            q = -self._hub.penalty * self._hub.center(self.robot_id)
         for edge in self._edges.values():
             q += edge.sign * edge.lam - edge.rho * edge.z
-        sol = self._qp.solve(q)
-        return np.append(sol.x, sol.gamma)
+        return self._qp.solve_v(q)

@@ -14,6 +14,7 @@ constraint here is a lower bound with h_u = +inf.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,10 +39,29 @@ class SolverError(RuntimeError):
 
 
 def _settings(solver: piqp.DenseSolver) -> None:
-    solver.settings.verbose = False
-    solver.settings.eps_abs = 1e-10
-    solver.settings.eps_rel = 1e-10
-    solver.settings.max_iter = 500
+    settings = solver.settings
+    settings.verbose = False
+    settings.eps_abs = 1e-10
+    settings.eps_rel = 1e-10
+    settings.max_iter = 500
+
+
+def _new_solver() -> piqp.DenseSolver:
+    solver = piqp.DenseSolver()
+    _settings(solver)
+    return solver
+
+
+def _piqp_solve(solver: piqp.DenseSolver, qp: MarginQP, full_q: np.ndarray) -> np.ndarray:
+    """Set ``solver`` up on ``qp`` with cost ``full_q`` (a full set-up: nothing of an earlier
+    solve survives it) and solve; the solution as a fresh array, or the QP's errors."""
+    solver.setup(qp._P, full_q, None, None, qp._G, qp._h_l, qp._h_u, qp._x_l, qp._x_u)
+    status = solver.solve()
+    if status == piqp.PIQP_PRIMAL_INFEASIBLE:
+        raise InfeasibleError(INFEASIBLE_ADVICE)
+    if status != piqp.PIQP_SOLVED:
+        raise SolverError(f"piqp returned {status}")
+    return np.array(solver.result.x, dtype=float)
 
 
 def margin_rows(features: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -63,11 +83,16 @@ class QPSolution:
 class MarginQP:
     """One quadratic program over v = (x, gamma[, xi]) with the margin constraints of some data.
 
-    Every solve sets piqp up afresh (about 0.1 ms for a robot's problem): piqp carries internal
-    state from one solve to the next, and a round must be a pure function of its inputs so that a
-    robot restored from a checkpoint continues bit for bit. Hard-margin steps with fewer rows than
-    variables go through the exact active-set dual instead (agents/qp_dual.py: always started at
-    lam = 0, so it is pure as well), piqp answering whenever that does not certify its point.
+    Every solve sets piqp up afresh: a round must be a pure function of its inputs so that a
+    robot restored from a checkpoint continues bit for bit. `setup` resets piqp's whole state (the
+    same bits as a new solver whatever it solved before: checked on every solve of the paper
+    preset, a 16-robot ring and the default run, in run order, shuffled, and with one solver for
+    all; tests/test_problem.py), so the solver object and its settings are made once per QP and
+    only `setup` + `solve` run per round. piqp's `update(c=...)` is NOT used: it rescales the new
+    cost in another order than `setup` and moves the last bits of ~98 % of the solutions.
+    Hard-margin steps with fewer rows than variables go through the exact active-set dual instead
+    (agents/qp_dual.py: always started at lam = 0, so it is pure as well), piqp answering
+    whenever that does not certify its point.
     """
 
     def __init__(
@@ -99,6 +124,11 @@ class MarginQP:
         if self.soft:
             self._x_l = np.concatenate([np.full(self.dim, -np.inf), np.zeros(n)])
             self._x_u = np.full(size, np.inf)
+        # piqp's solver, made (and its settings set) on the first piqp solve and set up afresh on
+        # every one; the lock only guards against two threads sharing one QP (a QP belongs to one
+        # core, which one thread drives): a second caller gets a solver of its own
+        self._solver: piqp.DenseSolver | None = None
+        self._solver_lock = threading.Lock()
 
     def _set_weights(self, prox: float | np.ndarray) -> None:
         """P = x_weight on x, plus a proximal weight per variable of (x, gamma) (a scalar for all),
@@ -138,24 +168,41 @@ class MarginQP:
                 return QPSolution(x=v[:-1].copy(), gamma=float(v[-1]), slack=slack, status="solved")
         return self.solve_piqp(q)
 
+    def solve_v(self, q: np.ndarray) -> np.ndarray:
+        """`solve`'s v = (x, gamma) as one fresh vector (the same bits as
+        ``np.append(sol.x, sol.gamma)``), without the QPSolution's copies: an ADMM round's call."""
+        q = np.asarray(q, dtype=float)
+        if self._hessian is not None:
+            exact = solve_box_dual(self._rows, self._d, self._hessian, q, self._upper)
+            if exact is not None:
+                return exact[0]  # a fresh array (agents/qp_dual.py keeps no reference)
+        z = self._piqp(q)
+        return z if not self.soft else z[: self.dim].copy()
+
     def solve_piqp(self, q: np.ndarray) -> QPSolution:
         """The same QP by piqp's interior point (to 1e-10): the fallback, and the reference in tests."""
-        full_q = np.concatenate([np.asarray(q, dtype=float), self._q_slack])
-        solver = piqp.DenseSolver()
-        _settings(solver)
-        solver.setup(self._P, full_q, None, None, self._G, self._h_l, self._h_u, self._x_l, self._x_u)
-        status = solver.solve()
-        if status == piqp.PIQP_PRIMAL_INFEASIBLE:
-            raise InfeasibleError(INFEASIBLE_ADVICE)
-        if status != piqp.PIQP_SOLVED:
-            raise SolverError(f"piqp returned {status}")
-        z = np.array(solver.result.x, dtype=float)
+        z = self._piqp(np.asarray(q, dtype=float))
         return QPSolution(
             x=z[: self.dim - 1].copy(),
             gamma=float(z[self.dim - 1]),
             slack=z[self.dim :].copy(),
             status="solved",
         )
+
+    def _piqp(self, q: np.ndarray) -> np.ndarray:
+        """piqp's solution z = (x, gamma[, xi]) as a fresh array (piqp's own result is a view of
+        the solver's memory, overwritten by its next solve)."""
+        full_q = np.concatenate([q, self._q_slack]) if self.soft else q
+        lock = self._solver_lock
+        if not lock.acquire(blocking=False):  # another thread is in this QP: a solver of its own
+            return _piqp_solve(_new_solver(), self, full_q)
+        try:
+            solver = self._solver
+            if solver is None:
+                solver = self._solver = _new_solver()
+            return _piqp_solve(solver, self, full_q)
+        finally:
+            lock.release()
 
 
 @dataclass(frozen=True)

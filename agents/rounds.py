@@ -35,14 +35,23 @@ DIVERGED_ABS = 1e12
 
 
 def check_iterate(values: np.ndarray) -> str | None:
-    """Why ``values`` (x, gamma) cannot be a result (non-finite or exploding), or None."""
+    """Why ``values`` (x, gamma) cannot be a result (non-finite or exploding), or None.
+
+    One reduction, run every round: the largest |component| is NaN when any component is NaN
+    (numpy's max propagates it), inf when any is infinite and none NaN, finite exactly when every
+    component is -- the verdicts of the separate isfinite test, without its two extra calls."""
     v = np.asarray(values, dtype=float)
-    if not np.all(np.isfinite(v)):
+    if not v.size:
+        return None
+    big = float(_max_reduce(np.abs(v), axis=None))  # (np.max's own reduction, without its Python wrapper)
+    if big <= DIVERGED_ABS:
+        return None
+    if not math.isfinite(big):
         return "non-finite iterate (NaN or inf)"
-    big = float(np.max(np.abs(v))) if v.size else 0.0
-    if big > DIVERGED_ABS:
-        return f"exploding iterate (largest component {big:.3g} > {DIVERGED_ABS:g})"
-    return None
+    return f"exploding iterate (largest component {big:.3g} > {DIVERGED_ABS:g})"
+
+
+_max_reduce = np.maximum.reduce
 
 
 def to_bytes(a: np.ndarray | None) -> bytes | None:
@@ -64,8 +73,11 @@ def relative_gaps(v: np.ndarray, w: np.ndarray) -> np.ndarray:
     """`relative_gap` of each row of w to v (one call for several gaps: each row's value is the
     same bits as on its own)."""
     d = np.atleast_2d(w) - v
-    dx = np.sqrt(np.einsum("ij,ij->i", d[:, :-1], d[:, :-1])) / max(float(np.sqrt(v[:-1] @ v[:-1])), _TINY)
-    return dx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))
+    dx = d[:, :-1]
+    x = v[:-1]
+    # (math.sqrt of the float and np.sqrt of the float64: both the correctly rounded root)
+    gx = np.sqrt(np.einsum("ij,ij->i", dx, dx)) / max(math.sqrt(float(x @ x)), _TINY)
+    return gx + np.abs(d[:, -1]) / max(1.0, abs(float(v[-1])))
 
 
 def check_neighbours(robot_id: int, neighbours: tuple[int, ...]) -> None:
@@ -298,7 +310,7 @@ class RoundCore:
         The shells ask the core rather than inspect frames: a frame may carry more than a function
         (autogrid's stacked sweep holds stop flags as floats), and only the algorithm knows which
         part is the function."""
-        return check_iterate(self.values)
+        return check_iterate(self._values)  # (read only: no copy)
 
     def status(self) -> dict[str, Any]:
         """Where the robot is (its status key while it runs): round, residual, how it stopped."""

@@ -35,7 +35,15 @@ both alike; the load average is printed beside each figure.
 
 ``--in-process`` measures the per-round compute of the paper preset the same way (3 robots to
 convergence, 16 robots for 60 rounds; CPU ms per fleet round), this tree also with the hub's
-shared step off (what a process hosting one robot computes; agents/admm.py SHARED_STEPS_KEPT).
+shared step off (what a process hosting one robot computes; agents/admm.py SHARED_STEPS_KEPT),
+with a digest of every robot's result (both trees must print the same). With ``--robots N``
+(and ``--rounds``, ``--topology``) it measures that one fleet instead, every round run (``tol``
+1e-14), sharing on: ``--in-process --robots 32 --rounds 300 --topology geometric``.
+``--in-process --interleaved --base DIR`` loads both trees into one process and alternates their
+runs of ``--robots`` (``--rounds``, every round run, ``--repeats`` pairs; ``--no-sharing``: the hub
+step computed by every robot, as a process hosting one robot does): thread CPU per fleet round and
+the ratio within each pair, which a machine shared with other jobs leaves far steadier than runs in
+separate processes (branch corecost, results/round_cost.md).
 
 ``--frames`` measures the per-frame receive path (issue 14, branch framecost): the in-process fleet
 of ``--robots`` (32 here unless given) on the geometric graph for ``--rounds`` (200 here unless
@@ -240,35 +248,100 @@ robots, rounds, share = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1"
 if not share and hasattr(admm, "SHARED_STEPS_KEPT"):
     admm.SHARED_STEPS_KEPT = 0
 kw = {} if rounds <= 0 else {"max_rounds": rounds, "tol": 1e-12}
+if len(sys.argv) > 4:  # one named fleet (--robots): its topology, every round run
+    kw.update(topology=sys.argv[4], tol=1e-14)
 _, spec = build_world(Options(fleet_id="per-round", preset="paper", robots=robots, **kw))
 simulate_fleet(spec)  # warm: first-call imports and caches
 cpu = time.process_time()
 out = simulate_fleet(spec)
 cpu = time.process_time() - cpu
-print(json.dumps({"cpu_s": cpu, "rounds": max(r["rounds"] for r in out.robots)}))
+import hashlib
+h = hashlib.sha256()  # every robot's final (x, gamma), rounds, residual and how it stopped: trees must agree
+for r in sorted(out.robots, key=lambda r: r["id"]):
+    h.update(repr((r["id"], r["x"], r["gamma"], r["rounds"], r["residual"], r["converged"])).encode())
+print(json.dumps({"cpu_s": cpu, "rounds": max(r["rounds"] for r in out.robots), "digest": h.hexdigest()[:16]}))
 """
 
 
-def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: int) -> str:
-    """In-process CPU per fleet round of the paper preset (``simulate_fleet``, no report), per tree;
-    this tree also with the hub's shared step turned off (agents/admm.py SHARED_STEPS_KEPT = 0: what
-    one robot per process computes)."""
-    runs = ([("before", base, True)] if base else []) + [("after", ROOT, True), ("after, no sharing", ROOT, False)]
-    lines = ["| robots | rounds | tree | CPU ms per fleet round | per robot-round | load |", "|---:|---:|---|---:|---:|---:|"]
+def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: int, *, topology: str | None = None,
+                    unshared: bool = True) -> str:
+    """In-process CPU per fleet round of the paper preset (``simulate_fleet``, no report), per tree,
+    with a digest of the result (the trees must agree bit for bit); with ``unshared`` this tree
+    also with the hub's shared step turned off (agents/admm.py SHARED_STEPS_KEPT = 0: what one
+    robot per process computes)."""
+    runs = (([("before", base, True)] if base else []) + [("after", ROOT, True)]
+            + ([("after, no sharing", ROOT, False)] if unshared else []))
+    lines = ["| robots | rounds | tree | CPU ms per fleet round | per robot-round | result digest | load |",
+             "|---:|---:|---|---:|---:|---|---:|"]
     print("\n".join(lines), flush=True)
     for robots, rounds in sizes:
         for _ in range(repeats):
             for label, tree, share in runs:
                 load = os.getloadavg()[0]
-                out = subprocess.run([sys.executable, "-c", PER_ROUND_SNIPPET, str(robots), str(rounds), "1" if share else "0"],
+                argv = [str(robots), str(rounds), "1" if share else "0"] + ([topology or "complete"] if not unshared else [])
+                out = subprocess.run([sys.executable, "-c", PER_ROUND_SNIPPET, *argv],
                                      cwd=tree, capture_output=True, text=True, timeout=900,
                                      env={**os.environ, "PYTHONPATH": str(tree)})
                 if out.returncode != 0:
                     raise RuntimeError(f"in-process run in {tree} failed: {out.stderr.strip()[-500:]}")
                 got = json.loads(out.stdout.strip().splitlines()[-1])
                 ms = 1e3 * got["cpu_s"] / got["rounds"]
-                lines.append(f"| {robots} | {got['rounds']} | {label} | {ms:.2f} | {ms / robots:.3f} | {load:.1f} |")
+                lines.append(f"| {robots} | {got['rounds']} | {label} | {ms:.2f} | {ms / robots:.3f} | `{got['digest']}` "
+                             f"| {load:.1f} |")
                 print(lines[-1], flush=True)
+    return "\n".join(lines)
+
+
+INTERLEAVED_SNIPPET = """
+import hashlib, importlib, json, os, statistics, sys, time
+def load(tree):  # a tree's modules under their own names, then out of sys.modules for the next tree
+    for m in [m for m in sys.modules if m.split(".")[0] in ("agents", "protocol", "launcher")]:
+        del sys.modules[m]
+    sys.path.insert(0, tree)
+    mods = [importlib.import_module(m) for m in ("launcher.simulate", "launcher.world", "agents.admm")]
+    sys.path.remove(tree)
+    return mods
+robots, rounds, reps, share, trees = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1", sys.argv[5:]
+runs = []
+for tree in trees:
+    sim, world, admm = load(tree)
+    if not share:
+        admm.SHARED_STEPS_KEPT = 0
+    kw = {"preset": "paper", "robots": robots, "max_rounds": rounds, "tol": 1e-300}
+    if robots > 16:
+        kw["topology"] = "geometric"
+    spec = world.build_world(world.Options(fleet_id="interleaved", **kw))[1]
+    out = sim.simulate_fleet(spec)  # warm, and the digest
+    h = hashlib.sha256(repr([(r["id"], r["x"], r["gamma"], r["rounds"], r["residual"]) for r in out.robots]).encode())
+    runs.append((sim.simulate_fleet, spec, max(r["rounds"] for r in out.robots), h.hexdigest()[:16]))
+ms, loads = [[] for _ in trees], []
+for i in range(reps):
+    for k in (range(len(trees)) if i % 2 == 0 else reversed(range(len(trees)))):
+        fn, spec, n, _ = runs[k]
+        t = time.thread_time()
+        fn(spec)
+        ms[k].append(1e3 * (time.thread_time() - t) / n)
+    loads.append(os.getloadavg()[0])
+print(json.dumps({"ms": ms, "rounds": [r[2] for r in runs], "digests": [r[3] for r in runs], "load": [min(loads), max(loads)]}))
+"""
+
+
+def interleaved_table(base: Path, robots: int, rounds: int, repeats: int, share: bool) -> str:
+    """Both trees in ONE process, their `simulate_fleet` runs alternating (thread CPU per fleet round,
+    every round run): the other helpers' load then hits both alike within each pair, which separate
+    processes minutes apart do not. Per pair the ratio before/after; the digests must agree."""
+    out = subprocess.run([sys.executable, "-c", INTERLEAVED_SNIPPET, str(robots), str(rounds), str(repeats),
+                          "1" if share else "0", str(base), str(ROOT)], capture_output=True, text=True, timeout=3600)
+    if out.returncode != 0:
+        raise RuntimeError(f"interleaved run failed: {out.stderr.strip()[-500:]}")
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    (before, after), ratios = got["ms"], [b / a for b, a in zip(*got["ms"])]
+    lines = ["| robots | rounds | sharing | before ms/fleet round (min, median) | after | ratio per pair (min, median, max) "
+             "| digests | load |", "|---:|---:|---|---:|---:|---:|---|---:|",
+             f"| {robots} | {got['rounds'][1]} | {'on' if share else 'off'} | {min(before):.3f}, {statistics.median(before):.3f} "
+             f"| {min(after):.3f}, {statistics.median(after):.3f} | {min(ratios):.3f}, {statistics.median(ratios):.3f}, "
+             f"{max(ratios):.3f} | `{got['digests'][0]}` / `{got['digests'][1]}` | {got['load'][0]:.1f}-{got['load'][1]:.1f} |"]
+    print("\n".join(lines), flush=True)
     return "\n".join(lines)
 
 
@@ -367,6 +440,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--in-process", action="store_true",
                     help="in-process CPU per fleet round of the paper preset, 3 robots to convergence and 16 "
                          "robots for 60 rounds (with --base: against another checkout; --repeats)")
+    ap.add_argument("--interleaved", action="store_true",
+                    help="with --in-process and --base: both trees in one process, runs alternating (--robots, "
+                         "--rounds, --repeats pairs; module doc)")
+    ap.add_argument("--no-sharing", action="store_true", help="with --interleaved: the hub's shared step off")
     ap.add_argument("--frames", action="store_true",
                     help="CPU per received frame of the in-process fleet (--robots, default 32 here; --rounds, "
                          "default 200 here; geometric graph), whole run and replays (with --base; --repeats)")
@@ -377,9 +454,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"# in-process CPU per received frame, {os.cpu_count()} cores", flush=True)
         frames_table(args.base, robots, rounds, args.repeats)
         return 0
+    if args.in_process and args.interleaved:
+        if args.base is None:
+            ap.error("--interleaved needs --base")
+        print(f"# in-process thread CPU per fleet round, both trees in one process, {os.cpu_count()} cores", flush=True)
+        interleaved_table(args.base, args.robots, args.rounds, max(args.repeats, 2), not args.no_sharing)
+        return 0
     if args.in_process:
         print(f"# in-process CPU per fleet round, {os.cpu_count()} cores", flush=True)
-        per_round_table(args.base, [(3, 0), (16, 60)], args.repeats)
+        if args.robots != ap.get_default("robots"):  # one fleet: --robots, --rounds, --topology; sharing on
+            per_round_table(args.base, [(args.robots, args.rounds)], args.repeats, topology=args.topology,
+                            unshared=False)
+        else:
+            per_round_table(args.base, [(3, 0), (16, 60)], args.repeats)
         return 0
     if args.compute:
         print(f"# compute per round, {os.cpu_count()} cores", flush=True)

@@ -96,3 +96,62 @@ def test_certification_refuses_a_point_that_is_not_optimal():
     far = 3.0 * np.append(central.x, central.gamma)  # feasible, but no margin is active
     assert certify_hard_margin(rows, far) is None
     assert solve_central(spec.basis, world.points, world.labels, C=10.0).certified is False
+
+
+def _fresh_piqp(qp: MarginQP, q: np.ndarray) -> np.ndarray:
+    """The reference: a new piqp solver for this one solve (what every solve did before the QP
+    kept its solver)."""
+    import piqp
+
+    from agents.problem import _settings
+
+    solver = piqp.DenseSolver()
+    _settings(solver)
+    full_q = np.concatenate([q, qp._q_slack])
+    solver.setup(qp._P, full_q, None, None, qp._G, qp._h_l, qp._h_u, qp._x_l, qp._x_u)
+    assert solver.solve() == piqp.PIQP_SOLVED
+    return np.array(solver.result.x)
+
+
+@pytest.mark.parametrize("C", [None, 10.0])
+def test_kept_piqp_solver_gives_a_fresh_solvers_bits(C):
+    """The QP sets its one piqp solver up afresh per solve: whatever it solved before (other costs,
+    other prox weights, an infeasible problem's failure), every answer has the bits of a new
+    solver's -- a round stays a pure function of its inputs (checkpoint restores continue bit for
+    bit). piqp's result is a view of the solver's memory: an earlier answer must not change."""
+    rng = np.random.default_rng(3)
+    features = rng.normal(size=(12, 15))
+    labels = np.where(features[:, 0] + 0.3 * features[:, 1] > 0, 1.0, -1.0)
+    qp = MarginQP(features, labels, x_weight=1 / 3, prox_weight=15.0, C=C)
+    answers = []
+    for k in range(6):
+        if k == 3:
+            qp.set_prox(0.0 if C is not None else np.r_[np.full(qp.dim - 1, 2.0), 0.0])  # piqp's path
+        q = rng.normal(scale=3.0, size=qp.dim)
+        v = qp.solve_v(q) if qp._hessian is None else qp.solve_piqp(q)
+        v = v if isinstance(v, np.ndarray) else np.append(v.x, v.gamma)
+        ref = _fresh_piqp(qp, q)[: qp.dim]
+        assert v.tobytes() == ref.tobytes()
+        answers.append((v.copy(), v))
+    bad = MarginQP(np.ones((2, 1)), np.array([1, -1]), x_weight=1.0, prox_weight=0.0, C=None)
+    with pytest.raises(InfeasibleError):
+        bad.solve_piqp(np.zeros(2))
+    q = np.ones(bad.dim)
+    good = MarginQP(np.array([[1.0], [-1.0]]), np.array([1, -1]), x_weight=1.0, prox_weight=0.0, C=None)
+    good._solver = bad._solver  # the solver that just failed, on a feasible problem
+    assert good.solve_v(q).tobytes() == _fresh_piqp(good, q)[: good.dim].tobytes()
+    assert all(kept.tobytes() == returned.tobytes() for kept, returned in answers)
+
+
+def test_solve_v_is_solve_as_one_vector():
+    """`solve_v` (the ADMM round's call) gives `solve`'s (x, gamma) bits on both solvers' paths:
+    the exact dual (hard margin, fewer rows than variables) and piqp."""
+    rng = np.random.default_rng(5)
+    for n, C in ((6, None), (30, None), (30, 5.0)):
+        features = rng.normal(size=(n, 15))
+        labels = np.where(features[:, 0] > 0, 1.0, -1.0)
+        qp = MarginQP(features, labels, x_weight=0.25, prox_weight=15.0, C=C)
+        for _ in range(3):
+            q = rng.normal(size=qp.dim)
+            sol = qp.solve(q)
+            assert qp.solve_v(q).tobytes() == np.append(sol.x, sol.gamma).tobytes()
