@@ -90,13 +90,16 @@ ROUTER_RESTARTS = 5  # a router that keeps dying is a machine problem: give up a
 # 129 robots, counted double for the launcher's pipes, logs and the router's share)
 ROBOTS_PER_CORE = 8
 ROBOT_MEMORY_MB = 50.0
+REFRESH_PER_S = 4  # the live table's redraws per second
 # robots per process (robots_per_process "auto"): one process per robot while they spread evenly
 # over the cores, up to this many per core, else one process per core; status lines from a robot without a crash plan at most this often
 AUTO_SOLO_PER_CORE = 2
 # ... but a fleet of more robots than cores and at most this many runs in one process (measured on
 # 2 cores, results/round_cost.md, branch shellcost: 3 and 4 robots faster and ~45 % less CPU so; 8 not)
 ONE_PROCESS_MAX = 4
-STATUS_INTERVAL_S = 0.05
+# one status line per robot per refresh of the live table at most (was 0.05 s: at 32 robots, 30-130 ms a round,
+# a line every round -- 0.11-0.13 ms of a robot's CPU each, and the launcher parses 32 a round)
+STATUS_INTERVAL_S = 1.0 / REFRESH_PER_S
 # robots sharing a process share one Zenoh session (own publisher, key, subscriptions, token each)
 SHARED_SESSION = os.environ.get("SHAPEFLEET_SESSION_PER_ROBOT", "") == ""
 # how long the launcher waits for a robot process whose stdout just ended to exit
@@ -104,7 +107,6 @@ EXIT_AFTER_EOF_S = 0.2
 SHARED_ROBOT_MEMORY_MB = 10.0  # a robot as a task of a shared process: its session, core, buffers
 SHARED_ROBOTS_PER_CORE = 32  # 32 robots on 2 cores converge in well under a minute (docs/scaling.md)
 STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
-REFRESH_PER_S = 4
 
 STATES = ("starting", "running", "crashed", "restarted", "dead", "finished", "stopped")
 
