@@ -514,7 +514,7 @@ def test_ctrl_c_stops_every_process(tmp_path):
         watcher.start()
         with pytest.raises(KeyboardInterrupt):
             launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
-                         zenoh_port=None, progress=False)
+                         zenoh_port=None, progress=False, robots_per_process=1)  # a process per robot
     finally:
         done.set()
         watcher.join()
