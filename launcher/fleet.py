@@ -92,7 +92,7 @@ ROBOTS_PER_CORE = 8
 ROBOT_MEMORY_MB = 50.0
 REFRESH_PER_S = 4  # the live table's redraws per second
 # robots per process (robots_per_process "auto"): one process per robot while they spread evenly
-# over the cores, up to this many per core, else one process per core; status lines from a robot without a crash plan at most this often
+# over the cores, up to this many per core, else one process per core
 AUTO_SOLO_PER_CORE = 2
 # ... but a fleet of more robots than cores and at most this many runs in one process (measured on
 # 2 cores, results/round_cost.md, branch shellcost: 3 and 4 robots faster and ~45 % less CPU so; 8 not)
