@@ -142,11 +142,12 @@ def profile_run(robots: int, rounds: int, *, topology: str | None = None, per_pr
         for k, v in p.get("resends", {}).items():
             resends[k] = resends.get(k, 0) + v
     frames = sum(r["frames_sent"] for r in out.robots)
+    wakeups = sum(p.get("wakeups", 0) for p in profs) / max(sum(p["rounds"] for p in profs), 1)
     return {"robots": robots, "rounds": rounds_run, "round_ms_median": statistics.median(medians),
             "resends": resends, "frames_per_robot_round": frames / max(robots * (rounds_run + 1), 1),
             "phase_ms": phase_ms, "cpu_ms": cpu_ms, "run_ms": run_ms, "timeline": timeline, "wall_s": out.wall_s,
             "per_process": per_process, "fleet_cpu_ms": fleet_cpu_ms, "router_cpu_ms": router_cpu_ms,
-            "processes": len(seen)}
+            "processes": len(seen), "wakeups_per_round": wakeups}
 
 
 def bare_exchange(robots: int, rounds: int = 500) -> float | None:
@@ -167,7 +168,8 @@ def render(res: dict, bare: float | None, label: str) -> str:
              + (f"; bare exchange p50 {bare:.3f} ms, ratio **{res['round_ms_median'] / bare:.2f}**" if bare else ""),
              f"CPU per round: robot processes {res['fleet_cpu_ms']:.3f} ms (all threads, summed), router "
              f"{res['router_cpu_ms']:.3f} ms (whole run / rounds)",
-             f"frames sent per robot-round {res['frames_per_robot_round']:.2f}; resends by cause "
+             f"frames sent per robot-round {res['frames_per_robot_round']:.2f}; main-loop wake-ups per robot-round "
+             f"{res.get('wakeups_per_round', float('nan')):.2f}; resends by cause "
              f"{res['resends'] or 'none'}",
              "", "| phase | wall ms/round (mean over robots) | share | main-thread CPU ms/round |", "|---|---:|---:|---:|"]
     total = res["run_ms"]

@@ -173,23 +173,26 @@ def cli_launch(tree: Path, env: dict[str, str] | None = None) -> dict:
             raise RuntimeError(f"launch in {tree} failed: {out.stderr.strip()[-500:]}")
         res = json.loads((Path(tmp) / "result.json").read_text())
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    round_ms = statistics.median(r["round_ms"]["median"] for r in res["robots"])  # issue 14's ms/round
     return {"wall_s": wall, "cpu_s": cpu, "rounds": res["rounds"], "error": res["metrics"]["function_error"],
-            "load": load}
+            "load": load, "round_ms": round_ms}
 
 
 def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -> str:
     """The whole `launch --preset paper` command, the trees alternating run by run (same minutes)."""
-    lines = ["| tree | wall s (each run) | median | CPU s, all processes (each run) | median | load | rounds, error |",
-             "|---|---|---:|---|---:|---|---|"]
+    lines = ["| tree | wall s (each run) | median | CPU s, all processes (each run) | median | ms/round (each run) "
+             "| median | load | rounds, error |",
+             "|---|---|---:|---|---:|---|---:|---|---|"]
     got: dict[str, list[dict]] = {label: [] for label, _t, _e in trees}
     for _ in range(runs):
         for label, tree, env in trees:
             got[label].append(cli_launch(tree, env))
     for label, runs_ in got.items():
-        walls, cpus = [r["wall_s"] for r in runs_], [r["cpu_s"] for r in runs_]
+        walls, cpus, ms = [r["wall_s"] for r in runs_], [r["cpu_s"] for r in runs_], [r["round_ms"] for r in runs_]
         outcomes = ", ".join(sorted({f"{r['rounds']} rounds, {r['error']:.6e}" for r in runs_}))
         lines.append(f"| {label} | {', '.join(f'{w:.2f}' for w in walls)} | **{statistics.median(walls):.2f}** "
                      f"| {', '.join(f'{c:.2f}' for c in cpus)} | {statistics.median(cpus):.2f} "
+                     f"| {', '.join(f'{m:.2f}' for m in ms)} | {statistics.median(ms):.2f} "
                      f"| {min(r['load'] for r in runs_):.1f}-{max(r['load'] for r in runs_):.1f} "
                      f"| {outcomes} |")
     return "\n".join(lines)

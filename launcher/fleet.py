@@ -90,10 +90,16 @@ ROUTER_RESTARTS = 5  # a router that keeps dying is a machine problem: give up a
 # 129 robots, counted double for the launcher's pipes, logs and the router's share)
 ROBOTS_PER_CORE = 8
 ROBOT_MEMORY_MB = 50.0
+REFRESH_PER_S = 4  # the live table's redraws per second
 # robots per process (robots_per_process "auto"): one process per robot while they spread evenly
-# over the cores, up to this many per core, else one process per core; status lines from a robot without a crash plan at most this often
+# over the cores, up to this many per core, else one process per core
 AUTO_SOLO_PER_CORE = 2
-STATUS_INTERVAL_S = 0.05
+# ... but a fleet of more robots than cores and at most this many runs in one process (measured on
+# 2 cores, results/round_cost.md, branch shellcost: 3 and 4 robots faster and ~45 % less CPU so; 8 not)
+ONE_PROCESS_MAX = 4
+# one status line per robot per refresh of the live table at most (was 0.05 s: at 32 robots, 30-130 ms a round,
+# a line every round -- 0.11-0.13 ms of a robot's CPU each, and the launcher parses 32 a round)
+STATUS_INTERVAL_S = 1.0 / REFRESH_PER_S
 # robots sharing a process share one Zenoh session (own publisher, key, subscriptions, token each)
 SHARED_SESSION = os.environ.get("SHAPEFLEET_SESSION_PER_ROBOT", "") == ""
 # how long the launcher waits for a robot process whose stdout just ended to exit
@@ -101,7 +107,6 @@ EXIT_AFTER_EOF_S = 0.2
 SHARED_ROBOT_MEMORY_MB = 10.0  # a robot as a task of a shared process: its session, core, buffers
 SHARED_ROBOTS_PER_CORE = 32  # 32 robots on 2 cores converge in well under a minute (docs/scaling.md)
 STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
-REFRESH_PER_S = 4
 
 STATES = ("starting", "running", "crashed", "restarted", "dead", "finished", "stopped")
 
@@ -605,7 +610,12 @@ def choose_robots_per_process(n_robots: int, setting: int | str | None = "auto",
     interpreter costs ~0.3 s of start-up CPU and ~25 MB. Measured (results/round_cost.md, issue
     14): 3 robots on 2 cores as 2 + 1 robots per process, against 3 processes, fleet CPU per round
     -30 %, launch -0.4 s, rounds no slower; 16 processes on 2 cores 115 ms/round against 12 ms
-    for 2 processes of 8.
+    for 2 processes of 8. A fleet of more robots than cores but at most ``ONE_PROCESS_MAX`` runs
+    in one process (branch shellcost, 2 cores: 3 robots 3.7-4.0 ms/round as 1 x 3 against
+    5.3-6.4 as 2 + 1 and 6.8-7.3 as 3 x 1; 4 robots 3.8-5.9 as 1 x 4 against 4.3-9.2 as 2 x 2;
+    robot processes' CPU -40 to -50 %; 8 robots: 2 x 4 is faster): the robots' loop thread is
+    busy while the second core runs Zenoh's threads and the router, and the robots of one process
+    share a hub step and a Zenoh session.
     """
     if setting not in (None, "auto"):
         k = int(setting)
@@ -613,6 +623,8 @@ def choose_robots_per_process(n_robots: int, setting: int | str | None = "auto",
             raise ValueError(f"--robots-per-process: {setting!r} must be at least 1 or 'auto'")
         return k
     cores = cores or usable_cores()
+    if cores < n_robots <= ONE_PROCESS_MAX:
+        return n_robots
     if n_robots <= cores or (n_robots <= AUTO_SOLO_PER_CORE * cores and n_robots % cores == 0):
         return 1
     return -(-n_robots // cores)

@@ -45,7 +45,7 @@ def test_a_lossy_free_run_over_zenoh_ends_within_tolerance_of_the_exact_answer(t
     out = tmp_path / "run"
     r = api.launch(sync="free", preset="paper", loss=0.3, delay="10ms", max_wall="60s", out=str(out))
     _assert_gone(r.pids, str(tmp_path))
-    per_process = choose_robots_per_process(3)  # `auto`: 3 robots on 2 cores run as 2 + 1
+    per_process = choose_robots_per_process(3)  # `auto`: 3 robots on 2 cores run in one process
     assert len(r.pids) == 1 + -(-3 // per_process)  # the router and the robot processes
     assert r.converged and r.exit_code == 0, r.verdict
     assert r.error is not None and r.error < 1e-3  # the relaxed ADMM's tolerance, against the exact solve

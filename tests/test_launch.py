@@ -33,7 +33,7 @@ if str(ROOT) not in sys.path:
 from agents.admm import RATE_WINDOW  # noqa: E402
 from agents.robot import alive_key  # noqa: E402
 from agents.spec import Timing  # noqa: E402
-from launcher.fleet import CrashPlan, launch_fleet, parse_crash  # noqa: E402
+from launcher.fleet import CrashPlan, choose_robots_per_process, launch_fleet, parse_crash  # noqa: E402
 from launcher.simulate import simulate_fleet  # noqa: E402
 from protocol.frames import StateUpdate, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
@@ -138,6 +138,16 @@ def test_parse_crash():
 
 
 @bound(40)
+def test_auto_layout_runs_a_small_fleet_on_few_cores_in_one_process():
+    """`--robots-per-process auto` (results/round_cost.md, branch shellcost): more robots than cores
+    but at most 4 -> one process (3 robots on 2 cores: 1 x 3, not 2 + 1); as many robots as cores or
+    fewer -> one each; larger fleets -> one process per core; a number is taken as it is."""
+    assert [choose_robots_per_process(n, "auto", cores=2) for n in (1, 2, 3, 4, 5, 8, 32)] == [1, 1, 3, 4, 3, 4, 16]
+    assert [choose_robots_per_process(n, "auto", cores=1) for n in (1, 2, 4, 5)] == [1, 2, 4, 5]
+    assert [choose_robots_per_process(n, None, cores=8) for n in (3, 8, 16, 17)] == [1, 1, 1, 3]
+    assert choose_robots_per_process(3, 1, cores=2) == 1 and choose_robots_per_process(3, "2", cores=2) == 2
+
+
 def test_three_robots_same_iterates_as_simulate_and_central(tmp_path):
     _world, spec, central = _run(tol=1e-3, fleet_id="launch-clean")
     want = _simulate(spec)
@@ -514,7 +524,7 @@ def test_ctrl_c_stops_every_process(tmp_path):
         watcher.start()
         with pytest.raises(KeyboardInterrupt):
             launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=1.0, restart=True,
-                         zenoh_port=None, progress=False)
+                         zenoh_port=None, progress=False, robots_per_process=1)  # a process per robot
     finally:
         done.set()
         watcher.join()

@@ -225,7 +225,9 @@ def test_pause_longer_than_dead_after_heals_on_the_exact_answer(tmp_path):
     """Row 1: SIGSTOP one of 4 robots for longer than --dead-after, then SIGCONT: nobody drops
     anybody (its liveliness token stays), the fleet resumes and ends on the exact answer."""
     out = tmp_path / "run"
-    with _launched("launch", *PAPER, "--robots", "4", "--dead-after", "1.5s", "--out", str(out)) as proc:
+    # one process per robot: SIGSTOP pauses robot 2 alone (`auto` runs 4 robots on 2 cores in one process)
+    with _launched("launch", *PAPER, "--robots", "4", "--robots-per-process", "1", "--dead-after", "1.5s",
+                   "--out", str(out)) as proc:
         pid = _wait_for(lambda: _round_of(out, 2) >= 5 and _pid(out, "--id 2"), 30, "robot 2 at round 5")
         os.kill(pid, signal.SIGSTOP)
         paused_at = _round_of(out, 2)
@@ -266,11 +268,12 @@ def test_sigterm_and_sighup_stop_every_child_and_write_a_partial_result(tmp_path
     """Row 5: SIGTERM (timeout, systemd, docker stop) and SIGHUP clean up like Ctrl-C (SIGINT):
     every child stopped by PID, a partial result, and where the per-robot results are."""
     out = tmp_path / "run"
-    proc = _start("launch", *PAPER, "--delay", "20ms", "--out", str(out))  # still running when signalled
+    # still running when signalled; robots in 2 processes (2 + 1), so that several robot processes are stopped
+    proc = _start("launch", *PAPER, "--delay", "20ms", "--robots-per-process", "2", "--out", str(out))
     try:
         _wait_for(lambda: _round_of(out, 0) >= 5, 30, "round 5")
         children = [p for p in processes_with(str(out)) if p != proc.pid]
-        assert len(children) >= 3  # router + the robot processes (3 robots on 2 cores: 2 processes, `auto`)
+        assert len(children) >= 3  # router + the robot processes (3 robots, 2 per process: 2 processes)
         os.kill(proc.pid, getattr(signal, sig))
         err = _finish(proc, 20)
     finally:

@@ -758,3 +758,48 @@ def test_fanout_one_subscriber_per_key_for_the_robots_of_a_process():
         assert len(got) == 4
     finally:
         loop.close()
+
+
+def test_a_frame_wakes_the_main_loop_only_when_it_can_change_the_next_step():
+    """agents/robot.py `_receive_frame` (issue 14, branch shellcost): with clean links a frame
+    resolves the sleeping main loop's waiter only if the core can now advance, the frame asks us
+    for a resend (a fast resend may come due sooner), or we linger -- not for every frame (at 32
+    robots ~6 wake-ups a round, each a full pass of the loop). Everything else only moves the
+    loop's deadlines later; the frame reaches the session either way."""
+    from agents.robot import RobotShell
+
+    spec = FakeSpec("shell-wake", LINE3, rounds=3)
+    shell = RobotShell(spec, 1, connect=["tcp/127.0.0.1:7447"], checkpoint_path=None, result_path=None,
+                       status_stream=None, build=AveragingCore, restore=AveragingCore.restore)
+    s = shell.session
+    seqs = {0: 0, 2: 0}
+
+    def frame(j: int, rnd: int, need=None) -> bytes:
+        x = spec.x0(j)
+        seqs[j] += 1
+        return encode_state(StateUpdate(j, rnd, x, 0, None if rnd == 0 else x), fleet=spec.fleet, seq=seqs[j],
+                            config_tag=spec.config_tag, need=need)
+
+    loop = asyncio.new_event_loop()
+    try:
+        def deliver(j: int, data: bytes) -> bool:
+            """Hand a frame to the shell as its main loop sleeps: did it wake the loop?"""
+            shell._waiter = loop.create_future()
+            accepted = shell.session.decoder.accepted
+            shell._receive_frame(j, data, 1.0)
+            assert shell.session.decoder.accepted == accepted + 1  # the session got it either way
+            return shell._waiter.done()
+
+        assert not deliver(0, frame(0, 0))  # robot 0's round 0: robot 2's still missing
+        assert not s.ready()
+        assert deliver(2, frame(2, 0))  # now the core can advance
+        assert s.ready() and s.advance(1.0) and shell.core.round == 1
+        assert not deliver(0, frame(0, 1, need=()))  # round 1 of robot 0, which lacks nothing
+        # robot 2 repeats its round 0, lacking our value of it (ours was lost): answer soon
+        assert deliver(2, frame(2, 0, need=(1,)))
+        assert deliver(2, frame(2, 1))  # and its round 1: the core can advance again
+        assert s.advance(1.0) and shell.core.round == 2
+        shell._clean_links = False  # fault links: a delayed copy may be due sooner, always wake
+        assert deliver(0, frame(0, 1, need=()))  # (an old round: it changes nothing, still wakes)
+    finally:
+        loop.close()
