@@ -939,19 +939,33 @@ def _reference_equivocation(seen: dict[int, tuple[int, bytes]], rnd: int, claim:
 def test_equivocation_window_matches_the_plain_rule(frames_in):
     """The decoder's incremental window (pruned only when a sender's newest round moves) accepts and
     refuses exactly what the plain rule does, and remembers the same rounds, frame after frame:
-    rounds jumping back and forth, values that differ (0/1), with or without prev (-1: none)."""
-    dec = auth_decoder(0)
+    rounds jumping back and forth, values that differ (0/1), with or without prev (-1: none).
+    Two receivers of the frames: the first parses each (decode's full path), the second takes
+    decode's short path for a frame already parsed in the process (its own inline common case)."""
+    _match_the_plain_rule(frames_in)
+
+
+def test_equivocation_window_matches_the_plain_rule_over_a_long_honest_run():
+    """The common case: a sender's rounds one after the other, each frame's prev the round
+    before's values, for longer than the window -- then equivocations and late frames."""
+    _match_the_plain_rule([(r, 0, 0) for r in range(20)] + [(11, 1, -1), (12, 0, 0), (20, 0, 1), (21, 0, 0)])
+
+
+def _match_the_plain_rule(frames_in: list[tuple[int, int, int]]) -> None:
+    first, dec = auth_decoder(2), auth_decoder(0)
     model: dict[int, tuple[int, bytes]] = {}
     for seq, (rnd, v, pv) in enumerate(frames_in):
         prev = None if pv < 0 or rnd == 0 else X + pv
         update = StateUpdate(1, rnd, X + v, 0, prev)
-        got = dec.decode(signed(update, seq=seq), expected_sender=1)
+        data = signed(update, seq=seq)
+        verdicts = [first.decode(data, expected_sender=1), dec.decode(data, expected_sender=1)]
         want = _reference_equivocation(model, rnd, (0, (X + v).tobytes()),
                                        None if prev is None else (0, prev.tobytes()))
-        assert isinstance(got, Decoded) == want, (rnd, v, pv)
-        if not want:
-            assert got.reason == "equivocation"
-        assert dec._seen.get(1, {}) == model
+        for got in verdicts:
+            assert isinstance(got, Decoded) == want, (rnd, v, pv)
+            if not want:
+                assert got.reason == "equivocation"
+        assert first._seen.get(1, {}) == model and dec._seen.get(1, {}) == model
 
 
 def test_tag_entries_are_the_sorted_tags():
