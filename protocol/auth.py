@@ -119,6 +119,12 @@ class FrameAuth:
             parts.append(h.digest())
         return b"".join(parts)
 
+    def incoming(self, senders: Iterable[int]) -> dict[int, Any]:
+        """The keyed hasher state, ready for the body, of each of ``senders`` we share a key
+        with: a tag from j to us is ``state.copy()`` fed the body (what :meth:`verify` does;
+        FrameDecoder's common case does it inline). Copy the states, never feed them."""
+        return {j: self._in[j] for j in senders if j in self._in}
+
     def verify(self, sender: int, body: bytes, tag: bytes) -> bool:
         """True iff ``tag`` is ``sender``'s tag of ``body`` to this robot (constant-time compare)."""
         base = self._in.get(sender)

@@ -388,7 +388,8 @@ class LinkLayer:
         if self.origin is None:
             self.origin = now
         cut = bool(self.faults.partitions) and self.faults.cut(src, dst, now - self.origin)
-        self.link(src, dst).send(payload, now, cut=cut)
+        link = self._links.get((src, dst))  # (the link made already: every frame but a link's first)
+        (link or self.link(src, dst)).send(payload, now, cut=cut)
 
     def next_due(self) -> float | None:
         """Earliest delivery time over all links, or None if nothing is in flight."""
@@ -400,9 +401,10 @@ class LinkLayer:
         due = [
             (t, stamp, src, dst, payload)
             for (src, dst), link in self._links.items()
+            if link._queue and link._queue[0][0] <= now  # (Link.next_due, inline: ~1000 links a call)
             for t, stamp, payload in link._pop_due(now)
         ]
-        due.sort(key=lambda item: (item[0], item[1]))
+        due.sort()  # by time, then send order: the stamps are unique, so nothing after them is compared
         return [(src, dst, payload) for _, _, src, dst, payload in due]
 
     def stats(self) -> dict[str, int]:

@@ -106,6 +106,9 @@ class SessionTiming:
         return cls(retransmit, dead, wall, linger, give_up)
 
 
+DUPLICATE, NEWEST, GAP, REPEAT = -1, 1, 2, 4  # _SeenFrames.note's answers
+
+
 class _SeenFrames:
     """One sender's recent frames, seq -> round, with what `receive` asks of them each frame --
     the newest seq and whether a round is among them -- kept up to date instead of scanned
@@ -119,14 +122,32 @@ class _SeenFrames:
         self.per_round: dict[int, int] = {}  # round -> how many seqs of `rounds` carry it
         self.top = -1  # max(rounds) when rounds is not empty
 
-    def add(self, seq: int, rnd: int) -> None:
-        old = self.rounds.get(seq)
+    def note(self, seq: int, rnd: int) -> int:
+        """What `receive` asks of a frame, then remember it (one call per frame): DUPLICATE if
+        (seq, rnd) is remembered already (nothing changes), else the bits NEWEST (no newer seq
+        remembered), GAP (seqs skipped since the newest) and REPEAT (its round was seen)."""
+        rounds = self.rounds
+        old = rounds.get(seq)
+        if old == rnd:
+            return DUPLICATE
+        if rounds:
+            top = self.top
+            if len(rounds) >= DEDUP_WINDOW:
+                self.keep_after(top - DEDUP_WINDOW // 2)
+                old = rounds.get(seq)  # (it may have forgotten seq)
+            kind = (NEWEST if seq > top else 0) | (GAP if seq > top + 1 else 0)
+        else:
+            kind = NEWEST
+        per_round = self.per_round
+        if rnd in per_round:  # (a round's count there is never 0)
+            kind |= REPEAT
         if old is not None:
             self._uncount(old)
-        self.rounds[seq] = rnd
-        self.per_round[rnd] = self.per_round.get(rnd, 0) + 1
-        if len(self.rounds) == 1 or seq > self.top:
+        rounds[seq] = rnd
+        per_round[rnd] = per_round.get(rnd, 0) + 1
+        if len(rounds) == 1 or seq > self.top:
             self.top = seq
+        return kind
 
     def keep_after(self, seq: int) -> None:
         """Forget every frame with a seq up to ``seq`` (the newest stays)."""
@@ -241,20 +262,13 @@ class RobotSession:
         seen = self._seen.get(source)
         if seen is None:
             seen = self._seen[source] = _SeenFrames()
-        rounds = seen.rounds
-        if rounds.get(seq) == rnd:
+        kind = seen.note(seq, rnd)
+        if kind == DUPLICATE:
             self.deduplicated += 1  # a copy of a frame we had (a restarted sender reuses no seq
             return None             # with another round, see SEQ_EPOCH; a fresh one may: kept)
-        if rounds:
-            if len(rounds) >= DEDUP_WINDOW:
-                seen.keep_after(seen.top - DEDUP_WINDOW // 2)
-            newest = seq > seen.top
-            if seq > seen.top + 1:
-                self.resends["seq_gap"] += 1  # a frame of source's that never came (lost, or overtaken)
-        else:
-            newest = True
-        repeat = rnd in seen.per_round  # (a round's count there is never 0)
-        seen.add(seq, rnd)
+        if kind & GAP:
+            self.resends["seq_gap"] += 1  # a frame of source's that never came (lost, or overtaken)
+        newest, repeat = kind & NEWEST, kind & REPEAT
         self.last_heard[source] = now
         if rnd > heard:
             self.heard_round[source] = heard = rnd

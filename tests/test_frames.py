@@ -155,13 +155,33 @@ def test_decode_accepts_bytearray_and_memoryview():
     assert decoder().decode(memoryview(np.zeros(8))[::2]).reason == "not-msgpack"
 
 
-def test_decoded_arrays_are_private_writable_copies():
-    data = pack(valid_map())
-    update = decoder().decode(data).update
+def _try_to_overwrite(update: StateUpdate) -> None:
+    """What a careless or hostile core could do to the arrays it was handed: write them, or make
+    them writable first. Either raises (read-only, shared) or touches only its own copy."""
     for arr in (update.values, update.prev_values):
-        assert arr.dtype == np.float64 and arr.flags.writeable and arr.flags.owndata
-        arr[:] = 0.0  # does not touch the frame bytes
-    assert decoder().decode(data).update.values.tolist() == X.tolist()
+        try:
+            arr[:] = 0.0
+        except ValueError:
+            pass
+        try:
+            arr.flags.writeable = True
+            arr[:] = 99.0
+        except ValueError:
+            pass
+
+
+def test_no_receiver_can_alter_the_values_another_receiver_gets():
+    data = pack(valid_map())
+    first, second = decoder().decode(data).update, decoder().decode(data).update
+    assert first.values.dtype == np.float64 and first.prev_values.dtype == np.float64
+    _try_to_overwrite(first)
+    for update in (first, second, decoder().decode(data).update):
+        assert update.values.tolist() == X.tolist() and update.prev_values.tolist() == PREV.tolist()
+    # the shared arrays are read-only views of the frame's immutable bytes: writing raises
+    with pytest.raises(ValueError):
+        first.values[0] = 1.0
+    with pytest.raises(ValueError):
+        first.prev_values.flags.writeable = True
 
 
 def test_encode_accepts_lists_and_float32_and_big_endian():
@@ -678,6 +698,18 @@ def test_signed_frame_is_accepted_by_each_neighbour_and_only_them():
     assert auth_decoder(2).decode(forged, expected_sender=1).reason == "auth"
 
 
+def test_a_receiver_named_twice_in_the_tag_block_is_judged_by_its_first_tag():
+    from protocol.auth import frame_tag
+
+    sender, body, _ = envelope(signed(seq=9))
+    good = frame_tag(edge_key(SECRET, 0, 1), 1, 0, body)
+    bad = bytes(16)
+    first_good = rewrap(1, body, struct.pack("<I", 0) + good + struct.pack("<I", 0) + bad)
+    first_bad = rewrap(1, body, struct.pack("<I", 0) + bad + struct.pack("<I", 0) + good)
+    assert isinstance(auth_decoder(0).decode(first_good, expected_sender=1), Decoded)
+    assert auth_decoder(0).decode(first_bad, expected_sender=1).reason == "auth"
+
+
 def test_signer_must_be_the_sender():
     with pytest.raises(ValueError, match="cannot sign"):
         encode_state(StateUpdate(2, 1, X, 0, None), fleet=FLEET, seq=0, config_tag=TAG, auth=auth(1))
@@ -827,9 +859,9 @@ def test_a_fleet_file_without_keys_is_refused_with_exit_2(tmp_path):
 # ------------------------------------------------------------------------------ parse memo
 
 
-def test_parse_memo_is_shared_but_each_receiver_gets_its_own_arrays_and_verdict():
+def test_parse_memo_is_shared_but_each_receiver_gets_its_own_verdict_and_cannot_alter_values():
     """Robots of one process parse a broadcast frame once (protocol.frames._MEMO); the tag check
-    stays per receiver, and the arrays handed out are never shared between receivers."""
+    stays per receiver, and no receiver can change the values another one gets."""
     from protocol.frames import _MEMO
 
     data = signed(StateUpdate(1, 30, X, 1, PREV), seq=77)
@@ -838,9 +870,8 @@ def test_parse_memo_is_shared_but_each_receiver_gets_its_own_arrays_and_verdict(
     assert _MEMO.misses - misses == 2  # the envelope and the body, once for both receivers
     assert isinstance(first, Decoded) and isinstance(second, Decoded)
     assert first.update == second.update == StateUpdate(1, 30, X, 1, PREV) and first.seq == 77
-    assert first.update.values is not second.update.values
-    first.update.values[0] = 99.0  # a receiver writing its copy does not touch the other's
-    assert second.update.values[0] == X[0]
+    _try_to_overwrite(first.update)  # a receiver writing what it got does not touch the other's
+    assert second.update == StateUpdate(1, 30, X, 1, PREV)
     assert auth_decoder(2).decode(data, expected_sender=1).update.values[0] == X[0]
     # the memo holds the parse, not the authentication: a stranger still fails on the same bytes
     assert FrameDecoder(FLEET, KNOWN, DIM, TAG, auth=auth(7)).decode(data, expected_sender=1).reason == "auth"
@@ -908,19 +939,33 @@ def _reference_equivocation(seen: dict[int, tuple[int, bytes]], rnd: int, claim:
 def test_equivocation_window_matches_the_plain_rule(frames_in):
     """The decoder's incremental window (pruned only when a sender's newest round moves) accepts and
     refuses exactly what the plain rule does, and remembers the same rounds, frame after frame:
-    rounds jumping back and forth, values that differ (0/1), with or without prev (-1: none)."""
-    dec = auth_decoder(0)
+    rounds jumping back and forth, values that differ (0/1), with or without prev (-1: none).
+    Two receivers of the frames: the first parses each (decode's full path), the second takes
+    decode's short path for a frame already parsed in the process (its own inline common case)."""
+    _match_the_plain_rule(frames_in)
+
+
+def test_equivocation_window_matches_the_plain_rule_over_a_long_honest_run():
+    """The common case: a sender's rounds one after the other, each frame's prev the round
+    before's values, for longer than the window -- then equivocations and late frames."""
+    _match_the_plain_rule([(r, 0, 0) for r in range(20)] + [(11, 1, -1), (12, 0, 0), (20, 0, 1), (21, 0, 0)])
+
+
+def _match_the_plain_rule(frames_in: list[tuple[int, int, int]]) -> None:
+    first, dec = auth_decoder(2), auth_decoder(0)
     model: dict[int, tuple[int, bytes]] = {}
     for seq, (rnd, v, pv) in enumerate(frames_in):
         prev = None if pv < 0 or rnd == 0 else X + pv
         update = StateUpdate(1, rnd, X + v, 0, prev)
-        got = dec.decode(signed(update, seq=seq), expected_sender=1)
+        data = signed(update, seq=seq)
+        verdicts = [first.decode(data, expected_sender=1), dec.decode(data, expected_sender=1)]
         want = _reference_equivocation(model, rnd, (0, (X + v).tobytes()),
                                        None if prev is None else (0, prev.tobytes()))
-        assert isinstance(got, Decoded) == want, (rnd, v, pv)
-        if not want:
-            assert got.reason == "equivocation"
-        assert dec._seen.get(1, {}) == model
+        for got in verdicts:
+            assert isinstance(got, Decoded) == want, (rnd, v, pv)
+            if not want:
+                assert got.reason == "equivocation"
+        assert first._seen.get(1, {}) == model and dec._seen.get(1, {}) == model
 
 
 def test_tag_entries_are_the_sorted_tags():

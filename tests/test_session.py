@@ -3,6 +3,8 @@ silence and on evidence, linger, stop reasons, counters; and one result row for 
 
 from __future__ import annotations
 
+import collections
+
 import numpy as np
 import pytest
 
@@ -442,3 +444,52 @@ def test_a_repeat_is_answered_only_by_the_neighbours_it_names_in_need():
         a.receive(1, fb1_again, 0.02)  # (b's clock is not ours: delivered before our resend is due)
         assert frames(a, 0.02) == []
         assert (a.next_deadline() < periodic) is (not b_has_ours)
+
+
+def _plain_note(rounds: dict[int, int], seq: int, rnd: int) -> tuple[bool, bool, bool] | None:
+    """The dedup rule written plainly: None for a frame remembered already, else (newest, gap,
+    repeat); a full window forgets every seq up to the newest - DEDUP_WINDOW // 2 first."""
+    from protocol.session import DEDUP_WINDOW
+
+    if rounds.get(seq) == rnd:
+        return None
+    newest, gap = True, False
+    if rounds:
+        top = max(rounds)
+        if len(rounds) >= DEDUP_WINDOW:
+            for q in [q for q in rounds if q <= top - DEDUP_WINDOW // 2]:
+                del rounds[q]
+        newest, gap = seq > top, seq > top + 1
+    repeat = rnd in rounds.values()
+    rounds[seq] = rnd
+    return newest, gap, repeat
+
+
+def test_seen_frames_note_matches_the_plain_dedup_rule():
+    """_SeenFrames keeps receive's answers up to date instead of scanning: same answers and same
+    memory as the plain rule, frame after frame, over seqs in order, copies, late and reused seqs
+    (a fresh sender reuses a seq with another round) and several window overflows."""
+    from protocol.session import DUPLICATE, GAP, NEWEST, REPEAT, _SeenFrames
+
+    from protocol.session import DEDUP_WINDOW
+
+    rng = np.random.default_rng(5)
+    # first a full window, then a seq it is about to forget, reused with another round
+    frames = [(s, s // 3) for s in range(DEDUP_WINDOW)] + [(5, 999)]
+    seq = DEDUP_WINDOW
+    for _ in range(800):
+        if rng.random() < 0.7:
+            seq += int(rng.integers(1, 3))
+            s = seq
+        else:  # a copy, a late frame, or a seq far back (possibly forgotten, possibly reused)
+            s = max(0, seq - int(rng.integers(0, 300)))
+        frames.append((s, s // 3 if rng.random() < 0.9 else int(rng.integers(0, 600))))
+    seen, model = _SeenFrames(), {}
+    for s, rnd in frames:
+        kind, want = seen.note(s, rnd), _plain_note(model, s, rnd)
+        if want is None:
+            assert kind == DUPLICATE
+        else:
+            assert kind >= 0 and (bool(kind & NEWEST), bool(kind & GAP), bool(kind & REPEAT)) == want
+        assert seen.rounds == model and seen.top == max(model)
+        assert seen.per_round == collections.Counter(model.values())
