@@ -105,7 +105,9 @@ SHARED_SESSION = os.environ.get("SHAPEFLEET_SESSION_PER_ROBOT", "") == ""
 # how long the launcher waits for a robot process whose stdout just ended to exit
 EXIT_AFTER_EOF_S = 0.2
 SHARED_ROBOT_MEMORY_MB = 10.0  # a robot as a task of a shared process: its session, core, buffers
-SHARED_ROBOTS_PER_CORE = 32  # 32 robots on 2 cores converge in well under a minute (docs/scaling.md)
+# the default --max-robots per core when robots share processes (64 on 2 cores; 32 robots, admm, paper preset:
+# 2310 rounds in 79-94 s there -- not under a minute, docs/scaling.md)
+SHARED_ROBOTS_PER_CORE = 32
 STOP_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
 
 STATES = ("starting", "running", "crashed", "restarted", "dead", "finished", "stopped")
