@@ -310,7 +310,7 @@ class RoundCore:
         The shells ask the core rather than inspect frames: a frame may carry more than a function
         (autogrid's stacked sweep holds stop flags as floats), and only the algorithm knows which
         part is the function."""
-        return check_iterate(self._values)  # (read only: no copy)
+        return check_iterate(self.values)  # the subclass's function part (newton, pdmm: not the payload)
 
     def status(self) -> dict[str, Any]:
         """Where the robot is (its status key while it runs): round, residual, how it stopped."""
