@@ -159,29 +159,33 @@ class MarginQP:
         With every variable weighted the exact active-set dual answers (agents/qp_dual.py); piqp
         answers when it does not certify its point, and for a weightless gamma.
         """
-        q = np.asarray(q, dtype=float)
-        if self._hessian is not None:
-            exact = solve_box_dual(self._rows, self._d, self._hessian, q, self._upper)
-            if exact is not None:
-                v = exact[0]
-                slack = np.maximum(0.0, 1.0 - self._rows @ v) if self.soft else np.zeros(0)
-                return QPSolution(x=v[:-1].copy(), gamma=float(v[-1]), slack=slack, status="solved")
-        return self.solve_piqp(q)
+        z, by_dual = self._solve_z(np.asarray(q, dtype=float))
+        if not by_dual:
+            return self._solution(z)
+        slack = np.maximum(0.0, 1.0 - self._rows @ z) if self.soft else np.zeros(0)
+        return QPSolution(x=z[:-1].copy(), gamma=float(z[-1]), slack=slack, status="solved")
 
     def solve_v(self, q: np.ndarray) -> np.ndarray:
         """`solve`'s v = (x, gamma) as one fresh vector (the same bits as
         ``np.append(sol.x, sol.gamma)``), without the QPSolution's copies: an ADMM round's call."""
-        q = np.asarray(q, dtype=float)
+        z, by_dual = self._solve_z(np.asarray(q, dtype=float))
+        return z if by_dual or not self.soft else z[: self.dim].copy()
+
+    def _solve_z(self, q: np.ndarray) -> tuple[np.ndarray, bool]:
+        """(z, True): v = (x, gamma) from the exact dual when it certifies its point (a fresh
+        array: agents/qp_dual.py keeps no reference); else (z, False): piqp's (x, gamma[, xi])."""
         if self._hessian is not None:
             exact = solve_box_dual(self._rows, self._d, self._hessian, q, self._upper)
             if exact is not None:
-                return exact[0]  # a fresh array (agents/qp_dual.py keeps no reference)
-        z = self._piqp(q)
-        return z if not self.soft else z[: self.dim].copy()
+                return exact[0], True
+        return self._piqp(q), False
 
     def solve_piqp(self, q: np.ndarray) -> QPSolution:
         """The same QP by piqp's interior point (to 1e-10): the fallback, and the reference in tests."""
-        z = self._piqp(np.asarray(q, dtype=float))
+        return self._solution(self._piqp(np.asarray(q, dtype=float)))
+
+    def _solution(self, z: np.ndarray) -> QPSolution:
+        """piqp's z = (x, gamma[, xi]) as a QPSolution."""
         return QPSolution(
             x=z[: self.dim - 1].copy(),
             gamma=float(z[self.dim - 1]),
