@@ -445,18 +445,6 @@ class FrameDecoder:
                     h.update(env.body)
                     if _compare_digest(h.digest(), tag):
                         _MEMO.hits += 1
-                        sender, rnd = body.sender, body.round
-                        seen = self._seen.get(sender)
-                        if (seen is not None and rnd not in seen and self._seen_top.get(sender) == rnd - 1
-                                and body.prev_claim is not None and seen.get(rnd - 1) == body.prev_claim):
-                            # equivocation's common case (most frames): the sender's next
-                            # round, whose values of its last round are the ones we hold --
-                            # what _check_equivocation does then
-                            seen[rnd] = body.claim
-                            self._seen_top[sender] = rnd
-                            seen.pop(rnd - EQUIVOCATION_WINDOW, None)
-                            self.accepted += 1
-                            return body.decoded
                         try:
                             self._check_equivocation(body)
                         except _Reject as r:
@@ -545,9 +533,17 @@ class FrameDecoder:
         EQUIVOCATION_WINDOW rounds: rounds up to its newest - EQUIVOCATION_WINDOW are forgotten)."""
         sender, rnd = body.sender, body.round
         seen = self._seen.get(sender)
+        claim, prev_claim = body.claim, body.prev_claim
+        if (seen is not None and rnd not in seen and self._seen_top.get(sender) == rnd - 1
+                and prev_claim is not None and seen.get(rnd - 1) == prev_claim):
+            # the common case (most frames): the sender's next round, whose values of its last
+            # round are the ones we hold -- what the general rule below does then, in short
+            seen[rnd] = claim
+            self._seen_top[sender] = rnd
+            seen.pop(rnd - EQUIVOCATION_WINDOW, None)
+            return
         if seen is None:
             seen = self._seen[sender] = {}
-        claim, prev_claim = body.claim, body.prev_claim
         first = seen.get(rnd)
         if first is not None and first != claim:
             raise _Reject("equivocation", f"sender {sender} sent two different frames for round {rnd}")
