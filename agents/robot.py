@@ -475,15 +475,14 @@ class RobotShell:
         self.received += 1
         if self._clean_links:  # nothing to delay, drop or copy: straight to the session
             s = self.session
-            behind = s._behind
-            asked = len(behind)
+            asked = s.asking_resend()
             self._feed(j, data, now)
             # Wake the main loop only if this frame can change what it does next: the core can
             # advance, a neighbour asks for a resend (its deadline may come sooner), or the
             # linger may end. Anything else only moves deadlines later (a neighbour heard from):
             # the loop wakes at its old deadline and looks again. At 32 robots this avoids ~5 of
             # ~6 wake-ups per robot-round (results/round_cost.md, branch shellcost).
-            if s.ready() or s.lingering or s._behind is not behind or len(behind) != asked:
+            if s.ready() or s.lingering or s.asking_resend() != asked:
                 self._wake()
             return
         self.links.send(j, self.me, data, now)

@@ -347,6 +347,12 @@ class RobotSession:
         """True when the core can compute its next round now (the shell checkpoints first)."""
         return self.stopped is None and self.core.ready()
 
+    def asking_resend(self) -> int:
+        """How many neighbours' newest frames show they lack our value (a fast resend is due for
+        them). A received frame changes it by at most one (its sender), so a shell that compares
+        it before and after a frame knows whether that frame can bring a resend sooner."""
+        return len(self._behind)
+
     def advance(self, now: float) -> bool:
         """One round of the core, its frame queued; a failure becomes a stop reason (False)."""
         if not self.ready():
