@@ -105,6 +105,7 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 
     return zenoh.handlers.Callback(fn, indirect=False)
 
+
 CHECKPOINT_VERSION = 1
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
