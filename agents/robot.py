@@ -87,6 +87,25 @@ def _process_start() -> float | None:
 
 _STARTED = {"process": _process_start(), "imported": time.monotonic()}
 
+#: Zenoh calls our subscriber callbacks on its own receiving thread (``indirect=False``), not on a
+#: Python thread of their own per subscriber (zenoh-python's default, ``indirect=True``): a process
+#: of 16 robots on a complete graph of 32 had 530 such threads (one per neighbour key and one per
+#: liveliness subscription), and each frame woke one of them -- one more thread hand-over and GIL
+#: acquisition per frame (docs/robot.md, "Latency"). Our callbacks only copy the payload and queue
+#: it (``_Inbox``). ``SHAPEFLEET_ZENOH_INDIRECT=1`` restores the default, for comparisons.
+ZENOH_DIRECT_CALLBACKS = os.environ.get("SHAPEFLEET_ZENOH_INDIRECT", "") == ""
+
+
+def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
+    """``fn`` as the handler of a Zenoh subscriber: run on Zenoh's thread (see
+    ``ZENOH_DIRECT_CALLBACKS``); it must be short and must not block."""
+    if not ZENOH_DIRECT_CALLBACKS:
+        return fn
+    import zenoh
+
+    return zenoh.handlers.Callback(fn, indirect=False)
+
+
 CHECKPOINT_VERSION = 1
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
@@ -281,7 +300,7 @@ class _Fanout:
         self._shells[key] = (*self._shells.get(key, ()), shell)
         if key not in self._subs:
             self._subs[key] = self._session.declare_subscriber(
-                key, lambda sample, key=key, j=j: self._on_sample_thread(key, j, sample))
+                key, zenoh_callback(lambda sample, key=key, j=j: self._on_sample_thread(key, j, sample)))
         return _FanoutHandle(self, key, shell)
 
     def _on_sample_thread(self, key: str, j: int, sample: Any) -> None:
@@ -725,15 +744,16 @@ class RobotShell:
                     self._subs[j] = fanout.subscribe(state_key(fleet, j), j, self)
                     continue
                 self._subs[j] = session.declare_subscriber(
-                    state_key(fleet, j), lambda sample, j=j: self._on_sample_thread(j, sample)
+                    state_key(fleet, j), zenoh_callback(lambda sample, j=j: self._on_sample_thread(j, sample))
                 )
             self._pub = session.declare_publisher(
                 state_key(fleet, self.me), express=PUBLISH_EXPRESS, congestion_control=zenoh.CongestionControl.DROP
             )
             # the neighbours' tokens only (not the fleet's wildcard): N x degree deliveries at start
             # instead of N x N (1000 robots: 6000 instead of a million, docs/scaling.md)
-            alive_subs = [session.liveliness().declare_subscriber(alive_key(fleet, j), self._on_alive_thread,
-                                                                  history=True) for j in self.session.peers]
+            on_alive = zenoh_callback(self._on_alive_thread)
+            alive_subs = [session.liveliness().declare_subscriber(alive_key(fleet, j), on_alive, history=True)
+                          for j in self.session.peers]
             token = session.liveliness().declare_token(alive_key(fleet, self.me))
             self.marks["declared"] = time.monotonic()
             stopped = await self._drive()

@@ -18,6 +18,8 @@ by its PID. Loopback only, multicast scouting off.
 
     .venv/bin/python benchmarks/zenoh_fleet.py            # full table, writes benchmarks/results/zenoh_fleet.md
     .venv/bin/python benchmarks/zenoh_fleet.py --quick    # N = 3 and 8 only, fewer rounds
+    .venv/bin/python benchmarks/zenoh_fleet.py --threads 300 --base /tmp/main-copy \
+        --variant-env SHAPEFLEET_ZENOH_INDIRECT=1          # CPU per process and thread class (/proc)
 """
 
 from __future__ import annotations
@@ -315,6 +317,116 @@ def cli_timeline_table(trees: list[tuple[str, Path]], runs: int) -> str:
     return "\n".join(lines)
 
 
+_PROC_KINDS = ("robot", "router", "launcher")
+
+
+def _task_stats(pid: int) -> dict[int, tuple[str, float, float, int, int]]:
+    """``{tid: (name, user s, sys s, voluntary, involuntary context switches)}`` of ``pid`` (/proc)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for tdir in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            stat = (tdir / "stat").read_text()
+            status = (tdir / "status").read_text()
+        except OSError:  # the thread ended
+            continue
+        rest = stat[stat.rindex(")") + 2:].split()
+        sw = {k: int(v) for k, v in (ln.split(":") for ln in status.splitlines() if "ctxt_switches" in ln)}
+        out[int(tdir.name)] = (stat[stat.index("(") + 1:stat.rindex(")")], int(rest[11]) / tick, int(rest[12]) / tick,
+                               sw.get("voluntary_ctxt_switches", 0), sw.get("nonvoluntary_ctxt_switches", 0))
+    return out
+
+
+def _descendants(pid: int) -> list[int]:
+    todo, seen = [pid], []
+    while todo:
+        p = todo.pop()
+        seen.append(p)
+        try:
+            todo.extend(int(c) for c in Path(f"/proc/{p}/task/{p}/children").read_text().split())
+        except OSError:
+            pass
+    return seen
+
+
+def thread_cpu(tree: Path, robots: int, rounds: int, env: dict[str, str] | None = None) -> dict:
+    """One ``launch --preset paper --robots N --topology geometric --max-rounds R`` from ``tree``,
+    its processes' threads polled every 50 ms from /proc (the last reading of each thread counts):
+    CPU user/sys and context switches per process kind (robot, router, launcher) and thread class
+    (the Python loop's main thread, Zenoh's named runtime threads rx/tx/app/acc/net, other Python
+    threads -- zenoh-python's callback threads among them). Linux only."""
+    import hashlib
+    import subprocess
+
+    with tempfile.TemporaryDirectory(prefix="shapefleet-threads-") as tmp:
+        load = os.getloadavg()[0]
+        t = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-m", "launcher.cli", "launch", "--preset", "paper", "--robots",
+                                 str(robots), "--topology", "geometric", "--max-rounds", str(rounds), "--out", tmp],
+                                cwd=tree, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                env={**os.environ, "PYTHONPATH": str(tree), **(env or {})})
+        seen: dict[int, dict] = {}
+        try:
+            while proc.poll() is None and time.perf_counter() - t < 900:  # bounded
+                for pid in _descendants(proc.pid):
+                    try:
+                        cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+                        ent = seen.setdefault(pid, {"threads": {}})
+                        ent["router"] = ent.get("router") or b"launcher.router" in cmd  # after its exec
+                        ent["threads"].update(_task_stats(pid))
+                    except OSError:
+                        continue
+                time.sleep(0.05)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+        wall = time.perf_counter() - t
+        res = json.loads((Path(tmp) / "result.json").read_text())
+    rows: dict[tuple[str, str], list[float]] = {}
+    for pid, ent in seen.items():
+        # the router: its command line once exec'd, or its acceptor threads (robots listen nowhere)
+        router = ent["router"] or any(name.startswith("acc-") for name, *_ in ent["threads"].values())
+        kind = "router" if router else "launcher" if pid == proc.pid else "robot"
+        for tid, (name, u, s, v, n) in ent["threads"].items():
+            cls = "main" if tid == pid else name.rstrip("0123456789-") if name.split("-")[0] in (
+                "rx", "tx", "app", "acc", "net") else "python"
+            row = rows.setdefault((kind, cls), [0.0, 0.0, 0, 0, 0])
+            for i, x in enumerate((u, s, v, n, 1)):
+                row[i] += x
+    h = hashlib.sha256()
+    for r in sorted(res["robots"], key=lambda r: r["id"]):
+        h.update(repr((r["id"], r["c"], r["gamma"], r["rounds"], r["residual"], r["converged"])).encode())
+    return {"wall_s": wall, "load": load, "rounds": res["rounds"], "error": res["metrics"]["function_error"],
+            "digest": h.hexdigest()[:16], "rows": rows,
+            "round_ms": statistics.median(r["round_ms"]["median"] for r in res["robots"]),
+            "sent": sum(r["frames_sent"] for r in res["robots"])}
+
+
+def thread_cpu_table(variants: list[tuple[str, Path, dict[str, str]]], robots: int, rounds: int, runs: int) -> str:
+    """:func:`thread_cpu` for each variant, alternating run by run; one table row per run and thread class."""
+    lines = ["| variant | run | load | wall s | ms/round | frames sent | digest | process | threads | n "
+             "| user s | sys s | CPU ms/round | switches vol. / invol. |",
+             "|---|---:|---:|---:|---:|---:|---|---|---|---:|---:|---:|---:|---|"]
+    for i in range(runs):
+        for label, tree, env in variants:
+            got = thread_cpu(tree, robots, rounds, env)
+            head = (f"| {label} | {i + 1} | {got['load']:.1f} | {got['wall_s']:.2f} | {got['round_ms']:.2f} "
+                    f"| {got['sent']} | `{got['digest']}` (err {got['error']:.6e}, {got['rounds']} rounds)")
+            order = sorted(got["rows"], key=lambda k: (_PROC_KINDS.index(k[0]), k[1]))
+            for kind in _PROC_KINDS:
+                tot = [sum(got["rows"][k][j] for k in order if k[0] == kind) for j in range(5)]
+                if tot[4]:
+                    got["rows"][(kind, "**all**")] = tot
+            order = sorted(got["rows"], key=lambda k: (_PROC_KINDS.index(k[0]), k[1]))
+            for k in order:
+                u, s, v, n, count = got["rows"][k]
+                lines.append(f"{head} | {k[0]} | {k[1]} | {count} | {u:.2f} | {s:.2f} "
+                             f"| {1000 * (u + s) / max(1, got['rounds']):.2f} | {v:,} / {n:,} |")
+                head = "| | | | | | |"
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="3,8,16", help="fleet sizes for the fixed-rounds runs (default 3,8,16)")
@@ -334,7 +446,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeline", type=int, default=0,
                     help="only run `launch --preset paper` this many times (with --base: alternating with another "
                          "checkout) with the launcher's phases and the robots' marks, print the medians and stop")
+    ap.add_argument("--threads", type=int, default=0, metavar="ROUNDS",
+                    help="only run `launch --preset paper --topology geometric --max-rounds ROUNDS` (with --base: "
+                         "alternating with another checkout) and table CPU per process and thread class from /proc")
+    ap.add_argument("--threads-robots", type=int, default=32, help="with --threads: robots (default 32)")
+    ap.add_argument("--threads-runs", type=int, default=1, help="with --threads: alternations (default 1)")
+    ap.add_argument("--variant-env", action="append", default=[], metavar="NAME=VALUE",
+                    help="with --threads: also run this tree with this environment variable set (repeatable)")
     args = ap.parse_args(argv)
+    if args.threads:
+        variants = ([("base", args.base.resolve(), {})] if args.base else []) + [("this tree", ROOT, {})]
+        for item in args.variant_env:
+            name, sep, value = item.partition("=")
+            if not sep or not name:
+                ap.error(f"--variant-env: expected NAME=VALUE, got {item!r}")
+            variants.append((f"this tree, {item}", ROOT, {name: value}))
+        print(thread_cpu_table(variants, args.threads_robots, args.threads, args.threads_runs))
+        return 0
     if args.timeline:
         trees = ([("base", args.base.resolve())] if args.base else []) + [("this tree", ROOT)]
         print(cli_timeline_table(trees, args.timeline))

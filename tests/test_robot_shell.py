@@ -803,3 +803,56 @@ def test_a_frame_wakes_the_main_loop_only_when_it_can_change_the_next_step():
         assert deliver(0, frame(0, 1, need=()))  # (an old round: it changes nothing, still wakes)
     finally:
         loop.close()
+
+
+@pytest.mark.parametrize("direct", [True, False])
+def test_subscriber_callbacks_run_on_zenohs_thread_not_a_thread_each(router, monkeypatch, direct):
+    """agents/robot.py `zenoh_callback` (issue 14, branch zenoh32): Zenoh runs the shell's
+    subscriber callbacks on its own receiving thread. zenoh-python's default starts a Python
+    thread per subscriber and hands every sample to it (a 16-robot process of a 32-robot complete
+    graph had 530 threads, one wake-up per frame); ``SHAPEFLEET_ZENOH_INDIRECT=1`` restores it
+    (``direct=False`` here: the same check sees the extra threads, so it can fail)."""
+    import os
+    import threading
+
+    import zenoh
+
+    import agents.robot as robot
+
+    monkeypatch.setattr(robot, "ZENOH_DIRECT_CALLBACKS", direct)
+    keys = [f"shapefleet/cb-{direct}/robot/{i}/state" for i in range(24)]
+    got: dict[str, str] = {}
+    all_in = threading.Event()
+
+    def on_sample(sample) -> None:
+        got[str(sample.key_expr)] = type(threading.current_thread()).__name__
+        if len(got) == len(keys):
+            all_in.set()
+
+    def threads() -> int:
+        return len(os.listdir("/proc/self/task"))
+
+    rx = zenoh.open(robot_config([router]))
+    tx = zenoh.open(robot_config([router]))
+    subs, pubs = [], []
+    try:
+        before = threads()
+        subs = [rx.declare_subscriber(k, robot.zenoh_callback(on_sample)) for k in keys]
+        pubs = [tx.declare_publisher(k, express=True) for k in keys]
+        for _ in range(50):  # bounded: a put per key per 0.1 s until all arrived (subscriptions propagate)
+            for k, p in zip(keys, pubs):
+                if k not in got:
+                    p.put(b"x")
+            if all_in.wait(0.1):
+                break
+        assert all_in.is_set(), sorted(set(keys) - set(got))
+        grown = threads() - before
+        if direct:  # Zenoh's own thread (not one Python started), and no thread per subscriber
+            assert set(got.values()) == {"_DummyThread"} and grown <= 2, (got, grown)
+        else:
+            assert grown >= len(keys), grown
+    finally:
+        for ent in (*subs, *pubs):
+            ent.undeclare()
+        tx.close()
+        rx.close()
