@@ -24,6 +24,7 @@ point's active rows, every multiplier positive, every margin held) and is then c
     .venv/bin/python benchmarks/polish.py              # every fleet (~15 minutes on 2 busy cores)
     .venv/bin/python benchmarks/polish.py --quick      # the paper preset and the 8-ring
     .venv/bin/python benchmarks/polish.py --fleet "8 robots, ring" --every 5
+    .venv/bin/python benchmarks/polish.py --implemented   # the hub form's polish as built (~5 minutes)
 """
 
 from __future__ import annotations
@@ -37,9 +38,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.admm import _pairwise_sum, _solve_spd  # noqa: E402
+from agents.admm import POLISH_EQ, POLISH_RHO, POLISH_STAT, _pairwise_sum, polish_solve  # noqa: E402
 from agents.problem import certify_hard_margin, solve_central  # noqa: E402
 from agents.relay_hub import RelayHubADMM  # noqa: E402
+from agents.spec import build_core  # noqa: E402
 from benchmarks.common import FLEETS, add_row, lockstep_round, write_results  # noqa: E402
 from benchmarks.rounds import LARGE_COMPLETE, fleet_probe, form_name  # noqa: E402
 from launcher.world import Options, build_world  # noqa: E402
@@ -168,49 +170,33 @@ def pdas(rows: np.ndarray, guess: np.ndarray, max_corrections: int = MAX_CORRECT
     return Polish(False, max_corrections, None, len(W))
 
 
-#: the distributed solve's augmented-Lagrangian penalty and iteration cap (`gram_route`); the margin
-#: rows are scale-free (|phi| <= 1, last entry +-1), so one value serves every fleet
-AL_RHO = 1e4
-AL_ITERATIONS = 100
-
-
 def gram_route(rows: np.ndarray, W: np.ndarray, owner: np.ndarray, n_robots: int) -> tuple[np.ndarray, bool, int]:
-    """The polish on set W as the fleet would compute it (option (a) with Gram sums): robot l
-    contributes H_l = A_l' A_l and b_l = A_l' 1 over its rows in W (newton's A_l' D A_l with D the
-    0/1 indicator of W_l), the fleet sums them exactly (`_pairwise_sum`, robot order), and every copy
-    runs the same method of multipliers on {H v = b} = {A_W v = 1} (consistent sets):
-
-        (P + rho H) v = y + rho b,   y <- y - rho (H v - b)          (y = A_W' lam, shared)
-
-    while robot l updates its own multipliers lam_l <- lam_l - rho (A_l v - 1) from the common v:
-    they never travel. Verdict = the AND of every robot's checks (its lam_l > 0, |A_l v - 1| <= 1e-9,
-    its rows' margins >= 1 - 1e-9) and the copy's stationarity |P v - y| <= 1e-8.
+    """The polish on set W as the fleet computes it (option (a) with Gram sums, as built in
+    agents/admm.py `_Polish`): robot l contributes H_l = A_l' A_l and b_l = A_l' 1 over its rows in W
+    (newton's A_l' D A_l with D the 0/1 indicator of W_l), the fleet sums them exactly
+    (`_pairwise_sum`, robot order), every copy runs `polish_solve` (the method of multipliers on
+    {H v = b} = {A_W v = 1}) and robot l keeps its own multipliers lam_l = -rho sum_k (A_l v_k - 1).
+    Verdict = the AND of every robot's checks (its lam_l > 0, |A_l v - 1| <= POLISH_EQ, its margins
+    >= 1 - POLISH_EQ) and the copy's stationarity |P v - y| <= POLISH_STAT max(1, |P v|).
     Returns (v, verdict, iterations)."""
     n = rows.shape[1]
-    parts_H = np.zeros((n_robots, n, n))
-    parts_b = np.zeros((n_robots, n))
+    parts = np.zeros((n_robots, n * (n + 1) // 2 + n))
     for l in range(n_robots):
         A = rows[W[owner[W] == l]]
-        parts_H[l], parts_b[l] = A.T @ A, A.T @ np.ones(len(A))
-    H, b = _pairwise_sum(parts_H), _pairwise_sum(parts_b)
-    P = np.eye(n)
-    P[-1, -1] = 0.0
-    K = P + AL_RHO * H
-    y, lam, v = np.zeros(n), np.zeros(len(W)), np.zeros(n)
+        parts[l, : n * (n + 1) // 2] = (A.T @ A)[np.triu_indices(n)]
+        parts[l, n * (n + 1) // 2 :] = A.sum(axis=0)
+    sums = _pairwise_sum(parts)
+    H = np.zeros((n, n))
+    H[np.triu_indices(n)] = sums[: n * (n + 1) // 2]
+    H = H + np.triu(H, 1).T
+    v, y, iterates = polish_solve(H, sums[n * (n + 1) // 2 :])
     A_W = rows[W]
-    it = 0
-    for it in range(1, AL_ITERATIONS + 1):
-        v_new = _solve_spd(K, y + AL_RHO * b)
-        y = y - AL_RHO * (H @ v_new - b)
-        lam = lam - AL_RHO * (A_W @ v_new - 1.0)  # each robot its own entries
-        moved = np.abs(v_new - v).max()
-        v = v_new
-        if moved <= 1e-11 * max(1.0, np.abs(v).max()):
-            break
-    pv = P @ v
-    verdict = bool(lam.min() > 0 and np.abs(A_W @ v - 1.0).max() <= 1e-9 and (rows @ v).min() >= 1.0 - 1e-9
-                   and np.abs(pv - y).max() <= 1e-8 * max(1.0, np.abs(pv).max()))
-    return v, verdict, it
+    lam = -POLISH_RHO * np.sum([A_W @ x - 1.0 for x in iterates], axis=0)
+    pv = v.copy()
+    pv[-1] = 0.0
+    verdict = bool(lam.min() > 0 and np.abs(A_W @ v - 1.0).max() <= POLISH_EQ and (rows @ v).min() >= 1.0 - POLISH_EQ
+                   and np.abs(pv - y).max() <= POLISH_STAT * max(1.0, np.abs(pv).max()))
+    return v, verdict, len(iterates)
 
 
 def local_multiplier_rows(core, rows: np.ndarray) -> np.ndarray:
@@ -483,6 +469,48 @@ def krylov_table(results: list[dict]) -> list[str]:
     return lines
 
 
+#: the complete fleets the implemented polish (hub form) is measured on
+IMPLEMENTED = [lb for lb in FLEET_LABELS if "ring" not in lb and "line" not in lb and "3.0" not in lb]
+
+
+def run_implemented(label: str, max_rounds: int) -> dict:
+    """The fleet with ADMMParams.polish on (agents/admm.py `_Polish`), in lock step as `simulate`:
+    rounds at stop, error of every robot against the certified central solve, whether the copies
+    are bit-identical, the polish's attempts, bytes of one encoded frame and compute per robot-round."""
+    from protocol.frames import encode_state
+
+    world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **fleet_kwargs(label)))
+    spec.params["polish"] = True
+    b = spec.basis
+    central = solve_central(b, world.points, world.labels, spec.C)
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    frame = len(encode_state(cores[0].outgoing(), fleet=spec.fleet, seq=0, config_tag=spec.config_tag,
+                             auth=spec.frame_auth(cores[0].robot_id)))
+    compute = 0.0
+    while not all(c.finished for c in cores):
+        compute += lockstep_round(cores)[1]
+    rounds = cores[0].round
+    return {"label": label, "rounds": rounds, "converged": all(c.converged for c in cores),
+            "polished": cores[0]._polish.result is not None,
+            "error": max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores),
+            "identical": all(c.values.tobytes() == cores[0].values.tobytes() for c in cores),
+            "attempts": cores[0]._polish.attempts, "frame": frame, "bytes": frame * (rounds + 1),
+            "ms": 1e3 * compute / max(rounds * len(cores), 1)}
+
+
+def implemented_table(max_rounds: int, labels: list[str]) -> list[str]:
+    lines = [
+        "| fleet (complete, hub form) | rounds at stop with polish | ends polished | error vs solve_central | copies "
+        "bit-identical | attempts | bytes per frame | bytes per robot per run | compute ms per robot-round |",
+        "|---|---:|:---:|---:|:---:|---:|---:|---:|---:|",
+    ]
+    for label in labels:
+        r = run_implemented(label, max_rounds)
+        add_row(lines, f"| {label} | {r['rounds']} | {'yes' if r['polished'] else 'no'} | {r['error']:.1e} | "
+                       f"{'yes' if r['identical'] else 'NO'} | {r['attempts']} | {r['frame']} | {r['bytes']} | {r['ms']:.2f} |")
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="only the paper preset and the 8-ring")
@@ -490,7 +518,15 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=10, help="polish every K rounds (default 10)")
     ap.add_argument("--max-rounds", type=int, default=5000)
     ap.add_argument("--out", default="polish.md", help="file under benchmarks/results/")
+    ap.add_argument("--implemented", action="store_true",
+                    help="the polish as implemented (ADMMParams.polish, complete fleets), polish-implemented.md")
     args = ap.parse_args()
+    if args.implemented:
+        labels = args.fleet or IMPLEMENTED
+        write_results("polish-implemented.md", "# Polish as implemented: complete fleets, ADMMParams.polish on\n\n"
+                      "`benchmarks/polish.py --implemented`: paper preset, cores in lock step (as `simulate`).\n\n"
+                      + "\n".join(implemented_table(args.max_rounds, labels)) + "\n")
+        return
     labels = args.fleet or (QUICK if args.quick else FLEET_LABELS)
     unknown = [lb for lb in labels if lb not in FLEET_LABELS]
     if unknown:
