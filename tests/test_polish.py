@@ -8,6 +8,7 @@ robot. The rounds of the large fleets are measured in benchmarks/polish.py, not 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from agents.admm import POLISH_CAP, _Polish, hub_frame_dim, polish_payload_size, polish_solve
 from agents.problem import certify_hard_margin, margin_rows
@@ -107,3 +108,24 @@ def test_a_bad_payload_fails_the_attempt_not_the_robot():
     assert pol.step(verdicts, np.zeros(rows.shape[1])) is None
     assert pol.kind == "sum" and pol.corrections == 0 and pol.attempts == 2  # a fresh guess
     assert POLISH_CAP >= 1
+
+
+# -- over Zenoh: the process fleet equals `simulate` bit for bit, a crash mid-polish included -------
+
+from launcher.fleet import CrashPlan  # noqa: E402
+from tests.test_launch import _assert_same_iterates, _launch, _run, _simulate, bounded, bound  # noqa: E402,F401
+
+
+@pytest.mark.integration
+@bound(60)
+def test_launch_with_the_polish_equals_simulate_across_a_crash(tmp_path):
+    """3 robots as processes over a router, robot 1 SIGKILLed at round 8 (mid-attempt) and restarted
+    from its checkpoint: every iterate, the polished result and the rounds equal simulate's."""
+    _world, spec, central = _run(fleet_id="launch-polish")
+    spec.params["polish"] = True
+    want = _simulate(spec)
+    assert all(w["converged"] for w in want.values())
+    out = _launch(spec, tmp_path, crashes=[CrashPlan(1, 8)], restart=True, restart_after=0.5)
+    assert [(c.robot, c.planned_round) for c in out.crashes] == [(1, 8)]
+    _assert_same_iterates(out.robots, want, restarted=(1,))
+    assert max(_error(spec, central, np.append(r["x"], r["gamma"])) for r in out.robots) < 1e-9
