@@ -175,6 +175,12 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     made once, every ufunc writing into them, the pivots written back at the end), a hub step's
     largest cost: 3 numpy calls a column and nothing allocated, the same operations in the same
     order as a fresh matrix per call (tests/test_exact_arith.py compares with that plain form)."""
+    return _spd_solve(_spd_factor(H), g)
+
+
+def _spd_factor(H: np.ndarray) -> tuple[list[list[float]], list[list[float]]]:
+    """`_solve_spd`'s Cholesky factor L of H, as its rows and its columns (Python lists): factor
+    once, solve many times with `_spd_solve` (the same operations as `_solve_spd`, the same bits)."""
     n = len(H)
     A, diag, steps = _spd_workspace(n)
     np.copyto(A, H)
@@ -189,7 +195,13 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
         multiply(col_t, col, prod)  # the outer product col col^T
         subtract(trail, prod, trail)
     diag[:] = pivots
-    rows, cols = A.tolist(), A.T.tolist()
+    return A.tolist(), A.T.tolist()
+
+
+def _spd_solve(factor: tuple[list[list[float]], list[list[float]]], g: np.ndarray) -> np.ndarray:
+    """L L' x = g by the two triangular solves of `_solve_spd` (exactly rounded sums)."""
+    rows, cols = factor
+    n = len(rows)
     rhs = g.tolist() if isinstance(g, np.ndarray) else [float(v) for v in g]
     fsum, mul = math.fsum, operator.mul
     y: list[float] = []
@@ -659,16 +671,16 @@ def polish_solve(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
         (P + rho H) v = y + rho b,   y <- y - rho (H v - b)        (y = A_W' lam at the end)
 
     Returns (v, y, the iterates v_1..v_k): a robot's own multipliers are lam_l = -rho sum_k
-    (A_l v_k - 1), its own business. Deterministic on any machine (`_solve_spd`, `_dots`): every
-    copy gets the same bits from the same sums."""
+    (A_l v_k - 1), its own business. Deterministic on any machine (`_spd_factor`, `_dots`: every
+    copy gets the same bits from the same sums; K = P + rho H is factored once)."""
     n = len(b)
     P = np.eye(n)
     P[-1, -1] = 0.0
-    K = P + POLISH_RHO * H
+    factor = _spd_factor(P + POLISH_RHO * H)
     y, v = np.zeros(n), np.zeros(n)
     iterates: list[np.ndarray] = []
     for _ in range(POLISH_ITERATIONS):
-        v_new = _solve_spd(K, y + POLISH_RHO * b)
+        v_new = _spd_solve(factor, y + POLISH_RHO * b)
         y = y - POLISH_RHO * (_dots(H, v_new) - b)
         iterates.append(v_new)
         moved = float(np.abs(v_new - v).max())
@@ -678,9 +690,41 @@ def polish_solve(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return v, y, iterates
 
 
-#: polish solves taken lately in this process, by the digest of their sums (`polish_solve` is a
-#: pure function of them, the same on every copy): computed once per process
-_SHARED_POLISH: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
+#: polish solves taken lately in this process, by the digest of the round's payloads (`_common_solve`
+#: is a pure function of them, the same on every copy): computed once per process
+_SHARED_POLISH: OrderedDict[bytes, tuple[Any, ...] | None] = OrderedDict()
+_TRIU: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _triu(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """np.triu_indices(n), made once per size (the payload's layout of a symmetric matrix)."""
+    if n not in _TRIU:
+        _TRIU[n] = np.triu_indices(n)
+    return _TRIU[n]
+
+
+def _common_solve(payloads: np.ndarray) -> tuple[np.ndarray, bool, np.ndarray, int] | None:
+    """What every copy computes alike from a sum round's payloads (a row per robot in id order):
+    the exactly rounded sums H, b, the polished point v (`polish_solve`), whether it is stationary
+    (|P v - y| <= POLISH_STAT max(1, |P v|), y = A_W' lam), and the sum and number of the iterates
+    (each robot's multipliers follow from them). None when the sums are not finite or K = P + rho H
+    is not positive definite (no row pins gamma)."""
+    n = int(round((math.sqrt(8 * payloads.shape[1] + 9) - 3) / 2))  # payload = n(n+1)/2 + n
+    t = n * (n + 1) // 2
+    sums = _pairwise_sum(payloads)
+    if not np.all(np.isfinite(sums)):
+        return None
+    H = np.zeros((n, n))
+    H[_triu(n)] = sums[:t]
+    H = H + np.triu(H, 1).T
+    try:
+        v, y, iterates = polish_solve(H, sums[t:])
+    except np.linalg.LinAlgError:
+        return None
+    pv = v.copy()
+    pv[-1] = 0.0
+    stationary = float(np.abs(pv - y).max()) <= POLISH_STAT * max(1.0, float(np.abs(pv).max()))
+    return v, stationary, np.add.reduce(np.array(iterates), axis=0), len(iterates)
 
 
 class _Polish:
@@ -725,7 +769,7 @@ class _Polish:
         A = self.rows[self.W]
         n = self.dim
         out = np.zeros(polish_payload_size(n))
-        out[: n * (n + 1) // 2] = (A.T @ A)[np.triu_indices(n)]
+        out[: n * (n + 1) // 2] = (A.T @ A)[_triu(n)]
         out[n * (n + 1) // 2 :] = A.sum(axis=0)
         self._next(out, "sum")
 
@@ -776,31 +820,21 @@ class _Polish:
 
     def _solve(self, payloads: np.ndarray) -> None:
         """The sum round: the fleet's sums, the common solve, this robot's verdict payload."""
-        n, t = self.dim, self.dim * (self.dim + 1) // 2
-        sums = _pairwise_sum(payloads)
-        H = np.zeros((n, n))
-        H[np.triu_indices(n)] = sums[:t]
-        H = H + np.triu(H, 1).T
-        b = sums[t:]
-        try:
-            if not np.all(np.isfinite(sums)):
-                raise np.linalg.LinAlgError("non-finite polish sums")
-            (v, y, iterates), _ = shared_step(_SHARED_POLISH, _digest(b"polish", sums), lambda: polish_solve(H, b),
-                                              SHARED_STEPS_KEPT)
-        except np.linalg.LinAlgError:  # a bad payload (or no row pins gamma): no verdict, a fresh guess next
+        n = self.dim
+        common, _ = shared_step(_SHARED_POLISH, _digest(b"polish", np.ascontiguousarray(payloads)),
+                                lambda: _common_solve(payloads), SHARED_STEPS_KEPT)
+        if common is None:  # a bad payload (or no row pins gamma): no verdict, a fresh guess next
             self.v, self.lam = None, np.zeros(0)
             out = np.zeros(polish_payload_size(n))
             out[:3] = [0.0, _NONE, _NONE]  # not ok, and nothing to move
             self._next(out, "verdict")
             return
+        v, stationary, xsum, k = common
         A = self.rows[self.W]
-        lam = -POLISH_RHO * np.sum([A @ x - 1.0 for x in iterates], axis=0) if len(A) else np.zeros(0)
-        pv = v.copy()
-        pv[-1] = 0.0
+        lam = -POLISH_RHO * (A @ xsum - k)  # = -rho sum_k (A v_k - 1): this robot's multipliers
         slack = self.rows @ v - 1.0
         outside = np.delete(slack, self.W)
-        ok = (float(np.abs(pv - y).max()) <= POLISH_STAT * max(1.0, float(np.abs(pv).max()))
-              and (len(A) == 0 or (float(lam.min()) > 0.0 and float(np.abs(A @ v - 1.0).max()) <= POLISH_EQ))
+        ok = (stationary and (len(A) == 0 or (float(lam.min()) > 0.0 and float(np.abs(A @ v - 1.0).max()) <= POLISH_EQ))
               and float(slack.min()) >= -POLISH_EQ)
         self.v, self.lam = v, lam
         out = np.zeros(polish_payload_size(n))
