@@ -455,6 +455,26 @@ def schedule_table(results: list[dict]) -> list[str]:
     return lines
 
 
+def strategy_table(results: list[dict]) -> list[str]:
+    """Every strategy (guess x mode x cap) on every fleet: the replayed stop ('-': no certified
+    attempt before the ADMM's own stop), and over the fleets the sum of min(polish, ADMM) stops and
+    the worst ratio to the ADMM's stop -- one rule has to serve every fleet."""
+    head = " | ".join(res["label"] for res in results)
+    lines = [f"| strategy (guess, mode, cap) | {head} | sum of stops (ADMM alone: "
+             f"{sum(res['stop'] for res in results)}) | worst stop / ADMM stop |",
+             "|---|" + "---:|" * (len(results) + 2)]
+    for k, sch in enumerate(results[0]["schedules"] if results else []):
+        cells, total, worst = [], 0, 0.0
+        for res in results:
+            s = res["schedules"][k]
+            stop = s.stop if s.stop is not None and s.stop < res["stop"] else None
+            cells.append(str(stop) if stop is not None else "-")
+            total += stop if stop is not None else res["stop"]
+            worst = max(worst, (stop if stop is not None else res["stop"]) / res["stop"])
+        lines.append(f"| {sch.guess}, {sch.mode}, {sch.cap} | {' | '.join(cells)} | {total} | {worst:.2f} |")
+    return lines
+
+
 def krylov_table(results: list[dict]) -> list[str]:
     """Option (b)'s replay: the same attempts with KRYLOV_REDUCES all-reduces per solve (cap 5)."""
     lines = [
@@ -557,6 +577,8 @@ def main() -> None:
             "## Summary", "", *summary(results), "",
             "## Distributed schedules (rounds counted, option (a): one all-reduce per solve)", "",
             *schedule_table(results), "",
+            "## Every strategy on every fleet (replayed stop round; '-': the ADMM stops first)", "",
+            *strategy_table(results), "",
             f"## Option (b): a Krylov solve per polish ({KRYLOV_REDUCES} all-reduces per solve, a lower bound; cap 5)", "",
             *krylov_table(results), "", "## Per guess and correction mode", "", *table(results)]
     write_results(args.out, "\n".join(text) + "\n")
