@@ -551,7 +551,11 @@ def main() -> None:
     if args.implemented:
         labels = args.fleet or IMPLEMENTED
         write_results("polish-implemented.md", "# Polish as implemented: complete fleets, ADMMParams.polish on\n\n"
-                      "`benchmarks/polish.py --implemented`: paper preset, cores in lock step (as `simulate`).\n\n"
+                      "`benchmarks/polish.py --implemented`: paper preset, cores in lock step (as `simulate`); rounds "
+                      "without the polish: `benchmarks/results/rounds.md` / `rounds-complete.md` (the flag off changes "
+                      "nothing). Errors against solve_central's KKT-certified solution. Compute ms per robot-round: "
+                      "in process (the fleet step and the polish's common solve computed once per process), measured "
+                      "under a load average of 6-10 on 2 cores: not comparable across rows or runs.\n\n"
                       + "\n".join(implemented_table(args.max_rounds, labels)) + "\n")
         return
     labels = args.fleet or (QUICK if args.quick else FLEET_LABELS)
