@@ -574,11 +574,18 @@ def main() -> None:
         results.append(res)
         for line in summary([res])[2:] + schedule_table([res])[2:] + krylov_table([res])[2:]:
             add_row([], line)
+        write_report(args, results)  # after every fleet: a long run stopped early keeps what it measured
+
+
+def write_report(args: argparse.Namespace, results: list[dict]) -> None:
+    """benchmarks/results/<out> with every table of the fleets measured so far."""
     text = ["# Polish: the oracle potential of an exact active-set end-game", "",
-            f"`benchmarks/polish.py{' --quick' if args.quick else ''} --every {args.every}`: every fleet "
+            f"`benchmarks/polish.py {' '.join(repr(a) if ' ' in a else a for a in sys.argv[1:])}` (fleets: "
+            f"{'; '.join(r['label'] for r in results)}): every fleet "
             "runs its ADMM as `simulate` does (cores in lock step, paper preset: grid 5x3, sigma 1, hard margin); "
             f"every {args.every} rounds (and at the stop) the polish runs centrally from each guess (module "
-            "docstring), with PDAS corrections ('swap': all of them at once; 'one': one row each) capped at "
+            "docstring), with PDAS corrections ('swap': all of them at once; 'one': the fleet's one worst row; "
+            "'robot': each robot's worst row) capped at "
             f"{MAX_CORRECTIONS}. A polish counts when `certify_hard_margin` certifies its point on all rows. "
             "Errors: the worst over every certified polish of the fleet (function error against solve_central's "
             "certified solution; the KKT residual of the point on its own).", "",
