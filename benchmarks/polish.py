@@ -21,7 +21,8 @@ A polish counts when its point passes `certify_hard_margin` on all rows (the KKT
 point's active rows, every multiplier positive, every margin held) and is then compared with
 `solve_central`'s certified solution (function error). Hard margin only.
 
-    .venv/bin/python benchmarks/polish.py              # every fleet (~15 minutes on 2 busy cores)
+    .venv/bin/python benchmarks/polish.py              # every fleet (over an hour on 2 busy cores: the
+                                                       # 24-48-robot fleets dominate; split with --fleet/--out)
     .venv/bin/python benchmarks/polish.py --quick      # the paper preset and the 8-ring
     .venv/bin/python benchmarks/polish.py --fleet "8 robots, ring" --every 5
     .venv/bin/python benchmarks/polish.py --implemented   # the hub form's polish as built (~5 minutes)
