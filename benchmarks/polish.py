@@ -26,6 +26,7 @@ point's active rows, every multiplier positive, every margin held) and is then c
     .venv/bin/python benchmarks/polish.py --quick      # the paper preset and the 8-ring
     .venv/bin/python benchmarks/polish.py --fleet "8 robots, ring" --every 5
     .venv/bin/python benchmarks/polish.py --implemented   # the hub form's polish as built (~5 minutes)
+    .venv/bin/python benchmarks/polish.py --zenoh 2       # 32 robots over Zenoh, 2 A/B pairs (~3 minutes)
 """
 
 from __future__ import annotations
@@ -543,6 +544,46 @@ def implemented_table(max_rounds: int, labels: list[str]) -> list[str]:
     return lines
 
 
+def zenoh_pairs(label: str, pairs: int) -> list[str]:
+    """Wall time of `launch_fleet` (router + robot processes on loopback, robots per process "auto",
+    start-up included), polish off and on back to back, `pairs` times; rounds, bytes sent per robot,
+    and whether the polished run's results equal `simulate`'s (x, gamma, rounds of every robot)."""
+    import os
+    import shutil
+    import tempfile
+    import time
+
+    from launcher.fleet import launch_fleet
+    from launcher.simulate import simulate_fleet
+
+    lines = ["| pair | polish | rounds | converged | wall s | ms per round | bytes sent per robot | load average |",
+             "|---:|:---:|---:|:---:|---:|---:|---:|---|"]
+    work = Path(tempfile.mkdtemp(prefix="polish-zenoh-"))
+    try:
+        for pair in range(pairs):
+            for polish in (False, True):
+                _world, spec = build_world(Options(fleet_id="polish-zenoh", preset="paper", **fleet_kwargs(label)))
+                spec.params["polish"] = polish
+                load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+                started = time.perf_counter()
+                out = launch_fleet(spec, workdir=work / f"{pair}-{polish}", crashes=[], restart_after=1.0, restart=False,
+                                   zenoh_port=None, progress=False)
+                wall = time.perf_counter() - started
+                rows = out.robots
+                rounds = max(r["rounds"] for r in rows)
+                add_row(lines, f"| {pair + 1} | {'on' if polish else 'off'} | {rounds} | "
+                               f"{'yes' if all(r['converged'] for r in rows) else 'no'} | {wall:.1f} | "
+                               f"{1e3 * wall / rounds:.1f} | {sum(r['bytes_sent'] for r in rows) / len(rows):.0f} | {load} |")
+                if polish and pair == 0:
+                    sim = {r["id"]: r for r in simulate_fleet(spec).robots}
+                    same = all((r["x"], r["gamma"], r["rounds"]) == (sim[r["id"]]["x"], sim[r["id"]]["gamma"],
+                                                                     sim[r["id"]]["rounds"]) for r in rows)
+                    lines.insert(0, f"Polished run equal to `simulate` (x, gamma, rounds of every robot): {'yes' if same else 'NO'}.\n")
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="only the paper preset and the 8-ring")
@@ -552,7 +593,16 @@ def main() -> None:
     ap.add_argument("--out", default="polish.md", help="file under benchmarks/results/")
     ap.add_argument("--implemented", action="store_true",
                     help="the polish as implemented (ADMMParams.polish, complete fleets), polish-implemented.md")
+    ap.add_argument("--zenoh", type=int, metavar="PAIRS", default=0,
+                    help="the 32-robot fleet over Zenoh, polish off/on, PAIRS A/B pairs (polish-zenoh.md)")
     args = ap.parse_args()
+    if args.zenoh:
+        label = (args.fleet or ["32 robots, geometric"])[0]
+        write_results("polish-zenoh.md", f"# Polish over Zenoh: {label}, wall time of `launch_fleet`\n\n"
+                      f"`benchmarks/polish.py --zenoh {args.zenoh}`: paper preset, router and robot processes on "
+                      "loopback (robots per process: auto), start-up included, polish off and on back to back.\n\n"
+                      + "\n".join(zenoh_pairs(label, args.zenoh)) + "\n")
+        return
     if args.implemented:
         labels = args.fleet or IMPLEMENTED
         write_results("polish-implemented.md", "# Polish as implemented: complete fleets, ADMMParams.polish on\n\n"
