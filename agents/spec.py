@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.admm import ADMMParams, ConsensusADMM, hub_form
+from agents.admm import ADMMParams, ConsensusADMM, hub_form, hub_frame_dim
 from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.extension import load_algorithm
@@ -174,7 +174,7 @@ class FleetSpec:
         if self.algorithm == "newton":
             return frame_size(len(self.grid) + 1, self.graph, self.algorithm_params)
         if self.algorithm == "admm" and self._hub_form(self.algorithm_params):
-            return 2 * (len(self.grid) + 1)  # the hub form sends [v; w] (agents/admm.py)
+            return hub_frame_dim(self.algorithm_params, len(self.grid) + 1)  # [v; w] (+ the polish's payload)
         if self.algorithm == "admm" and relay_form(self.algorithm_params, self.graph, len(self.grid) + 1):
             return self.n_robots * (len(self.grid) + 1)  # a relayed a per robot (agents/relay_hub.py)
         return len(self.grid) + 1

@@ -185,13 +185,11 @@ def fleet_probe(kwargs: dict, max_rounds: int) -> tuple[list, Callable[[], float
     (rows @ v <= 1 + ACTIVE_EPS), read from the cores' data -- an analysis, not a protocol."""
     import numpy as np
 
-    from agents.problem import margin_rows
-
     world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
     central = solve_central(spec.basis, world.points, world.labels, spec.C)
     b = spec.basis
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
-    rows = [margin_rows(c._features, c._labels) for c in cores]
+    rows = [c._qp._rows for c in cores]  # margin_rows of the robot's data (hub and relay hub cores alike)
 
     def error() -> float:
         return max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores)
