@@ -386,6 +386,10 @@ OPTIONS: tuple[Option, ...] = (
            f"{param_default('autogrid', 'max_total_rounds')})", group=ALGORITHM, section="algorithm",
            check=at_least(1), feeds={"admm": "max_rounds", "ct-admm": "max_rounds", "newton": "max_rounds",
                                      "autogrid": "max_total_rounds"}),
+    Option("polish", FLAG, False, "admm on a complete graph, hard margin, grids of <= 24 points: the exact "
+           "active-set end-game (docs/algorithm.md, \"An exact end-game\"): the run ends at the KKT-certified optimum, "
+           "2-5x fewer rounds; its frames carry sums of each robot's active feature rows' outer products, as newton's",
+           group=ALGORITHM, section="algorithm", show_default=False),
     Option("ct-step", DURATION, FROM_PARAMS, "ct-admm: integration step of the flow (the paper's)",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "step"}),
     Option("ct-period", DURATION, FROM_PARAMS, "ct-admm: communication period T_sp (the paper's)",

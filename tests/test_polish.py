@@ -128,3 +128,30 @@ def test_launch_with_the_polish_equals_simulate_across_a_crash(tmp_path):
     assert [(c.robot, c.planned_round) for c in out.crashes] == [(1, 8)]
     _assert_same_iterates(out.robots, want, restarted=(1,))
     assert max(_error(spec, central, np.append(r["x"], r["gamma"])) for r in out.robots) < 1e-9
+
+
+# -- the command line: --polish where it exists, a clear error elsewhere ----------------------------
+
+from launcher.options import Options  # noqa: E402
+from launcher.scenario import ScenarioError  # noqa: E402
+from launcher.world import build_world  # noqa: E402
+
+
+def test_the_polish_flag_reaches_the_fleet_file_only_when_given():
+    _w, spec = build_world(Options(fleet_id="p", preset="paper", polish=True))
+    assert spec.params["polish"] is True and spec.algorithm_params.polish
+    _w, spec = build_world(Options(fleet_id="p", preset="paper"))
+    assert "polish" not in spec.params  # other fleets' files (and config tags) stay as they were
+
+
+@pytest.mark.parametrize("kwargs, says", [
+    ({}, "--algorithm admm only (this run: autogrid)"),
+    ({"preset": "paper", "C": 10.0}, "needs a hard margin"),
+    ({"preset": "paper", "topology": "ring", "robots": 6}, "needs a complete graph"),
+    ({"grid": "6x5", "sigma": 1.0, "algorithm": "admm"}, "the grid has 30 points"),
+    ({"preset": "paper", "algorithm": "newton"}, "--algorithm admm only (this run: newton)"),
+])
+def test_the_polish_flag_refuses_what_it_cannot_do(kwargs, says):
+    with pytest.raises(ScenarioError, match="--polish: ") as err:
+        build_world(Options(fleet_id="p", polish=True, **kwargs))
+    assert says in str(err.value)
