@@ -654,6 +654,16 @@ POLISH_ACTIVE = 1e-7
 _NONE = 1e300  # "no such row" in a verdict payload (finite: frames carry finite values)
 
 
+#: issue 10's frame budget for admm: at most this many vectors of M + 1 floats (the relay hub's N <= 16)
+FRAME_BUDGET = 16
+
+
+def polish_max_dim() -> int:
+    """The largest M + 1 whose hub frame with the polish payload, 2 d + d (d + 1) / 2 + d floats,
+    stays within FRAME_BUDGET d: d <= 2 FRAME_BUDGET - 7 (25: grids of up to 24 points)."""
+    return 2 * FRAME_BUDGET - 7
+
+
 def polish_payload_size(dim: int) -> int:
     """Floats of the polish part of a hub frame: the upper triangle of A_W' A_W and A_W' 1 (the
     verdict rounds reuse its first three entries)."""
@@ -703,13 +713,12 @@ def _triu(n: int) -> tuple[np.ndarray, np.ndarray]:
     return _TRIU[n]
 
 
-def _common_solve(payloads: np.ndarray) -> tuple[np.ndarray, bool, np.ndarray, int] | None:
+def _common_solve(payloads: np.ndarray, n: int) -> tuple[np.ndarray, bool, np.ndarray, int] | None:
     """What every copy computes alike from a sum round's payloads (a row per robot in id order):
     the exactly rounded sums H, b, the polished point v (`polish_solve`), whether it is stationary
     (|P v - y| <= POLISH_STAT max(1, |P v|), y = A_W' lam), and the sum and number of the iterates
     (each robot's multipliers follow from them). None when the sums are not finite or K = P + rho H
-    is not positive definite (no row pins gamma)."""
-    n = int(round((math.sqrt(8 * payloads.shape[1] + 9) - 3) / 2))  # payload = n(n+1)/2 + n
+    is not positive definite (no row pins gamma). n: the dimension M + 1 (the payload is n(n+1)/2 + n)."""
     t = n * (n + 1) // 2
     sums = _pairwise_sum(payloads)
     if not np.all(np.isfinite(sums)):
@@ -822,7 +831,7 @@ class _Polish:
         """The sum round: the fleet's sums, the common solve, this robot's verdict payload."""
         n = self.dim
         common, _ = shared_step(_SHARED_POLISH, _digest(b"polish", np.ascontiguousarray(payloads)),
-                                lambda: _common_solve(payloads), SHARED_STEPS_KEPT)
+                                lambda: _common_solve(payloads, n), SHARED_STEPS_KEPT)
         if common is None:  # a bad payload (or no row pins gamma): no verdict, a fresh guess next
             self.v, self.lam = None, np.zeros(0)
             out = np.zeros(polish_payload_size(n))

@@ -57,15 +57,15 @@ from typing import Any
 
 import numpy as np
 
-from agents.admm import RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, error_estimate, shared_step
+from agents.admm import FRAME_BUDGET, RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, error_estimate, shared_step
 from agents.allreduce import _bfs, check_graph
 from agents.messages import StateUpdate
 from agents.problem import MarginQP, SolverError
 from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gaps, to_bytes
 from protocol.frames import MAX_DIM
 
-#: the frame budget: N vectors of M + 1 floats, at most 16 (M + 1)
-RELAY_MAX_ROBOTS = 16
+#: the frame budget: N vectors of M + 1 floats, at most FRAME_BUDGET (M + 1)
+RELAY_MAX_ROBOTS = FRAME_BUDGET
 #: relaxation eta of the Douglas-Rachford map (1: plain ADMM)
 RELAY_RELAX = 1.5
 #: restart Anderson when the residual exceeds this x its best since the last restart

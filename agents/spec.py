@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.admm import ADMMParams, ConsensusADMM, hub_form, hub_frame_dim
+from agents.admm import FRAME_BUDGET, ADMMParams, ConsensusADMM, hub_form, hub_frame_dim, polish_max_dim
 from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.extension import load_algorithm
@@ -162,6 +162,21 @@ class FleetSpec:
         r = self.robots[self.robot_ids[0]]
         degrees = {j: len(self.robots[j].neighbours) for j in r.neighbours if j in self.robots}
         return hub_form(params, self.n_robots, r.neighbours, degrees)
+
+    def polish_refusal(self) -> str | None:
+        """Why admm's exact end-game (ADMMParams.polish) cannot run on this fleet, or None: it
+        certifies a hard margin, in the hub form (a complete graph), within the frame budget."""
+        if self.C is not None:
+            return "needs a hard margin (the end-game certifies margins held); drop --C"
+        if not self._hub_form(self.algorithm_params):
+            return (f"needs a complete graph (the hub form); this graph of {self.n_robots} robots is not complete, "
+                    "and the relay hub has no end-game yet (docs/algorithm.md)")
+        dim = len(self.grid) + 1
+        if dim > polish_max_dim():
+            frame = hub_frame_dim(replace(self.algorithm_params, polish=True), dim)
+            return (f"the grid has {len(self.grid)} points; the end-game's frames would carry {frame} numbers, "
+                    f"more than the budget of {FRAME_BUDGET} x {dim}; use a grid of at most {polish_max_dim() - 1} points")
+        return None
 
     @property
     def dim(self) -> int:

@@ -44,9 +44,6 @@ from launcher.options import (  # noqa: F401  (re-exported: Options and the pres
 )
 from protocol.frames import MAX_DIM
 
-#: admm frames carry at most this many vectors of M + 1 numbers (issue 10)
-FRAME_BUDGET = 16
-
 if TYPE_CHECKING:
     import networkx as nx
 
@@ -188,22 +185,14 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
 
 
 def _check_polish(opts: Options, spec: FleetSpec) -> None:
-    """--polish exists for the hub form's hard margin on small grids only: say so instead of
-    running without it (agents/admm.py `_Polish`)."""
+    """--polish exists for admm's hub form, hard margin, small grids (FleetSpec.polish_refusal says
+    why not): say so instead of running without it."""
     if opts.algorithm != "admm":
         raise scenario.ScenarioError(f"--polish: the exact end-game is built for --algorithm admm only (this run: "
                                      f"{opts.algorithm}); give --grid and --sigma, or --preset paper")
-    if spec.C is not None:
-        raise scenario.ScenarioError("--polish: needs a hard margin (the end-game certifies margins held); drop --C")
-    if not spec._hub_form(spec.algorithm_params):
-        raise scenario.ScenarioError(
-            f"--polish: needs a complete graph (the hub form); --topology {opts.topology} with {spec.n_robots} robots "
-            "is not complete, and the relay hub has no end-game yet (docs/algorithm.md)")
-    dim = len(spec.grid) + 1
-    if spec.dim > FRAME_BUDGET * dim:
-        raise scenario.ScenarioError(
-            f"--polish: the grid has {len(spec.grid)} points; the end-game's frames would carry {spec.dim} numbers, "
-            f"more than the budget of {FRAME_BUDGET} x {dim}; use a grid of at most 24 points, or drop --polish")
+    reason = spec.polish_refusal()
+    if reason is not None:
+        raise scenario.ScenarioError(f"--polish: {reason}")
 
 
 def _robots_and_lengths(opts: Options) -> tuple[Polygon | None, list[scenario.RobotData], scenario.WorldLengths]:

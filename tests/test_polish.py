@@ -155,3 +155,14 @@ def test_the_polish_flag_refuses_what_it_cannot_do(kwargs, says):
     with pytest.raises(ScenarioError, match="--polish: ") as err:
         build_world(Options(fleet_id="p", polish=True, **kwargs))
     assert says in str(err.value)
+
+
+def test_the_budget_bound_is_the_largest_grid_whose_polish_frames_fit():
+    """polish_max_dim is exact: its frame fits 16 (M + 1) floats, one more does not; a 24-point grid runs."""
+    from agents.admm import FRAME_BUDGET, ADMMParams, polish_max_dim
+
+    on = ADMMParams(polish=True)
+    d = polish_max_dim()
+    assert hub_frame_dim(on, d) <= FRAME_BUDGET * d < hub_frame_dim(on, d + 1) - FRAME_BUDGET
+    _w, spec = build_world(Options(fleet_id="p", grid="6x4", sigma=1.0, algorithm="admm", polish=True))
+    assert len(spec.grid) == d - 1 and spec.polish_refusal() is None and spec.dim <= FRAME_BUDGET * d
