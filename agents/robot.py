@@ -113,7 +113,7 @@ PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # preemption a loaded machine adds to wall times)
 PROFILE_KEYS = (*PROFILE_PHASES, *(f"{p}:cpu" for p in PROFILE_PHASES if p != "wait"))
 _pc = time.perf_counter
-_tt = time.thread_time
+_tt = time.thread_time  # a system call (~1 us): read only when profiling (RobotShell._tt)
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -206,7 +206,8 @@ class CheckpointWriter:
         fd = self._fds[i]
         if fd is None:
             fd = self._fds[i] = os.open(self.paths[i], os.O_RDWR | os.O_CREAT, 0o644)
-        os.pwrite(fd, _SLOT_HEADER.pack(_SLOT_MAGIC, len(data), zlib.crc32(data)) + data, 0)
+        # one system call for header and body, without copying the body behind the header
+        os.pwritev(fd, (_SLOT_HEADER.pack(_SLOT_MAGIC, len(data), zlib.crc32(data)), data), 0)
         self._next = 1 - i
 
     def close(self) -> None:
@@ -259,6 +260,7 @@ class _Inbox:
         self._armed = False
         self._draining = False
         self._to_wake: list[RobotShell] = []
+        self._loop_thread = threading.get_ident()  # made on the loop's thread (_inbox_for)
 
     def wake_later(self, shell: RobotShell) -> bool:
         """During a drain (loop thread): queue ``shell``'s wake-up for its end (in id order)
@@ -269,13 +271,21 @@ class _Inbox:
         return True
 
     def put(self, fn: Callable[..., None], *args: Any) -> None:
-        """Queue ``fn(*args)`` for the loop (any thread); RuntimeError once the loop is closed."""
+        """Queue ``fn(*args)`` for the loop (any thread); RuntimeError once the loop is closed.
+
+        From the loop's own thread (Zenoh runs the callbacks of a ``put`` to a subscriber of the
+        same session inside the ``put``: every frame between robots of one process) the drain is
+        scheduled with ``call_soon``: no self-pipe write to wake a loop that is awake, and no
+        read of it on the next pass."""
         with self._lock:
             self._items.append((fn, args))
             if self._armed:
                 return
             self._armed = True
-        self._loop.call_soon_threadsafe(self._drain)
+        if threading.get_ident() == self._loop_thread:
+            self._loop.call_soon(self._drain)
+        else:
+            self._loop.call_soon_threadsafe(self._drain)
 
     def _drain(self) -> None:
         with self._lock:
@@ -354,12 +364,13 @@ class _Fanout:
             return
         # one clock read and one pair of profile timers per frame and process, not per robot
         # (at 32 robots in 2 processes: ~650 deliveries a round and process)
-        t, c = _pc(), _tt()
+        tt = shells[0]._tt
+        t, c = _pc(), tt()
         clock = shells[0].clock
         now = clock()
         for shell in shells:
             shell._receive_frame(j, data, now if shell.clock is clock else shell.clock())
-        dt, dc = (_pc() - t) / len(shells), (_tt() - c) / len(shells)
+        dt, dc = (_pc() - t) / len(shells), (tt() - c) / len(shells)
         for shell in shells:
             prof = shell.profile
             prof["receive"] += dt
@@ -439,6 +450,7 @@ class RobotShell:
         self._router_ids: set[str] = set()
         self._waiter: asyncio.Future | None = None  # set while the main loop sleeps
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._inbox: _Inbox | None = None  # the loop's (run)
         self._closing = False
         self._pub: Any = None
         # Where the time goes (perf_counter seconds by phase) and when things happened (monotonic
@@ -446,6 +458,10 @@ class RobotShell:
         self.profile: dict[str, float] = dict.fromkeys(PROFILE_KEYS, 0.0)
         self._prof_first = self._prof_last = self.profile
         self._rounds_done = 0
+        # The main thread's CPU per phase and the per-round marks cost ~10 us of system calls a
+        # robot-round (thread_time, os.times): only with SHAPEFLEET_PROFILE, which writes them.
+        self._profiling = bool(os.environ.get("SHAPEFLEET_PROFILE"))
+        self._tt: Callable[[], float] = _tt if self._profiling else _pc
         self._passes = 0  # times the main loop slept and woke (benchmarks/round_cost.py: per round)
         self.marks: dict[str, float] = {**{k: v for k, v in _STARTED.items() if v is not None},
                                         "shell": time.monotonic()}
@@ -514,10 +530,10 @@ class RobotShell:
     def _on_raw(self, j: int, data: bytes) -> None:
         if self._closing:
             return
-        t, c = _pc(), _tt()
+        t, c = _pc(), self._tt()
         self._receive_frame(j, data, self.clock())
         self.profile["receive"] += _pc() - t
-        self.profile["receive:cpu"] += _tt() - c
+        self.profile["receive:cpu"] += self._tt() - c
 
     def _receive_frame(self, j: int, data: bytes, now: float) -> None:
         """A frame on ``j``'s key at ``now``: through the fault link (if any) to the session."""
@@ -533,8 +549,10 @@ class RobotShell:
             # linger may end. Anything else only moves deadlines later (a neighbour heard from):
             # the loop wakes at its old deadline and looks again. At 32 robots this avoids ~5 of
             # ~6 wake-ups per robot-round (results/round_cost.md, branch shellcost).
-            if (s.ready() or s.lingering or s.asking_resend() != asked) and not self._inbox.wake_later(self):
-                self._wake()
+            if s.ready() or s.lingering or s.asking_resend() != asked:
+                box = self._inbox
+                if box is None or not box.wake_later(self):  # in a drain: woken at its end, in id order
+                    self._wake()
             return
         self.links.send(j, self.me, data, now)
         self._pump(now)
@@ -689,27 +707,29 @@ class RobotShell:
             now = self.clock()
             self._pump(now)
             if s.ready():  # false once finished or stopped
-                prof = self.profile
-                t0, c0 = _pc(), _tt()
+                prof, tt = self.profile, self._tt
+                t0, c0 = _pc(), tt()
                 self._checkpoint()
-                t1, c1 = _pc(), _tt()
+                t1, c1 = _pc(), tt()
                 advanced = s.advance(now)
-                t2, c2 = _pc(), _tt()
+                t2, c2 = _pc(), tt()
                 prof["checkpoint"] += t1 - t0
                 prof["advance"] += t2 - t1
                 prof["checkpoint:cpu"] += c1 - c0
                 prof["advance:cpu"] += c2 - c1
                 if advanced:
-                    self._send(self.clock())
+                    for _dest, frame in s.queued():  # the loop's next pass runs the timers (to_send)
+                        self._pub.put(frame)
                     if self.crash_at is not None and self.core.round >= self.crash_at and not s.done:
                         self._crash_now()
-                    t3, c3 = _pc(), _tt()
+                    t3, c3 = _pc(), tt()
                     self._status_line()
                     prof["send"] += t3 - t2
                     prof["status"] += _pc() - t3
                     prof["send:cpu"] += c3 - c2
-                    prof["status:cpu"] += _tt() - c3
-                    self._mark_round()
+                    prof["status:cpu"] += tt() - c3
+                    if self._profiling:
+                        self._mark_round()
                 if s.ready():
                     # Still ready (no neighbours left, or their next values already here): let
                     # other tasks and callbacks run before the next round (costs one loop pass).

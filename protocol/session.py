@@ -404,6 +404,12 @@ class RobotSession:
         out, self._out = self._out, []
         return out
 
+    def queued(self) -> list[tuple[int | None, bytes]]:
+        """The frames queued so far (``advance``'s), without running the timers: for a shell that
+        calls ``to_send`` again before it sleeps, so that the timers run once a round, not twice."""
+        out, self._out = self._out, []
+        return out
+
     def next_deadline(self) -> float | None:
         """When ``to_send`` has work again if nothing arrives (None: done)."""
         return None if self.done else self._deadline
