@@ -856,3 +856,38 @@ def test_subscriber_callbacks_run_on_zenohs_thread_not_a_thread_each(router, mon
             ent.undeclare()
         tx.close()
         rx.close()
+
+
+def test_a_drain_wakes_the_robots_it_made_ready_in_id_order():
+    """agents/robot.py `_Inbox.wake_later` (issue 14, branch shell3): the robots of a process that
+    one burst of frames makes ready are woken at the end of the drain in the order of their ids,
+    whatever order their last missing frames came in. Woken as the frames came, the robot that
+    computed last in a round (its frame completes the others' inputs) computed first in the next:
+    each robot's place in the round rotated and its own round times alternated between a fraction
+    of the fleet's round and more than a whole one (median 2.0 ms for a mean of 1.6, 3 robots)."""
+    from agents.robot import RobotShell, _Inbox
+
+    spec = FakeSpec("shell-order", {0: (1, 2), 1: (0, 2), 2: (0, 1)}, rounds=3)
+    loop = asyncio.new_event_loop()
+    try:
+        inbox = _Inbox(loop)
+        shells = {i: RobotShell(spec, i, connect=["tcp/127.0.0.1:7447"], checkpoint_path=None, result_path=None,
+                                status_stream=None, build=AveragingCore, restore=AveragingCore.restore)
+                  for i in spec.robot_ids}
+        woken: list[int] = []
+        for i, sh in shells.items():
+            sh._inbox = inbox
+            sh._waiter = loop.create_future()
+            sh._waiter.add_done_callback(lambda _f, i=i: woken.append(i))
+        frames = {j: encode_state(StateUpdate(j, 0, spec.x0(j), 0, None), fleet=spec.fleet, seq=1,
+                                  config_tag=spec.config_tag) for j in spec.robot_ids}
+        # the order in which the fleet's round-0 frames reach each robot: robot 2 is made ready
+        # first (by robot 1's frame), then robot 0 and robot 1 (both by robot 2's frame, 0 first)
+        for j, i in [(0, 2), (0, 1), (1, 2), (1, 0), (2, 0), (2, 1)]:
+            inbox.put(shells[i]._receive_frame, j, frames[j], 1.0)
+        assert not inbox.wake_later(shells[0])  # outside a drain the caller wakes at once
+        loop.run_until_complete(asyncio.sleep(0.01))
+        assert all(sh.session.ready() for sh in shells.values())
+        assert woken == [0, 1, 2], woken  # as frames came it would be [2, 0, 1]
+    finally:
+        loop.close()
