@@ -68,6 +68,8 @@ __all__ = [
     "DIVERGED_ABS",
     "GIVE_UP_FACTOR",
     "run_forked",
+    "fleet_resume_round",
+    "FLEET_CHECKPOINT_EVERY",
     "watch_parent",
 ]
 
@@ -191,12 +193,15 @@ class CheckpointWriter:
     ~0.01 ms for the ``pwrite``). No fsync: we model process crashes, not machine crashes.
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, keep_round: int | None = None) -> None:
+        """``keep_round``: the round the robot resumed from when it is not the newest slot's (a
+        whole-fleet process, :func:`fleet_resume_round`): that slot is kept, the other written first."""
         self.paths = (Path(path), _checkpoint_tmp(Path(path)))
         found = [_load_envelope(p) for p in self.paths]
-        newest = max((i for i in (0, 1) if found[i] is not None), key=lambda i: int(found[i].get("n", 0)),
-                     default=1)
-        self._next = 1 - newest  # never overwrite the newest complete checkpoint
+        held = [i for i in (0, 1) if found[i] is not None
+                and (keep_round is None or _core_round(found[i]) == keep_round)]
+        newest = max(held, key=lambda i: int(found[i].get("n", 0)), default=1)
+        self._next = 1 - newest  # never overwrite the newest complete checkpoint (or the one resumed from)
         self._fds: list[int | None] = [None, None]
 
     def write(self, envelope: dict[str, Any]) -> None:
@@ -223,13 +228,61 @@ def checkpoint_exists(path: Path) -> bool:
     return path.exists() or _checkpoint_tmp(path).exists()
 
 
-def read_checkpoint(path: Path) -> dict[str, Any]:
-    """The newest complete checkpoint of ``path`` / ``<path>.tmp``; ValueError if there is none."""
+def read_checkpoint(path: Path, *, at_round: int | None = None) -> dict[str, Any]:
+    """The newest complete checkpoint of ``path`` / ``<path>.tmp``; ValueError if there is none.
+
+    ``at_round``: the newest complete one of the core at that round (a process hosting the whole
+    fleet resumes every robot from one common round, :func:`fleet_resume_round`)."""
     path = Path(path)
     found = [env for env in (_load_envelope(path), _load_envelope(_checkpoint_tmp(path))) if env is not None]
+    if at_round is not None:
+        found = [env for env in found if _core_round(env) == at_round]
     if not found:
-        raise ValueError(f"{path}: no complete shapefleet robot checkpoint (version {CHECKPOINT_VERSION})")
+        at = "" if at_round is None else f" at round {at_round}"
+        raise ValueError(f"{path}: no complete shapefleet robot checkpoint{at} (version {CHECKPOINT_VERSION})")
     return max(found, key=lambda env: int(env.get("n", 0)))
+
+
+def _core_round(env: dict[str, Any]) -> int | None:
+    core = env.get("core")
+    rnd = core.get("round") if isinstance(core, dict) else None
+    return rnd if type(rnd) is int else None
+
+
+#: A process that hosts every robot of its fleet checkpoints each robot every this many rounds
+#: (at rounds that are multiples of it), not before every round (branch shell3, issue 14: the
+#: checkpoint was 14 % of such a process's loop). Every robot of the fleet dies with the process,
+#: so they all resume from one common round (:func:`fleet_resume_round`) and recompute the rounds
+#: since: the ADMM is deterministic, so the iterates are the same bit for bit. A process that
+#: shares the fleet with other processes still checkpoints every round (its neighbours elsewhere
+#: go on, so it must resume where its frames left off: docs/robot.md, "Checkpoints").
+FLEET_CHECKPOINT_EVERY = 16
+
+
+def fleet_checkpoint_every(robots: int) -> int:
+    """The checkpoint period of a process hosting a whole fleet of ``robots``: at least the
+    graph's diameter (< ``robots``), so that two robots' newest checkpoints are never more than
+    one period apart (what :func:`fleet_resume_round` relies on)."""
+    return max(FLEET_CHECKPOINT_EVERY, int(robots))
+
+
+def fleet_resume_round(paths: list[Path]) -> int | None:
+    """The round a process hosting the whole fleet resumes every robot from (None: start fresh).
+
+    Each robot's two checkpoint slots hold its last two checkpoints (rounds a period apart) or one
+    of them and a torn write. A robot's newest complete checkpoint is at most one period ahead of
+    any other's (lockstep, period >= diameter), so the oldest of the robots' newest rounds is held
+    complete by every robot: a consistent cut of the fleet, each robot with its neighbours' values
+    of that round. A robot without a complete checkpoint died before its first (round 0, written
+    before any robot can pass round 1): it starts fresh, which is its round 0, and the others
+    resume from round 0. None when no robot has a checkpoint.
+    """
+    newest: list[int] = []
+    for path in paths:
+        rounds = [r for r in (_core_round(e) for e in (_load_envelope(path), _load_envelope(_checkpoint_tmp(path)))
+                              if e is not None) if r is not None]
+        newest.append(max(rounds, default=-1))
+    return None if not newest or max(newest) < 0 else max(0, min(newest))
 
 
 # --------------------------------------------------------------------------- Zenoh -> loop
@@ -418,8 +471,15 @@ class RobotShell:
         zenoh_config: Any | None = None,
         status_interval_s: float = 0.0,
         crash_at: int | None = None,
+        checkpoint_every: int = 1,
+        resume_round: int | None = None,
     ) -> None:
+        """``checkpoint_every`` > 1 (a process hosting the whole fleet, :func:`run_robots`): the
+        checkpoint is written before the rounds that are multiples of it only; ``resume_round``:
+        resume from the checkpoint at that round (:func:`fleet_resume_round`), not the newest."""
         self.spec = spec
+        self.checkpoint_every = max(1, int(checkpoint_every))
+        self._resume_round = resume_round
         self.crash_at = crash_at  # fault injection: SIGKILL this process on reaching that round
         self.me = int(robot_id)
         self.connect = list(connect)
@@ -431,7 +491,8 @@ class RobotShell:
         self._status_at = float("-inf")
         self.clock = clock
         env = self._read_own_checkpoint()
-        self._writer = None if self.checkpoint_path is None else CheckpointWriter(self.checkpoint_path)
+        self._writer = None if self.checkpoint_path is None else CheckpointWriter(
+            self.checkpoint_path, keep_round=None if env is None else resume_round)
         self._checkpoints = 0 if env is None else int(env.get("n", 0))
         core = build(spec, self.me) if env is None else restore(spec, self.me, env["core"])
         if core.robot_id != self.me:
@@ -471,7 +532,7 @@ class RobotShell:
         path, spec = self.checkpoint_path, self.spec
         if path is None or not checkpoint_exists(path):
             return None
-        env = read_checkpoint(path)
+        env = read_checkpoint(path, at_round=self._resume_round)
         if env.get("fleet") != spec.fleet or env.get("robot") != self.me or env.get("cfg") != spec.config_tag:
             raise ValueError(
                 f"checkpoint {path} belongs to fleet {env.get('fleet')!r} robot "
@@ -709,7 +770,8 @@ class RobotShell:
             if s.ready():  # false once finished or stopped
                 prof, tt = self.profile, self._tt
                 t0, c0 = _pc(), tt()
-                self._checkpoint()
+                if self.checkpoint_every == 1 or self.core.round % self.checkpoint_every == 0:
+                    self._checkpoint()
                 t1, c1 = _pc(), tt()
                 advanced = s.advance(now)
                 t2, c2 = _pc(), tt()
@@ -946,8 +1008,13 @@ async def run_robots(
     """
     shells: list[RobotShell] = []
     failed: dict[int, BaseException] = {}
+    wd = None if workdir is None else Path(workdir)
+    # the whole fleet here: checkpoints every few rounds, resumed from one common round
+    # (FLEET_CHECKPOINT_EVERY); a planned crash (one robot's process) keeps every round's
+    whole = wd is not None and crash_at is None and set(spec.robot_ids) <= set(robot_ids)
+    every = fleet_checkpoint_every(len(robot_ids)) if whole else 1
+    resume = fleet_resume_round([wd / f"robot-{rid}.ckpt" for rid in robot_ids]) if whole else None
     for rid in robot_ids:
-        wd = None if workdir is None else Path(workdir)
         try:
             shells.append(RobotShell(
                 spec, rid, connect=connect,
@@ -955,7 +1022,8 @@ async def run_robots(
                 result_path=None if wd is None else wd / f"robot-{rid}.json",
                 status_stream=status_stream, build=_default_build, restore=_default_restore,
                 zenoh_config=zenoh_config, status_interval_s=status_interval_s,
-                crash_at=crash_at if len(robot_ids) == 1 else None))
+                crash_at=crash_at if len(robot_ids) == 1 else None,
+                checkpoint_every=every, resume_round=resume))
         except Exception as exc:  # noqa: BLE001 - this robot only; its neighbours will drop it
             log.error("robot %d: cannot start: %s", rid, exc)
             failed[rid] = exc
