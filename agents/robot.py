@@ -1042,6 +1042,9 @@ async def _run_shells(shells: list[RobotShell], handle_signals: bool, session: A
     """Run every shell to its end (results or exceptions, in order); with ``handle_signals``
     SIGTERM/SIGINT stop them all cleanly, each writing a result saying ``stopped = "signal"``."""
     fanout = None if session is None or os.environ.get("SHAPEFLEET_SUBSCRIBER_PER_ROBOT") else _Fanout(session)
+    if len(shells) > 1 and not os.environ.get("SHAPEFLEET_NO_PRIME"):
+        for sh in shells:  # the robots here need not parse each other's frames (encode_state's prime)
+            sh.session.prime_memo = True
     tasks = [asyncio.ensure_future(sh.run(session, fanout)) for sh in shells]
     signals = handle_signals and threading.current_thread() is threading.main_thread()
     loop = asyncio.get_running_loop()
