@@ -68,6 +68,8 @@ __all__ = [
     "DIVERGED_ABS",
     "GIVE_UP_FACTOR",
     "run_forked",
+    "fleet_resume_round",
+    "FLEET_CHECKPOINT_EVERY",
     "watch_parent",
 ]
 
@@ -113,7 +115,7 @@ PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # preemption a loaded machine adds to wall times)
 PROFILE_KEYS = (*PROFILE_PHASES, *(f"{p}:cpu" for p in PROFILE_PHASES if p != "wait"))
 _pc = time.perf_counter
-_tt = time.thread_time
+_tt = time.thread_time  # a system call (~1 us): read only when profiling (RobotShell._tt)
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -191,12 +193,15 @@ class CheckpointWriter:
     ~0.01 ms for the ``pwrite``). No fsync: we model process crashes, not machine crashes.
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, keep_round: int | None = None) -> None:
+        """``keep_round``: the round the robot resumed from when it is not the newest slot's (a
+        whole-fleet process, :func:`fleet_resume_round`): that slot is kept, the other written first."""
         self.paths = (Path(path), _checkpoint_tmp(Path(path)))
         found = [_load_envelope(p) for p in self.paths]
-        newest = max((i for i in (0, 1) if found[i] is not None), key=lambda i: int(found[i].get("n", 0)),
-                     default=1)
-        self._next = 1 - newest  # never overwrite the newest complete checkpoint
+        held = [i for i in (0, 1) if found[i] is not None
+                and (keep_round is None or _core_round(found[i]) == keep_round)]
+        newest = max(held, key=lambda i: int(found[i].get("n", 0)), default=1)
+        self._next = 1 - newest  # never overwrite the newest complete checkpoint (or the one resumed from)
         self._fds: list[int | None] = [None, None]
 
     def write(self, envelope: dict[str, Any]) -> None:
@@ -206,7 +211,8 @@ class CheckpointWriter:
         fd = self._fds[i]
         if fd is None:
             fd = self._fds[i] = os.open(self.paths[i], os.O_RDWR | os.O_CREAT, 0o644)
-        os.pwrite(fd, _SLOT_HEADER.pack(_SLOT_MAGIC, len(data), zlib.crc32(data)) + data, 0)
+        # one system call for header and body, without copying the body behind the header
+        os.pwritev(fd, (_SLOT_HEADER.pack(_SLOT_MAGIC, len(data), zlib.crc32(data)), data), 0)
         self._next = 1 - i
 
     def close(self) -> None:
@@ -222,13 +228,61 @@ def checkpoint_exists(path: Path) -> bool:
     return path.exists() or _checkpoint_tmp(path).exists()
 
 
-def read_checkpoint(path: Path) -> dict[str, Any]:
-    """The newest complete checkpoint of ``path`` / ``<path>.tmp``; ValueError if there is none."""
+def read_checkpoint(path: Path, *, at_round: int | None = None) -> dict[str, Any]:
+    """The newest complete checkpoint of ``path`` / ``<path>.tmp``; ValueError if there is none.
+
+    ``at_round``: the newest complete one of the core at that round (a process hosting the whole
+    fleet resumes every robot from one common round, :func:`fleet_resume_round`)."""
     path = Path(path)
     found = [env for env in (_load_envelope(path), _load_envelope(_checkpoint_tmp(path))) if env is not None]
+    if at_round is not None:
+        found = [env for env in found if _core_round(env) == at_round]
     if not found:
-        raise ValueError(f"{path}: no complete shapefleet robot checkpoint (version {CHECKPOINT_VERSION})")
+        at = "" if at_round is None else f" at round {at_round}"
+        raise ValueError(f"{path}: no complete shapefleet robot checkpoint{at} (version {CHECKPOINT_VERSION})")
     return max(found, key=lambda env: int(env.get("n", 0)))
+
+
+def _core_round(env: dict[str, Any]) -> int | None:
+    core = env.get("core")
+    rnd = core.get("round") if isinstance(core, dict) else None
+    return rnd if type(rnd) is int else None
+
+
+#: A process that hosts every robot of its fleet checkpoints each robot every this many rounds
+#: (at rounds that are multiples of it), not before every round (branch shell3, issue 14: the
+#: checkpoint was 14 % of such a process's loop). Every robot of the fleet dies with the process,
+#: so they all resume from one common round (:func:`fleet_resume_round`) and recompute the rounds
+#: since: the ADMM is deterministic, so the iterates are the same bit for bit. A process that
+#: shares the fleet with other processes still checkpoints every round (its neighbours elsewhere
+#: go on, so it must resume where its frames left off: docs/robot.md, "Checkpoints").
+FLEET_CHECKPOINT_EVERY = 16
+
+
+def fleet_checkpoint_every(robots: int) -> int:
+    """The checkpoint period of a process hosting a whole fleet of ``robots``: at least the
+    graph's diameter (< ``robots``), so that two robots' newest checkpoints are never more than
+    one period apart (what :func:`fleet_resume_round` relies on)."""
+    return max(FLEET_CHECKPOINT_EVERY, int(robots))
+
+
+def fleet_resume_round(paths: list[Path]) -> int | None:
+    """The round a process hosting the whole fleet resumes every robot from (None: start fresh).
+
+    Each robot's two checkpoint slots hold its last two checkpoints (rounds a period apart) or one
+    of them and a torn write. A robot's newest complete checkpoint is at most one period ahead of
+    any other's (lockstep, period >= diameter), so the oldest of the robots' newest rounds is held
+    complete by every robot: a consistent cut of the fleet, each robot with its neighbours' values
+    of that round. A robot without a complete checkpoint died before its first (round 0, written
+    before any robot can pass round 1): it starts fresh, which is its round 0, and the others
+    resume from round 0. None when no robot has a checkpoint.
+    """
+    newest: list[int] = []
+    for path in paths:
+        rounds = [r for r in (_core_round(e) for e in (_load_envelope(path), _load_envelope(_checkpoint_tmp(path)))
+                              if e is not None) if r is not None]
+        newest.append(max(rounds, default=-1))
+    return None if not newest or max(newest) < 0 else max(0, min(newest))
 
 
 # --------------------------------------------------------------------------- Zenoh -> loop
@@ -241,6 +295,15 @@ class _Inbox:
     process with several robots gets a burst of frames per round (8 robots on a complete graph of
     16: 120). Here the first call of a burst schedules one drain, the others only queue (FIFO:
     the order the frames came in is kept).
+
+    The robots a burst makes ready are woken at the end of the drain in the order of their ids
+    (``wake_later``), not in the order their last missing frame happened to come: the loop then
+    computes a process's robots in the same order every round. Woken as their frames came, the
+    robot that computed last in a round (its frame completes the others' inputs) computed first
+    in the next, so each robot's place in the round rotated and its own round times alternated
+    between a fraction of the fleet's round and more than a whole one (3 robots in a process:
+    0.55 / 2.5 ms, the median 2.0 ms for a mean round of 1.6; results/round_cost.md, branch
+    shell3). The work and its order within a robot are unchanged; only which robot goes first.
     """
 
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
@@ -248,25 +311,57 @@ class _Inbox:
         self._items: collections.deque = collections.deque()
         self._lock = threading.Lock()
         self._armed = False
+        self._draining = False
+        self._to_wake: list[RobotShell] = []
+        self._loop_thread = threading.get_ident()  # made on the loop's thread (_inbox_for)
+
+    def wake_later(self, shell: RobotShell) -> bool:
+        """During a drain (loop thread): queue ``shell``'s wake-up for its end (in id order)
+        and say True; outside one: False (the caller wakes it now)."""
+        if not self._draining:
+            return False
+        self._to_wake.append(shell)
+        return True
 
     def put(self, fn: Callable[..., None], *args: Any) -> None:
-        """Queue ``fn(*args)`` for the loop (any thread); RuntimeError once the loop is closed."""
+        """Queue ``fn(*args)`` for the loop (any thread); RuntimeError once the loop is closed.
+
+        From the loop's own thread (Zenoh runs the callbacks of a ``put`` to a subscriber of the
+        same session inside the ``put``: every frame between robots of one process) the drain is
+        scheduled with ``call_soon``: no self-pipe write to wake a loop that is awake, and no
+        read of it on the next pass."""
         with self._lock:
             self._items.append((fn, args))
             if self._armed:
                 return
             self._armed = True
-        self._loop.call_soon_threadsafe(self._drain)
+        if threading.get_ident() == self._loop_thread:
+            self._loop.call_soon(self._drain)
+        else:
+            self._loop.call_soon_threadsafe(self._drain)
 
     def _drain(self) -> None:
         with self._lock:
             items, self._items = self._items, collections.deque()
             self._armed = False
-        for fn, args in items:
-            try:
-                fn(*args)
-            except Exception:  # noqa: BLE001 - one bad call must not lose the others (as call_soon)
-                log.exception("callback %r failed", fn)
+        self._draining = True
+        try:
+            for fn, args in items:
+                try:
+                    fn(*args)
+                except Exception:  # noqa: BLE001 - one bad call must not lose the others (as call_soon)
+                    log.exception("callback %r failed", fn)
+        finally:
+            self._draining = False
+            woken, self._to_wake = self._to_wake, []
+            if len(woken) > 1:
+                woken.sort(key=_shell_id)
+            for shell in woken:
+                shell._wake()
+
+
+def _shell_id(shell: RobotShell) -> int:
+    return shell.me
 
 
 _INBOXES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -322,12 +417,13 @@ class _Fanout:
             return
         # one clock read and one pair of profile timers per frame and process, not per robot
         # (at 32 robots in 2 processes: ~650 deliveries a round and process)
-        t, c = _pc(), _tt()
+        tt = shells[0]._tt
+        t, c = _pc(), tt()
         clock = shells[0].clock
         now = clock()
         for shell in shells:
             shell._receive_frame(j, data, now if shell.clock is clock else shell.clock())
-        dt, dc = (_pc() - t) / len(shells), (_tt() - c) / len(shells)
+        dt, dc = (_pc() - t) / len(shells), (tt() - c) / len(shells)
         for shell in shells:
             prof = shell.profile
             prof["receive"] += dt
@@ -375,8 +471,15 @@ class RobotShell:
         zenoh_config: Any | None = None,
         status_interval_s: float = 0.0,
         crash_at: int | None = None,
+        checkpoint_every: int = 1,
+        resume_round: int | None = None,
     ) -> None:
+        """``checkpoint_every`` > 1 (a process hosting the whole fleet, :func:`run_robots`): the
+        checkpoint is written before the rounds that are multiples of it only; ``resume_round``:
+        resume from the checkpoint at that round (:func:`fleet_resume_round`), not the newest."""
         self.spec = spec
+        self.checkpoint_every = max(1, int(checkpoint_every))
+        self._resume_round = resume_round
         self.crash_at = crash_at  # fault injection: SIGKILL this process on reaching that round
         self.me = int(robot_id)
         self.connect = list(connect)
@@ -388,7 +491,8 @@ class RobotShell:
         self._status_at = float("-inf")
         self.clock = clock
         env = self._read_own_checkpoint()
-        self._writer = None if self.checkpoint_path is None else CheckpointWriter(self.checkpoint_path)
+        self._writer = None if self.checkpoint_path is None else CheckpointWriter(
+            self.checkpoint_path, keep_round=None if env is None else resume_round)
         self._checkpoints = 0 if env is None else int(env.get("n", 0))
         core = build(spec, self.me) if env is None else restore(spec, self.me, env["core"])
         if core.robot_id != self.me:
@@ -407,6 +511,7 @@ class RobotShell:
         self._router_ids: set[str] = set()
         self._waiter: asyncio.Future | None = None  # set while the main loop sleeps
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._inbox: _Inbox | None = None  # the loop's (run)
         self._closing = False
         self._pub: Any = None
         # Where the time goes (perf_counter seconds by phase) and when things happened (monotonic
@@ -414,6 +519,10 @@ class RobotShell:
         self.profile: dict[str, float] = dict.fromkeys(PROFILE_KEYS, 0.0)
         self._prof_first = self._prof_last = self.profile
         self._rounds_done = 0
+        # The main thread's CPU per phase and the per-round marks cost ~10 us of system calls a
+        # robot-round (thread_time, os.times): only with SHAPEFLEET_PROFILE, which writes them.
+        self._profiling = bool(os.environ.get("SHAPEFLEET_PROFILE"))
+        self._tt: Callable[[], float] = _tt if self._profiling else _pc
         self._passes = 0  # times the main loop slept and woke (benchmarks/round_cost.py: per round)
         self.marks: dict[str, float] = {**{k: v for k, v in _STARTED.items() if v is not None},
                                         "shell": time.monotonic()}
@@ -423,7 +532,7 @@ class RobotShell:
         path, spec = self.checkpoint_path, self.spec
         if path is None or not checkpoint_exists(path):
             return None
-        env = read_checkpoint(path)
+        env = read_checkpoint(path, at_round=self._resume_round)
         if env.get("fleet") != spec.fleet or env.get("robot") != self.me or env.get("cfg") != spec.config_tag:
             raise ValueError(
                 f"checkpoint {path} belongs to fleet {env.get('fleet')!r} robot "
@@ -482,10 +591,10 @@ class RobotShell:
     def _on_raw(self, j: int, data: bytes) -> None:
         if self._closing:
             return
-        t, c = _pc(), _tt()
+        t, c = _pc(), self._tt()
         self._receive_frame(j, data, self.clock())
         self.profile["receive"] += _pc() - t
-        self.profile["receive:cpu"] += _tt() - c
+        self.profile["receive:cpu"] += self._tt() - c
 
     def _receive_frame(self, j: int, data: bytes, now: float) -> None:
         """A frame on ``j``'s key at ``now``: through the fault link (if any) to the session."""
@@ -502,7 +611,9 @@ class RobotShell:
             # the loop wakes at its old deadline and looks again. At 32 robots this avoids ~5 of
             # ~6 wake-ups per robot-round (results/round_cost.md, branch shellcost).
             if s.ready() or s.lingering or s.asking_resend() != asked:
-                self._wake()
+                box = self._inbox
+                if box is None or not box.wake_later(self):  # in a drain: woken at its end, in id order
+                    self._wake()
             return
         self.links.send(j, self.me, data, now)
         self._pump(now)
@@ -657,27 +768,30 @@ class RobotShell:
             now = self.clock()
             self._pump(now)
             if s.ready():  # false once finished or stopped
-                prof = self.profile
-                t0, c0 = _pc(), _tt()
-                self._checkpoint()
-                t1, c1 = _pc(), _tt()
+                prof, tt = self.profile, self._tt
+                t0, c0 = _pc(), tt()
+                if self.checkpoint_every == 1 or self.core.round % self.checkpoint_every == 0:
+                    self._checkpoint()
+                t1, c1 = _pc(), tt()
                 advanced = s.advance(now)
-                t2, c2 = _pc(), _tt()
+                t2, c2 = _pc(), tt()
                 prof["checkpoint"] += t1 - t0
                 prof["advance"] += t2 - t1
                 prof["checkpoint:cpu"] += c1 - c0
                 prof["advance:cpu"] += c2 - c1
                 if advanced:
-                    self._send(self.clock())
+                    for _dest, frame in s.queued():  # the loop's next pass runs the timers (to_send)
+                        self._pub.put(frame)
                     if self.crash_at is not None and self.core.round >= self.crash_at and not s.done:
                         self._crash_now()
-                    t3, c3 = _pc(), _tt()
+                    t3, c3 = _pc(), tt()
                     self._status_line()
                     prof["send"] += t3 - t2
                     prof["status"] += _pc() - t3
                     prof["send:cpu"] += c3 - c2
-                    prof["status:cpu"] += _tt() - c3
-                    self._mark_round()
+                    prof["status:cpu"] += tt() - c3
+                    if self._profiling:
+                        self._mark_round()
                 if s.ready():
                     # Still ready (no neighbours left, or their next values already here): let
                     # other tasks and callbacks run before the next round (costs one loop pass).
@@ -894,8 +1008,13 @@ async def run_robots(
     """
     shells: list[RobotShell] = []
     failed: dict[int, BaseException] = {}
+    wd = None if workdir is None else Path(workdir)
+    # the whole fleet here: checkpoints every few rounds, resumed from one common round
+    # (FLEET_CHECKPOINT_EVERY); a planned crash (one robot's process) keeps every round's
+    whole = wd is not None and crash_at is None and set(spec.robot_ids) <= set(robot_ids)
+    every = fleet_checkpoint_every(len(robot_ids)) if whole else 1
+    resume = fleet_resume_round([wd / f"robot-{rid}.ckpt" for rid in robot_ids]) if whole else None
     for rid in robot_ids:
-        wd = None if workdir is None else Path(workdir)
         try:
             shells.append(RobotShell(
                 spec, rid, connect=connect,
@@ -903,7 +1022,8 @@ async def run_robots(
                 result_path=None if wd is None else wd / f"robot-{rid}.json",
                 status_stream=status_stream, build=_default_build, restore=_default_restore,
                 zenoh_config=zenoh_config, status_interval_s=status_interval_s,
-                crash_at=crash_at if len(robot_ids) == 1 else None))
+                crash_at=crash_at if len(robot_ids) == 1 else None,
+                checkpoint_every=every, resume_round=resume))
         except Exception as exc:  # noqa: BLE001 - this robot only; its neighbours will drop it
             log.error("robot %d: cannot start: %s", rid, exc)
             failed[rid] = exc
@@ -922,6 +1042,9 @@ async def _run_shells(shells: list[RobotShell], handle_signals: bool, session: A
     """Run every shell to its end (results or exceptions, in order); with ``handle_signals``
     SIGTERM/SIGINT stop them all cleanly, each writing a result saying ``stopped = "signal"``."""
     fanout = None if session is None or os.environ.get("SHAPEFLEET_SUBSCRIBER_PER_ROBOT") else _Fanout(session)
+    if len(shells) > 1 and not os.environ.get("SHAPEFLEET_NO_PRIME"):
+        for sh in shells:  # the robots here need not parse each other's frames (encode_state's prime)
+            sh.session.prime_memo = True
     tasks = [asyncio.ensure_future(sh.run(session, fanout)) for sh in shells]
     signals = handle_signals and threading.current_thread() is threading.main_thread()
     loop = asyncio.get_running_loop()

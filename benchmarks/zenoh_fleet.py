@@ -25,6 +25,7 @@ by its PID. Loopback only, multicast scouting off.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -177,13 +178,22 @@ def cli_launch(tree: Path, env: dict[str, str] | None = None) -> dict:
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     round_ms = statistics.median(r["round_ms"]["median"] for r in res["robots"])  # issue 14's ms/round
     return {"wall_s": wall, "cpu_s": cpu, "rounds": res["rounds"], "error": res["metrics"]["function_error"],
-            "load": load, "round_ms": round_ms}
+            "load": load, "round_ms": round_ms, "digest": result_digest(res)}
+
+
+def result_digest(res: dict) -> str:
+    """sha256 (16 hex digits) of every robot's (id, c, gamma, rounds, residual, converged) in a
+    result.json: equal digests = the same answers bit for bit."""
+    h = hashlib.sha256()
+    for r in sorted(res["robots"], key=lambda r: r["id"]):
+        h.update(repr((r["id"], r["c"], r["gamma"], r["rounds"], r["residual"], r["converged"])).encode())
+    return h.hexdigest()[:16]
 
 
 def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -> str:
     """The whole `launch --preset paper` command, the trees alternating run by run (same minutes)."""
     lines = ["| tree | wall s (each run) | median | CPU s, all processes (each run) | median | ms/round (each run) "
-             "| median | load | rounds, error |",
+             "| median | load | rounds, error, digest |",
              "|---|---|---:|---|---:|---|---:|---|---|"]
     got: dict[str, list[dict]] = {label: [] for label, _t, _e in trees}
     for _ in range(runs):
@@ -191,7 +201,7 @@ def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -
             got[label].append(cli_launch(tree, env))
     for label, runs_ in got.items():
         walls, cpus, ms = [r["wall_s"] for r in runs_], [r["cpu_s"] for r in runs_], [r["round_ms"] for r in runs_]
-        outcomes = ", ".join(sorted({f"{r['rounds']} rounds, {r['error']:.6e}" for r in runs_}))
+        outcomes = ", ".join(sorted({f"{r['rounds']} rounds, {r['error']:.6e}, `{r['digest']}`" for r in runs_}))
         lines.append(f"| {label} | {', '.join(f'{w:.2f}' for w in walls)} | **{statistics.median(walls):.2f}** "
                      f"| {', '.join(f'{c:.2f}' for c in cpus)} | {statistics.median(cpus):.2f} "
                      f"| {', '.join(f'{m:.2f}' for m in ms)} | {statistics.median(ms):.2f} "
@@ -355,7 +365,6 @@ def thread_cpu(tree: Path, robots: int, rounds: int, env: dict[str, str] | None 
     CPU user/sys and context switches per process kind (robot, router, launcher) and thread class
     (the Python loop's main thread, Zenoh's named runtime threads rx/tx/app/acc/net, other Python
     threads -- zenoh-python's callback threads among them). Linux only."""
-    import hashlib
     import subprocess
 
     with tempfile.TemporaryDirectory(prefix="shapefleet-threads-") as tmp:
@@ -394,11 +403,8 @@ def thread_cpu(tree: Path, robots: int, rounds: int, env: dict[str, str] | None 
             row = rows.setdefault((kind, cls), [0.0, 0.0, 0, 0, 0])
             for i, x in enumerate((u, s, v, n, 1)):
                 row[i] += x
-    h = hashlib.sha256()
-    for r in sorted(res["robots"], key=lambda r: r["id"]):
-        h.update(repr((r["id"], r["c"], r["gamma"], r["rounds"], r["residual"], r["converged"])).encode())
     return {"wall_s": wall, "load": load, "rounds": res["rounds"], "error": res["metrics"]["function_error"],
-            "digest": h.hexdigest()[:16], "rows": rows,
+            "digest": result_digest(res), "rows": rows,
             "round_ms": statistics.median(r["round_ms"]["median"] for r in res["robots"]),
             "sent": sum(r["frames_sent"] for r in res["robots"])}
 

@@ -214,6 +214,10 @@ class RobotSession:
         self._republish_now = False
         self._deadline: float | None = None
         self._last_advance = now
+        # the shell of a process of several robots: our frames' parse goes into the process's memo
+        # as we encode them, so that the robots here that receive them do not parse them
+        # (protocol.frames.encode_state's ``prime``)
+        self.prime_memo = False
         self.round_intervals: list[float] = []  # shell-clock seconds of each advance-to-advance
         self._intervals_for: tuple[int, tuple[float, float]] = (-1, (0.0, 0.0))  # resend cache
         self.round_times: dict[int, float] = {int(core.round): 0.0}  # round -> when it was reached
@@ -404,6 +408,12 @@ class RobotSession:
         out, self._out = self._out, []
         return out
 
+    def queued(self) -> list[tuple[int | None, bytes]]:
+        """The frames queued so far (``advance``'s), without running the timers: for a shell that
+        calls ``to_send`` again before it sleeps, so that the timers run once a round, not twice."""
+        out, self._out = self._out, []
+        return out
+
     def next_deadline(self) -> float | None:
         """When ``to_send`` has work again if nothing arrives (None: done)."""
         return None if self.done else self._deadline
@@ -556,7 +566,7 @@ class RobotSession:
         # what we still lack of this frame's round: a neighbour answers a repeat only if named
         need = () if self.core.finished or update.round != self.core.round else self.core.missing()
         frame = encode_state(update, fleet=self.fleet, seq=self._seq, config_tag=self._tag, auth=self._auth,
-                             need=need)
+                             need=need, prime=self.decoder if self.prime_memo else None)
         self._seq += 1
         self._out.append((BROADCAST, frame))
         self.sent += 1

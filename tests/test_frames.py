@@ -992,3 +992,45 @@ def test_a_frame_another_receiver_accepted_is_still_checked_in_full_for_each():
     again = dec.decode(data, expected_sender=1)  # round 40 with other values than it accepted
     assert again.reason == "equivocation" and dec.counts == {"equivocation": 1} and dec.accepted == 1
     assert isinstance(auth_decoder(2).decode(data, expected_sender=1), Decoded)  # a fresh receiver: fine
+
+
+@pytest.mark.parametrize("authenticated", [True, False], ids=["authenticated", "unauthenticated"])
+def test_a_primed_frame_decodes_exactly_as_its_parse_and_is_still_authenticated(authenticated):
+    """encode_state(..., prime=decoder) (issue 14, branch shell3): the sender tells its process's
+    parse memo what the frame's bytes parse to, so the robots of that process skip the parse; a
+    receiver gets what parsing those bytes gives (fields, need, read-only arrays, bit for bit),
+    its own tag is still checked, and other bytes are still parsed."""
+    from protocol.frames import _MEMO
+
+    def make(prime):
+        kw = {"auth": auth(1)} if authenticated else {}
+        return encode_state(StateUpdate(1, 31, X, 1, PREV), fleet=FLEET, seq=78, config_tag=TAG, need=(0, 2),
+                            prime=prime, **kw)
+
+    def receiver(me):
+        return auth_decoder(me) if authenticated else FrameDecoder(FLEET, KNOWN, DIM, TAG)
+
+    parsed = receiver(0).decode(make(None), expected_sender=1)  # the same bytes, parsed
+    _MEMO._items.clear(), _MEMO._order.clear()
+    _MEMO._bytes = 0
+    data = make(receiver(1))
+    misses = _MEMO.misses
+    got = receiver(0).decode(data, expected_sender=1)
+    assert _MEMO.misses == misses  # not parsed
+    assert isinstance(got, Decoded) and isinstance(parsed, Decoded)
+    assert (got.seq, got.need, got.update) == (parsed.seq, parsed.need, parsed.update) == (78, (0, 2),
+                                                                                         StateUpdate(1, 31, X, 1, PREV))
+    for a, b in ((got.update.values, parsed.update.values), (got.update.prev_values, parsed.update.prev_values)):
+        assert a.tobytes() == b.tobytes() and not a.flags.writeable
+    if authenticated:  # the memo holds the parse, not the authentication
+        assert FrameDecoder(FLEET, KNOWN, DIM, TAG, auth=auth(0, OTHER_SECRET)).decode(
+            data, expected_sender=1).reason == "auth"
+    tampered = bytearray(data)
+    tampered[data.index(np.asarray(X, "<f8").tobytes())] ^= 1  # the lowest bit of x[0]
+    out = receiver(0).decode(bytes(tampered), expected_sender=1)
+    assert _MEMO.misses > misses  # other bytes: parsed
+    if authenticated:
+        assert isinstance(out, Rejected) and out.reason == "auth"
+    else:
+        assert isinstance(out, Decoded) and out.update.values[0] != X[0] and out.update.values[1:].tobytes() == \
+            np.asarray(X[1:], "<f8").tobytes()

@@ -493,3 +493,22 @@ def test_seen_frames_note_matches_the_plain_dedup_rule():
             assert kind >= 0 and (bool(kind & NEWEST), bool(kind & GAP), bool(kind & REPEAT)) == want
         assert seen.rounds == model and seen.top == max(model)
         assert seen.per_round == collections.Counter(model.values())
+
+
+def test_queued_hands_over_the_frames_of_advance_without_running_the_timers():
+    """``RobotSession.queued`` (issue 14, branch shell3): the Zenoh shell publishes the frame of an
+    advance at once and runs the timers (``to_send``) once, on the loop's next pass -- the same
+    frames, the timers not run twice a round."""
+    a, b = session(0, (1,)), session(1, (0,))
+    for f in frames(a, 0.0):
+        b.receive(0, f, 0.0)
+    for f in frames(b, 0.0):
+        a.receive(1, f, 0.0)
+    assert a.queued() == [] and a.advance(0.01) and a.core.round == 1
+    out = a.queued()
+    assert len(out) == 1 and out[0][0] is BROADCAST and a.queued() == []
+    assert b.receive(0, out[0][1], 0.01).update.round == 1  # the round-1 frame itself
+    # max_wall_s passed: the timers (to_send's tick) stop the session; queued does not
+    late = TIMING.max_wall_s + 1.0
+    assert a.queued() == [] and a.stopped is None
+    assert frames(a, late) == [] and a.stopped == "max_wall"
