@@ -237,6 +237,10 @@ class _MeanCore:
     def drop_neighbour(self, j: int) -> None:
         self.neighbours = tuple(k for k in self.neighbours if k != j)
 
+    def divergence(self) -> str | None:
+        """The shell asks every core whether its function went bad (agents/rounds.py): a mean never does."""
+        return None
+
     def checkpoint(self) -> dict:
         return {"round": self.round, "x": self._x.tobytes(),
                 "inbox": [[r, j, v.tobytes()] for r, d in self._inbox.items() for j, v in d.items()]}
