@@ -1084,8 +1084,8 @@ class ConsensusADMM(RoundCore):
     def _primal_step(self) -> np.ndarray:
         hub = self._hub
         if hub is not None and hub.s is not None:  # (a hub has no edges)
-            return self._qp.solve_v(-hub.penalty * hub.center(self.robot_id))
+            return self._qp.solve_v(-hub.penalty * hub.center(self.robot_id), guess=self._values)
         q = np.zeros(self.dim)
         for edge in self._edges.values():
             q += edge.sign * edge.lam - edge.rho * edge.z
-        return self._qp.solve_v(q)
+        return self._qp.solve_v(q, guess=self._values)
