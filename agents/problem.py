@@ -150,8 +150,7 @@ class MarginQP:
         self._hessian = dual_hessian(self._rows, d) if self._d is not None else None
         # The other hard-margin steps (n >= dim: the paper preset's 20 rows on 16 variables) try the
         # exact KKT solve on the active set of a guess first (`_warm_solve`); piqp when it fails
-        self._warm_d = d if weighted and self._d is None else None
-        self._warm_h = dual_hessian(self._rows, d) if self._warm_d is not None else None
+        self._warm = _WarmKKT(self._rows, d) if weighted and self._d is None else None
         self._P = np.asfortranarray(np.diag(p_diag))
 
     def set_prox(self, prox: float | np.ndarray) -> None:
@@ -185,8 +184,8 @@ class MarginQP:
             exact = solve_box_dual(self._rows, self._d, self._hessian, q, self._upper)
             if exact is not None:
                 return exact[0], True
-        elif guess is not None and self._warm_h is not None:
-            v = _warm_solve(self._rows, self._warm_d, self._warm_h, q, guess)
+        elif guess is not None and self._warm is not None:
+            v = self._warm.solve(q, guess)
             if v is not None:
                 return v, True
         return self._piqp(q), False
@@ -226,47 +225,66 @@ WARM_ACTIVE = 1e-7
 WARM_TRIES = 3
 
 
-def _warm_solve(rows: np.ndarray, d: np.ndarray, hessian: np.ndarray, q: np.ndarray,
-                guess: np.ndarray) -> np.ndarray | None:
-    """The hard-margin step QP's exact optimum from the active set of ``guess``, or None.
+_min, _max = np.minimum.reduce, np.maximum.reduce  # (np.min / np.max without their Python wrappers)
+
+
+class _WarmKKT:
+    """The hard-margin step QP's exact optimum from the active set of a guess (`solve`).
 
     Why: piqp's interior point costs ~70 us per solve on the paper preset's 16 variables and 20
     rows, every round, per robot; between ADMM rounds the active margins rarely change, so the KKT
-    system on the previous solution's tight rows (H_WW lam = b_W in the dual, H = A D^-1 A', one
-    LAPACK `dposv` of <= dim rows) mostly gives the optimum at once. Certified like the exact dual
-    (agents/qp_dual.py): lam >= 0 and every margin within KKT_TOL (stationarity holds by
-    construction); otherwise up to WARM_TRIES primal-dual active-set corrections (drop the most
-    negative multiplier, or add the most violated margin), then None (the caller asks piqp). A
-    pure function of (q, guess): a robot resumed from its checkpoint solves alike.
+    system on the guess's tight rows W (the dual's H_WW lam = b_W, H = A D^-1 A', b = 1 + A D^-1 q:
+    one LAPACK solve of <= dim rows) mostly gives the optimum at once -- certified like the exact
+    dual (agents/qp_dual.py): lam >= 0, every margin within KKT_TOL of held and W's tight
+    (stationarity holds by construction). Otherwise up to WARM_TRIES primal-dual active-set
+    corrections (drop the most negative multiplier, or add the most violated margin), then None
+    and the caller asks piqp. W is a pure function of the guess (its margins within WARM_ACTIVE of
+    tight): a robot resumed from its checkpoint solves alike. Written for numpy's per-call cost.
     """
-    from scipy.linalg.lapack import dposv  # (scipy.linalg's import cost: see qp_dual._certify)
 
-    qd = q / d
-    b = rows @ qd
-    b += 1.0
-    free = np.flatnonzero(rows @ guess <= 1.0 + WARM_ACTIVE)
-    for _ in range(WARM_TRIES + 1):
-        if len(free):
-            _, lam_f, info = dposv(hessian.take(free, 0).take(free, 1), b.take(free))
-            if info != 0:
-                return None
-            low = lam_f.min()
-            if not low >= 0.0:  # a multiplier of the wrong sign leaves (NaN: give up)
-                if low != low:
+    def __init__(self, rows: np.ndarray, d: np.ndarray) -> None:
+        self.rows = rows
+        self.d = d
+        self.rows_d = rows / d  # A D^-1
+        self.hessian = dual_hessian(rows, d)
+        # the last answer and its margins A v: the next round's guess is that answer (identity),
+        # so its margins need not be computed again (the same product, the same bits)
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
+
+    def solve(self, q: np.ndarray, guess: np.ndarray) -> np.ndarray | None:
+        rows, rows_d = self.rows, self.rows_d
+        last = self._last
+        margins = last[1] if last is not None and last[0] is guess else rows @ guess
+        free = (margins <= 1.0 + WARM_ACTIVE).nonzero()[0]
+        for _ in range(WARM_TRIES + 1):
+            if len(free):
+                a_wd = rows_d.take(free, 0)
+                b_w = a_wd @ q
+                b_w += 1.0
+                try:  # (numpy's LU, not scipy's dposv: importing scipy.linalg costs a robot ~0.15 s)
+                    lam_f = np.linalg.solve(self.hessian.take(free, 0).take(free, 1), b_w)
+                except np.linalg.LinAlgError:  # singular: W's rows are dependent
                     return None
-                free = np.delete(free, int(lam_f.argmin()))
-                continue
-            v = rows.take(free, 0).T @ lam_f
-            v /= d
-            v -= qd
-        else:
-            v = -qd
-        g = rows @ v
-        worst = int(g.argmin())
-        if g[worst] >= 1.0 - KKT_TOL:  # every margin held; the free ones tight (else ill-conditioned)
-            return v if not len(free) or float(np.abs(g.take(free) - 1.0).max()) <= KKT_TOL else None
-        free = np.union1d(free, [worst])
-    return None
+                low = float(_min(lam_f))
+                if not low >= 0.0:  # a multiplier of the wrong sign leaves (NaN: give up)
+                    if low != low:
+                        return None
+                    free = np.delete(free, int(lam_f.argmin()))
+                    continue
+                v = a_wd.T @ lam_f  # D^-1 (A_W' lam - q)
+                v -= q / self.d
+            else:
+                v = -q / self.d
+            g = rows @ v
+            if float(_min(g)) >= 1.0 - KKT_TOL:  # every margin held; W's tight (else: ill-conditioned)
+                if len(free):
+                    g_w = g.take(free)
+                    if not (float(_max(g_w)) <= 1.0 + KKT_TOL and float(_min(g_w)) >= 1.0 - KKT_TOL):
+                        return None
+                self._last = (v, g)
+                return v
+            free = np.union1d(free, [int(g.argmin())])
+        return None
 
 
 @dataclass(frozen=True)
