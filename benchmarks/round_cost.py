@@ -299,7 +299,8 @@ def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: in
     return "\n".join(lines)
 
 
-INTERLEAVED_SNIPPET = """
+#: both trees' modules loaded into one process, one tree after the other (the snippets below)
+TREE_LOADER = """
 import hashlib, importlib, json, os, statistics, sys, time
 def load(tree):  # a tree's modules under their own names, then out of sys.modules for the next tree
     for m in [m for m in sys.modules if m.split(".")[0] in ("agents", "protocol", "launcher")]:
@@ -308,7 +309,9 @@ def load(tree):  # a tree's modules under their own names, then out of sys.modul
     mods = [importlib.import_module(m) for m in ("launcher.simulate", "launcher.world", "agents.admm")]
     sys.path.remove(tree)
     return mods
-robots, rounds, reps, share, trees = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1", sys.argv[5:]
+"""
+
+INTERLEAVED_SNIPPET = TREE_LOADER + """robots, rounds, reps, share, trees = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1", sys.argv[5:]
 runs = []
 for tree in trees:
     sim, world, admm = load(tree)
@@ -432,27 +435,19 @@ def frames_table(base: Path | None, robots: int, rounds: int, repeats: int) -> s
     return "\n".join(lines)
 
 
-ADVANCE_SNIPPET = """
-import hashlib, importlib, json, os, sys, time
-def load(tree):  # a tree's modules under their own names, then out of sys.modules for the next tree
-    for m in [m for m in sys.modules if m.split(".")[0] in ("agents", "protocol", "launcher")]:
-        del sys.modules[m]
-    sys.path.insert(0, tree)
-    mods = [importlib.import_module(m) for m in ("launcher.simulate", "launcher.world", "agents.rounds")]
-    sys.path.remove(tree)
-    return mods
+ADVANCE_SNIPPET = TREE_LOADER + """
 robots, tol, reps, trees = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]), sys.argv[4:]
 runs = []
 for tree in trees:
-    sim, world, rounds = load(tree)
+    sim, world, admm = load(tree)
     spent = [0]
-    def timed(self, orig=rounds.RoundCore.advance, spent=spent):  # the core's advance, thread CPU
+    def timed(self, orig=admm.RoundCore.advance, spent=spent):  # the core's advance, thread CPU
         t = time.thread_time_ns()
         try:
             return orig(self)
         finally:
             spent[0] += time.thread_time_ns() - t
-    rounds.RoundCore.advance = timed
+    admm.RoundCore.advance = timed
     spec = world.build_world(world.Options(fleet_id="advance", preset="paper", robots=robots, tol=tol,
                                            max_rounds=5000))[1]
     out = sim.simulate_fleet(spec)  # warm, rounds and the digest
