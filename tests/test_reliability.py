@@ -371,9 +371,7 @@ def test_solver_failure_is_one_line_and_never_converged(tmp_path):
     proc = _run("simulate", *PAPER, "--rho", "1e300", "--out", str(tmp_path / "sim"), timeout=25)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines() == [
-        # (robot 1 round 5: the exact warm-started step, agents/problem.py _WarmKKT, certifies the first
-        # rounds' steps that piqp could not finish; piqp answers, and fails, when it does not certify)
-        "shapefleet: the run failed: robot 1 round 5: local solver failed: piqp returned Status.PIQP_MAX_ITER_REACHED"
+        "shapefleet: the run failed: robot 0 round 0: local solver failed: piqp returned Status.PIQP_MAX_ITER_REACHED"
     ]
     out = tmp_path / "launch"
     proc = _run("launch", *PAPER, "--rho", "1e300", "--dead-after", "1s", "--out", str(out), timeout=35)
