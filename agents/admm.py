@@ -49,7 +49,7 @@ import numpy as np
 from agents.messages import StateUpdate
 from agents.params import check_counts, check_diameter, check_positive, params_from
 from agents.problem import MarginQP
-from agents.rounds import RobotShare, RoundCore, check_iterate, from_bytes, relative_gap, relative_gaps, to_bytes
+from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gap, relative_gaps, to_bytes
 
 
 @dataclass(frozen=True)
@@ -602,7 +602,7 @@ def plain_stop_held(residuals: list[float], held: int, tol: float) -> int:
 def _median(xs: list[float]) -> float:
     """np.median's value (the two middle values' mean, (a + b) / 2, for an even count) without
     its ~50 us of overhead per call; NaN as np.median gives it."""
-    if any(map(math.isnan, xs)):
+    if any(x != x for x in xs):
         return float("nan")
     s, h = sorted(xs), len(xs) // 2
     return s[h] if len(xs) % 2 else (s[h - 1] + s[h]) / 2
@@ -922,7 +922,6 @@ class ConsensusADMM(RoundCore):
                     self._polish.stop()
         self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
         self._prev_w: np.ndarray | None = None
-        self._joins: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # `_joined`'s last two frames
         self._record()
         if not self.neighbours:  # alone: round 0 already solved the whole problem
             self.finished = True
@@ -934,34 +933,11 @@ class ConsensusADMM(RoundCore):
         if not self._hub_frames:
             return super().outgoing()
         pol = self._polish
-        if pol is None:  # this round's frame is next round's prev and own row: joined once (`_joined`)
-            prev = None if self._prev_values is None or self._prev_w is None else self._joined(
-                self._prev_values, self._prev_w)
-            now = self._joined(self._values, self._w)
-        else:
-            prev = None if self._prev_values is None or self._prev_w is None else np.concatenate(
-                [self._prev_values, self._prev_w, pol.prev_payload])
-            now = np.concatenate([self._values, self._w, pol.payload])
-        return StateUpdate(sender=self.robot_id, round=self.round, values=now,
+        prev = None if self._prev_values is None or self._prev_w is None else np.concatenate(
+            [self._prev_values, self._prev_w] if pol is None else [self._prev_values, self._prev_w, pol.prev_payload])
+        now = [self._values, self._w] if pol is None else [self._values, self._w, pol.payload]
+        return StateUpdate(sender=self.robot_id, round=self.round, values=np.concatenate(now),
                            flags=self._flags, prev_values=prev, prev_flags=self._prev_flags)
-
-    def _joined(self, v: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """[v; w] as one read-only array, made once per pair of arrays: a round's frame serves its
-        message, the next round's hub step (this robot's row) and the next message's prev. The
-        pair is recognised by identity (v and w are never changed in place: each round makes new
-        ones, and the cache holds them, so an identity cannot be reused); read-only, because
-        messages share it -- a consumer that wrote into one would raise, not corrupt the next."""
-        for cv, cw, joined in self._joins:
-            if cv is v and cw is w:
-                return joined
-        joined = np.concatenate([v, w])
-        joined.flags.writeable = False
-        self._joins = [self._joins[-1], (v, w, joined)] if self._joins else [(v, w, joined)]
-        return joined
-
-    def divergence(self) -> str | None:
-        """`RoundCore.divergence` on v itself (no copy: `check_iterate` only reads it)."""
-        return check_iterate(self._values)
 
     def status(self) -> dict[str, Any]:
         if self._hub is not None and self._hub.plain:
@@ -1004,7 +980,7 @@ class ConsensusADMM(RoundCore):
         # every robot's frame in id order as one (robots x frame) array: one concatenation instead
         # of slicing v and w out of each frame and joining each half (the rows hold the same numbers)
         pol = self._polish
-        own = (mine if not self._hub_frames else self._joined(mine, self._w) if pol is None
+        own = (mine if not self._hub_frames else np.concatenate([mine, self._w]) if pol is None
                else np.concatenate([mine, self._w, pol.payload]))
         frames = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
         if pol is not None:  # the hub steps on [v; w] alone, the polish on the rest
