@@ -525,6 +525,14 @@ SHARED_STEPS_KEPT = 64
 _SHARED_LOCK = threading.Lock()  # fleets run in worker threads (launcher/api.py run_async) share it
 
 
+#: the local step QPs (hard margin, n >= dim) first try the exact KKT solve on the active rows of
+#: the robot's previous v (agents/problem.py `_WarmKKT`, piqp when it does not certify): ~25-30 %
+#: cheaper per solve than piqp, but it moves the last bits and with them the chaotic Anderson path,
+#: and on one fleet of the suite (tests/test_simulate.py's L shape) the hub's stop rule then fires on
+#: a plateau at error 6.7e-2 (piqp's path: 2.6e-4). Off until the stop rule is safe there
+#: (benchmarks/results/round_cost.md, branch core3); the relay hub follows it too
+WARM_QP = False
+
 #: restart the acceleration when its best residual has not improved for STALL x memory rounds
 STALL = 1.0
 #: Tikhonov regularisation of Anderson's least squares, relative to the mean diagonal
@@ -1084,8 +1092,12 @@ class ConsensusADMM(RoundCore):
     def _primal_step(self) -> np.ndarray:
         hub = self._hub
         if hub is not None and hub.s is not None:  # (a hub has no edges)
-            return self._qp.solve_v(-hub.penalty * hub.center(self.robot_id))
+            return self._qp.solve_v(-hub.penalty * hub.center(self.robot_id), guess=self._warm_guess())
         q = np.zeros(self.dim)
         for edge in self._edges.values():
             q += edge.sign * edge.lam - edge.rho * edge.z
-        return self._qp.solve_v(q)
+        return self._qp.solve_v(q, guess=self._warm_guess())
+
+    def _warm_guess(self) -> np.ndarray | None:
+        """This robot's v for the step QP's exact warm-started solve when WARM_QP is on, else None."""
+        return self._values if WARM_QP else None

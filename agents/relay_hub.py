@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from agents import admm
 from agents.admm import FRAME_BUDGET, RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, error_estimate, shared_step
 from agents.allreduce import _bfs, check_graph
 from agents.messages import StateUpdate
@@ -193,7 +194,7 @@ class RelayHubADMM(RoundCore):
             t = self._S[k + 1][self._slots[self.robot_id]]
         else:  # the first round's values are still on their way: t stays t^0 = the own solution
             t = self._a[self.robot_id][0]
-        x = self._solve(t)
+        x = self._solve(t, mine if admm.WARM_QP else None)
         self._a[self.robot_id][k + 1] = 2.0 * x - t
         self._prune(k + 1 - D)
         return x, below
@@ -311,8 +312,10 @@ class RelayHubADMM(RoundCore):
         return np.subtract.reduce(terms, axis=0)
 
     # -- internals ------------------------------------------------------------------------------
-    def _solve(self, t: np.ndarray) -> np.ndarray:
-        sol = self._qp.solve(-self._P * t)
+    def _solve(self, t: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
+        """The local step at centre t; ``guess`` (this robot's last x) lets the exact warm-started
+        KKT solve answer (agents/problem.py `_WarmKKT`), piqp when it does not certify."""
+        sol = self._qp.solve(-self._P * t, guess)
         return np.append(sol.x, sol.gamma)
 
     def _prune(self, oldest: int) -> None:

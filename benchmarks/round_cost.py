@@ -23,6 +23,7 @@ processes (benchmarks/zenoh_exchange.py, ``asyncio`` variant) and prints the rat
     .venv/bin/python benchmarks/round_cost.py --compute --base /tmp/main-copy --repeats 2
     .venv/bin/python benchmarks/round_cost.py --in-process --base /tmp/main-copy --repeats 2
     .venv/bin/python benchmarks/round_cost.py --frames --base /tmp/main-copy --repeats 3
+    .venv/bin/python benchmarks/round_cost.py --in-process --advance --base /tmp/main-copy --repeats 8
 
 ``--compute`` measures the core's cost instead (the "compute per round" section of
 results/round_cost.md): the default run (autogrid, 3 robots, complete graph) in process --
@@ -44,6 +45,10 @@ runs of ``--robots`` (``--rounds``, every round run, ``--repeats`` pairs; ``--no
 step computed by every robot, as a process hosting one robot does): thread CPU per fleet round and
 the ratio within each pair, which a machine shared with other jobs leaves far steadier than runs in
 separate processes (branch corecost, results/round_cost.md).
+``--in-process --advance --base DIR`` does the same for the core's ``RoundCore.advance`` alone (thread
+CPU per fleet round, beside the whole loop's), each tree's fleet of ``--robots`` run to its own stop at
+``--tol`` (default 1e-3): a change that moves the bits (branch core3's warm KKT solve) may move the
+rounds, so each tree's rounds and result digest are printed.
 
 ``--frames`` measures the per-frame receive path (issue 14, branch framecost): the in-process fleet
 of ``--robots`` (32 here unless given) on the geometric graph for ``--rounds`` (200 here unless
@@ -294,7 +299,8 @@ def per_round_table(base: Path | None, sizes: list[tuple[int, int]], repeats: in
     return "\n".join(lines)
 
 
-INTERLEAVED_SNIPPET = """
+#: both trees' modules loaded into one process, one tree after the other (the snippets below)
+TREE_LOADER = """
 import hashlib, importlib, json, os, statistics, sys, time
 def load(tree):  # a tree's modules under their own names, then out of sys.modules for the next tree
     for m in [m for m in sys.modules if m.split(".")[0] in ("agents", "protocol", "launcher")]:
@@ -303,7 +309,9 @@ def load(tree):  # a tree's modules under their own names, then out of sys.modul
     mods = [importlib.import_module(m) for m in ("launcher.simulate", "launcher.world", "agents.admm")]
     sys.path.remove(tree)
     return mods
-robots, rounds, reps, share, trees = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1", sys.argv[5:]
+"""
+
+INTERLEAVED_SNIPPET = TREE_LOADER + """robots, rounds, reps, share, trees = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1", sys.argv[5:]
 runs = []
 for tree in trees:
     sim, world, admm = load(tree)
@@ -427,6 +435,63 @@ def frames_table(base: Path | None, robots: int, rounds: int, repeats: int) -> s
     return "\n".join(lines)
 
 
+ADVANCE_SNIPPET = TREE_LOADER + """
+robots, tol, reps, trees = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]), sys.argv[4:]
+runs = []
+for tree in trees:
+    sim, world, admm = load(tree)
+    spent = [0]
+    def timed(self, orig=admm.RoundCore.advance, spent=spent):  # the core's advance, thread CPU
+        t = time.thread_time_ns()
+        try:
+            return orig(self)
+        finally:
+            spent[0] += time.thread_time_ns() - t
+    admm.RoundCore.advance = timed
+    spec = world.build_world(world.Options(fleet_id="advance", preset="paper", robots=robots, tol=tol,
+                                           max_rounds=5000))[1]
+    out = sim.simulate_fleet(spec)  # warm, rounds and the digest
+    h = hashlib.sha256(repr([(r["id"], r["x"], r["gamma"], r["rounds"], r["residual"]) for r in out.robots]).encode())
+    runs.append((sim.simulate_fleet, spec, max(r["rounds"] for r in out.robots), h.hexdigest()[:16], spent))
+adv, whole, loads = [[] for _ in trees], [[] for _ in trees], []
+for i in range(reps):
+    for k in (range(len(trees)) if i % 2 == 0 else reversed(range(len(trees)))):
+        fn, spec, n, _, spent = runs[k]
+        spent[0] = 0
+        t = time.thread_time_ns()
+        fn(spec)
+        whole[k].append((time.thread_time_ns() - t) / 1e6 / n)
+        adv[k].append(spent[0] / 1e6 / n)
+    loads.append(os.getloadavg()[0])
+print(json.dumps({"advance": adv, "whole": whole, "rounds": [r[2] for r in runs], "digests": [r[3] for r in runs],
+                  "load": [min(loads), max(loads)]}))
+"""
+
+
+def advance_table(base: Path, robots: int, tol: float, repeats: int) -> str:
+    """The core's `RoundCore.advance` (and the whole `simulate_fleet` loop) in thread CPU per fleet
+    round, both trees in one process, runs alternating, each fleet run to its own stop at ``tol``
+    (issue 14's core3 pass: a change that moves the bits may move the rounds too, so each tree
+    runs its own number; both are printed with the results' digests)."""
+    out = subprocess.run([sys.executable, "-c", ADVANCE_SNIPPET, str(robots), repr(tol), str(repeats), str(base),
+                          str(ROOT)], capture_output=True, text=True, timeout=3600)
+    if out.returncode != 0:
+        raise RuntimeError(f"advance run failed: {out.stderr.strip()[-500:]}")
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    (b_adv, a_adv), (b_all, a_all) = got["advance"], got["whole"]
+    ratios = sorted(b / a for b, a in zip(b_adv, a_adv))
+    med = statistics.median
+    lines = ["| robots | tol | rounds before / after | advance ms/fleet round before (min, median) | after | ratio per pair "
+             "(min, median, max) | whole loop before / after (median) | digests | load |",
+             "|---:|---:|---|---:|---:|---:|---|---|---:|",
+             f"| {robots} | {tol:g} | {got['rounds'][0]} / {got['rounds'][1]} | {min(b_adv):.3f}, {med(b_adv):.3f} "
+             f"| {min(a_adv):.3f}, {med(a_adv):.3f} | {ratios[0]:.3f}, {med(ratios):.3f}, {ratios[-1]:.3f} "
+             f"| {med(b_all):.3f} / {med(a_all):.3f} | `{got['digests'][0]}` / `{got['digests'][1]}` "
+             f"| {got['load'][0]:.1f}-{got['load'][1]:.1f} |"]
+    print("\n".join(lines), flush=True)
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, default=3)
@@ -446,6 +511,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --in-process and --base: both trees in one process, runs alternating (--robots, "
                          "--rounds, --repeats pairs; module doc)")
     ap.add_argument("--no-sharing", action="store_true", help="with --interleaved: the hub's shared step off")
+    ap.add_argument("--advance", action="store_true",
+                    help="with --in-process and --base: the core's advance CPU per fleet round, both trees in one "
+                         "process, each fleet run to its own stop at --tol (--robots, --repeats pairs)")
+    ap.add_argument("--tol", type=float, default=1e-3, help="with --advance: the stopping tolerance (default 1e-3)")
     ap.add_argument("--frames", action="store_true",
                     help="CPU per received frame of the in-process fleet (--robots, default 32 here; --rounds, "
                          "default 200 here; geometric graph), whole run and replays (with --base; --repeats)")
@@ -455,6 +524,12 @@ def main(argv: list[str] | None = None) -> int:
         rounds = 200 if args.rounds == ap.get_default("rounds") else args.rounds
         print(f"# in-process CPU per received frame, {os.cpu_count()} cores", flush=True)
         frames_table(args.base, robots, rounds, args.repeats)
+        return 0
+    if args.in_process and args.advance:
+        if args.base is None:
+            ap.error("--advance needs --base")
+        print(f"# in-process thread CPU of the core's advance per fleet round, {os.cpu_count()} cores", flush=True)
+        advance_table(args.base, args.robots, args.tol, max(args.repeats, 2))
         return 0
     if args.in_process and args.interleaved:
         if args.base is None:

@@ -367,3 +367,31 @@ def test_sessions_count_the_bytes_they_send_and_keep_them_over_a_restart():
     first = sum(len(f) for _d, f in again.to_send(now))
     assert again.row(now, {})["bytes_sent"] == published[0] + first
 
+
+
+def test_warm_qp_switch(monkeypatch):
+    """admm.WARM_QP (off): the cores give their MarginQP no guess, so piqp answers every step (the bits
+    of main); switched on, the exact warm-started KKT solve answers and the paper preset still stops
+    within tol of the central QP, and a checkpointed robot resumes bit for bit (its guess is its v)."""
+    import agents.admm as admm
+    import agents.problem as problem
+
+    calls = []
+    solve = problem._WarmKKT.solve
+    monkeypatch.setattr(problem._WarmKKT, "solve", lambda self, q, g: calls.append(1) or solve(self, q, g))
+    _, spec, central = make_run()
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    for _ in range(5):
+        step_all(cores)
+    assert admm.WARM_QP is False and not calls
+    monkeypatch.setattr(admm, "WARM_QP", True)
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    for _ in range(12):
+        step_all(cores)
+    twin = restored_twin(spec, cores[1])
+    for _ in range(10):
+        step_with_twin(cores, twin, cores[1])
+    assert twin.outgoing() == cores[1].outgoing() and calls
+    run_to_end(cores)
+    assert all(c.converged for c in cores)
+    assert max_function_error(spec, central, [c.result() for c in cores]) < spec.params["tol"]

@@ -141,3 +141,79 @@ def test_the_dual_answers_hard_steps_with_fewer_rows_than_variables(monkeypatch,
     assert bool(calls) == dual
     ref = qp.solve_piqp(q)
     np.testing.assert_allclose(np.append(sol.x, sol.gamma), np.append(ref.x, ref.gamma), atol=1e-6)
+
+
+# -- the warm KKT solve on a guess's active rows (n >= dim: problem._WarmKKT) ----------------------
+
+def _warm_case(seed: int, n: int = 20, m: int = 15) -> tuple[MarginQP, np.ndarray, np.ndarray]:
+    """A feasible step QP with more rows than variables, and q from a nearby step (a warm guess)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(50):
+        qp, q = _problem(int(rng.integers(1 << 30)), n, m, None)
+        try:
+            guess = qp.solve_piqp(q + 0.01 * rng.normal(size=q.shape))
+        except InfeasibleError:
+            continue
+        return qp, q, np.append(guess.x, guess.gamma)
+    raise AssertionError("no feasible case")
+
+
+def _warm_multipliers(qp: MarginQP, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The KKT multipliers of v on its tight rows (least squares of D v + q = A' lam)."""
+    tight = qp._rows @ v - 1.0 <= 1e-9
+    lam = np.zeros(len(qp._rows))
+    lam[tight] = np.linalg.lstsq(qp._rows[tight].T, _weights(qp) * v + q, rcond=None)[0]
+    return lam
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_warm_solve_from_a_nearby_answer_is_the_exact_optimum(seed):
+    qp, q, guess = _warm_case(seed)
+    assert qp._hessian is None and qp._warm is not None  # n >= dim: piqp's QPs, the warm path
+    v = qp._warm.solve(q, guess)
+    assert v is not None, "a nearby step's active set must be certified within WARM_TRIES corrections"
+    assert _kkt_residual(qp, q, v, _warm_multipliers(qp, q, v)) < 1e-8 * max(1.0, np.abs(q).max())
+    ref = qp.solve_piqp(q)
+    ref_v = np.append(ref.x, ref.gamma)
+    assert _objective(qp, q, v) <= _objective(qp, q, ref_v) + 1e-9 * max(1.0, abs(_objective(qp, q, ref_v)))
+    np.testing.assert_allclose(v, ref_v, atol=1e-5 * max(1.0, np.abs(ref_v).max()))
+    out = qp.solve_v(q, guess=guess.copy())  # MarginQP answers with it (a fresh guess array: the same bits)
+    assert np.array_equal(out, v)
+
+
+def test_warm_solve_is_a_pure_function_of_q_and_the_guess():
+    """The cached margins of the last answer (the next round's guess, by identity) give the bits of
+    the guess computed afresh -- a robot resumed from its checkpoint has only the latter."""
+    qp, q, guess = _warm_case(11)
+    first = qp.solve_v(q, guess=guess)
+    q2 = q * (1.0 + 1e-3)
+    chained = qp.solve_v(q2, guess=first)  # first is the QP's last answer: its margins reused
+    other, _, _ = _warm_case(11)  # a fresh QP (nothing cached), the same data
+    assert np.array_equal(other.solve_v(q2, guess=first.copy()), chained)
+    assert np.array_equal(other.solve_v(q, guess=guess.copy()), first)
+
+
+def test_a_bad_guess_never_gives_a_wrong_point(monkeypatch):
+    """Every row active, none, or a far point: the warm path answers the optimum or nothing (piqp)."""
+    qp, q, _ = _warm_case(3)
+    ref = qp.solve_piqp(q)
+    ref_v = np.append(ref.x, ref.gamma)
+    d = qp.dim
+    for guess in (np.zeros(d), np.full(d, 1e3), np.linalg.lstsq(qp._rows, np.ones(len(qp._rows)), rcond=None)[0]):
+        v = qp._warm.solve(q, guess)
+        if v is not None:
+            np.testing.assert_allclose(v, ref_v, atol=1e-5 * max(1.0, np.abs(ref_v).max()))
+    monkeypatch.setattr(problem, "WARM_TRIES", 0)
+    monkeypatch.setattr(problem, "KKT_TOL", -1.0)  # nothing certifies: MarginQP falls back to piqp's bits
+    out = qp.solve_v(q, guess=ref_v)
+    assert np.array_equal(out, ref_v)
+
+
+def test_warm_solve_only_for_weighted_hard_steps_with_n_at_least_dim():
+    qp, _, _ = _warm_case(5)
+    assert qp._warm is not None
+    qp.set_prox(0.0)  # a robot's own solve: gamma unweighted, piqp
+    assert qp._warm is None
+    soft, _ = _problem(5, 20, 15, 10.0)
+    fewer, _ = _problem(5, 12, 30, None)
+    assert soft._warm is None and fewer._warm is None and fewer._hessian is not None
