@@ -16,7 +16,7 @@ The mathematics (hard margin, rows a_i = y_i [phi_i; 1], v = (x, gamma), x = K^{
   for the direction x_bar): P = s^2 |x_bar|^2 / 2 >= P*.
 * Dual. Robot l's local step solves min |x|^2/(2N) + prox s.t. A_l v >= 1; its multipliers
   lam_l >= 0 satisfy A_l' lam_l = grad_l := P_l v_l + q_l (P_l, q_l the step's diagonal and linear
-  term; robot-local, recovered here by NNLS on the active rows). Concatenated they are a candidate for
+  term; robot-local, recovered here by NNLS: `local_multipliers`). Concatenated they are a candidate for
   the central dual  max sum lam - 1/2 |sum lam_i y_i phi_i|^2  s.t. sum lam_i y_i = 0, lam >= 0,
   once balanced: scale the positive side by a and the negative by b with a S+ = b S- = sigma
   (S+- the sides' sums of lam). The best sigma gives D = 2 / |U|^2, U = V+/S+ + V-/S- (V+- the sides'
@@ -25,7 +25,7 @@ The mathematics (hard margin, rows a_i = y_i [phi_i; 1], v = (x, gamma), x = K^{
   v_l and its own state (the centres z - u_l), W = its x part; then with t = S_small / S_big,
   |W_balanced| <= |W| + sum_l |r_l| + (1 - t) S_big phi_max =: B (r_l the NNLS residual, phi_max
   the largest |phi_i|) and D >= (2 S_small)^2 / (2 B^2). Scalars per robot: S_l+, S_l-, |r_l|.
-* Gap. P - D >= P* - D* >= 0 and, 1/2 |x|^2 being 1-strongly convex, every feasible v has
+* Gap. P >= P* >= D (weak duality) and, 1/2 |x|^2 being 1-strongly convex, every feasible v has
   |x - x*|^2 <= 2 (P(v) - P*): e0 := sqrt(2 (P - D)) >= |s x_bar - x*|.  |x*| >= sqrt(2 D).
 * Offset. Both classes have an active row at the optimum (x* != 0), so gamma* = 1 - min_+ phi' x*
   = -1 - max_- phi' x*; with |phi_i| <= phi_max both give |gamma* - s g| <= e0 phi_max.
@@ -40,10 +40,11 @@ bound / true error over the run (rounds with a finite bound). If the certificate
 the rule's stop, the fleet is run again with tol 1e-14 (the same path: tol only sets the stop
 flags; checked on the error at the old stop round) until it passes or the cap.
 
-    .venv/bin/python benchmarks/stop_certificate.py                  # every fleet (~25 min on 2 busy cores)
-    .venv/bin/python benchmarks/stop_certificate.py --fleet "L shape, WARM_QP on" --no-write
+    .venv/bin/python benchmarks/stop_certificate.py                  # every fleet (~5 min on 2 busy cores)
+    .venv/bin/python benchmarks/stop_certificate.py --fleet "L shape (test_simulate), WARM_QP on"
     .venv/bin/python benchmarks/stop_certificate.py --sweep 3        # polish_sweep's 3-robot set (--sweep 8: 8)
     .venv/bin/python benchmarks/stop_certificate.py --warm           # every fleet with WARM_QP on
+    .venv/bin/python benchmarks/stop_certificate.py --trace 400 --fleet "8 robots, blob, seed 2"
 """
 
 from __future__ import annotations
@@ -243,7 +244,8 @@ def measure(label: str, kwargs: dict, warm: bool, max_rounds: int) -> dict:
     if first(base, "bound_exact") is None or first(base, "bound_hub") is None:
         more = run_fleet(label, kwargs, warm=warm, max_rounds=max_rounds, tol=1e-14, cert_from=base.stop + 1,
                          until_certified=True)
-        same = more.rows[base.stop][0] == base.rows[base.stop][0]
+        a, b = more.rows[base.stop][0], base.rows[base.stop][0]
+        same = a == b or (math.isnan(a) and math.isnan(b))  # (NaN: the central QP is infeasible)
         assert same, f"{label}: the tol-1e-14 run left the path ({more.rows[base.stop][0]} vs {base.rows[base.stop][0]})"
         rows.update({r: v for r, v in more.rows.items() if r > base.stop})
         base.rerun = True
@@ -324,9 +326,11 @@ def main() -> None:
     ap.add_argument("--fleet", action="append", help="only these labels (repeatable)")
     ap.add_argument("--sweep", type=int, metavar="ROBOTS", help="polish_sweep's set: every shape x seeds 0-3, complete")
     ap.add_argument("--warm", action="store_true", help="every fleet with agents.admm.WARM_QP on")
+    ap.add_argument("--trace", type=int, metavar="EVERY", help="instead of the table: every EVERY rounds the true "
+                    "error, both bounds and the relative gap, tol 1e-14 to --max-rounds (where a fleet stagnates)")
     ap.add_argument("--max-rounds", type=int, default=5000)
-    ap.add_argument("--out", default="stop_certificate.md")
-    ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--out", help="also write the table to benchmarks/results/OUT (stop_certificate.md collects "
+                                   "every run's table by hand: not overwritten by default)")
     args = ap.parse_args()
     fleets = FLEETS
     if args.sweep:
@@ -338,6 +342,14 @@ def main() -> None:
     if args.warm:
         fleets = [(label if label.endswith("WARM_QP on") else label.removesuffix(", WARM_QP off") + ", WARM_QP on",
                    kwargs, True) for label, kwargs, _warm in fleets if not label.endswith("WARM_QP on")]
+    if args.trace:
+        for label, kwargs, warm in fleets:
+            run = run_fleet(label, kwargs, warm=warm, max_rounds=args.max_rounds, tol=1e-14)
+            for r, (e, c) in sorted(run.rows.items()):
+                if r % args.trace == 0 and c is not None:
+                    print(f"{label} | round {r} | error {e:.2e} | bound exact {c.bound_exact:.2e} | hub {c.bound_hub:.2e} "
+                          f"| gap / P {c.gap_rel:.1e}", flush=True)
+        return
     lines = list(HEAD)
     for label, kwargs, warm in fleets:
         try:
@@ -346,7 +358,7 @@ def main() -> None:
             add_row(lines, f"| {label} | - | {type(exc).__name__}: {exc} | | | | | | | | | |")
             continue
         add_row(lines, table_row(label, res))
-    if not args.no_write:
+    if args.out:
         cmd = " ".join(["benchmarks/stop_certificate.py", *sys.argv[1:]])
         write_results(args.out, "\n".join([f"`nice -n 15 .venv/bin/python {cmd}`; tol {TOL}.", ""] + lines) + "\n")
 
