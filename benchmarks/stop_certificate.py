@@ -44,6 +44,7 @@ flags; checked on the error at the old stop round) until it passes or the cap.
     .venv/bin/python benchmarks/stop_certificate.py --fleet "L shape (test_simulate), WARM_QP on"
     .venv/bin/python benchmarks/stop_certificate.py --sweep 3        # polish_sweep's 3-robot set (--sweep 8: 8)
     .venv/bin/python benchmarks/stop_certificate.py --warm           # every fleet with WARM_QP on
+    .venv/bin/python benchmarks/stop_certificate.py --cost           # a robot's NNLS, thread CPU
     .venv/bin/python benchmarks/stop_certificate.py --trace 400 --fleet "8 robots, blob, seed 2"
 """
 
@@ -321,11 +322,30 @@ HEAD = [
 ]
 
 
+def nnls_cost(calls: int = 300) -> None:
+    """What a robot's multipliers would cost per round (thread CPU, `local_multipliers`)."""
+    import time
+
+    cores, _error, _active = fleet_probe({}, 200)
+    rows = [c._qp._rows for c in cores]
+    for _ in range(60):
+        lockstep_round(cores)
+    for every_row in (False, True):
+        started = time.thread_time()
+        for _ in range(calls):
+            for c, r in zip(cores, rows):
+                local_multipliers(c, r, every_row=every_row)
+        us = 1e6 * (time.thread_time() - started) / (calls * len(cores))
+        print(f"paper preset, {len(rows[0])} rows a robot, every_row={every_row}: {us:.1f} us per robot-round")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fleet", action="append", help="only these labels (repeatable)")
     ap.add_argument("--sweep", type=int, metavar="ROBOTS", help="polish_sweep's set: every shape x seeds 0-3, complete")
     ap.add_argument("--warm", action="store_true", help="every fleet with agents.admm.WARM_QP on")
+    ap.add_argument("--cost", action="store_true", help="instead of the table: thread CPU of one robot's NNLS "
+                    "(both row choices) on the paper preset at round 60")
     ap.add_argument("--trace", type=int, metavar="EVERY", help="instead of the table: every EVERY rounds the true "
                     "error, both bounds and the relative gap, tol 1e-14 to --max-rounds (where a fleet stagnates)")
     ap.add_argument("--max-rounds", type=int, default=5000)
@@ -342,6 +362,9 @@ def main() -> None:
     if args.warm:
         fleets = [(label if label.endswith("WARM_QP on") else label.removesuffix(", WARM_QP off") + ", WARM_QP on",
                    kwargs, True) for label, kwargs, _warm in fleets if not label.endswith("WARM_QP on")]
+    if args.cost:
+        nnls_cost()
+        return
     if args.trace:
         for label, kwargs, warm in fleets:
             run = run_fleet(label, kwargs, warm=warm, max_rounds=args.max_rounds, tol=1e-14)
