@@ -290,6 +290,7 @@ FLEETS: list[tuple[str, dict, bool]] = [
     ("L shape (test_simulate), WARM_QP on", _l_shape_kwargs(), True),
     ("8 robots, blob, seed 2", {"robots": 8, "shape": "blob", "seed": 2}, False),
     ("8 robots, blob, seed 2, WARM_QP on", {"robots": 8, "shape": "blob", "seed": 2}, True),
+    ("4 robots, ring (relay hub)", fleet_kwargs("4 robots, ring"), False),
     ("8 robots, ring (relay hub)", fleet_kwargs("8 robots, ring"), False),
     ("24 robots", fleet_kwargs("24 robots"), False),
     ("32 robots, geometric", fleet_kwargs("32 robots, geometric"), False),
