@@ -204,7 +204,28 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     console.print(f"wrote {out}/: {', '.join(written)}")
     if not result["converged"] and not quiet:
         print(f"shapefleet: NOT converged: {result.get('verdict', 'see result.json')}", file=sys.stderr)
+        hint = _round_cap_hint(spec, result)
+        if hint:
+            print(f"shapefleet: hint: {hint}", file=sys.stderr)
     return result
+
+
+def _round_cap_hint(spec: Any, result: dict[str, Any]) -> str | None:
+    """What to try when a fixed-grid admm fleet only ran out of rounds: nothing failed, the fleet
+    stayed connected, and every robot that did not meet its stopping rule used the whole cap. Barely
+    separable data (star or cross on the 5x3 grid at 8 robots: an exact answer with |c| ~ 1e4) keep
+    the ADMM far from the optimum for 5000 rounds, where newton solves them in 49-83 rounds
+    (benchmarks/results/polish-sweep.md); otherwise a slow fleet only needs a larger cap."""
+    if spec.algorithm != "admm" or not spec.fixed_grid:
+        return None
+    agreement, cap = result.get("agreement") or {}, _round_budget(spec)
+    late = set(agreement.get("not_converged") or [])
+    if not late or agreement.get("failed") or not agreement.get("connected"):
+        return None
+    if any(int(r.get("rounds") or 0) < cap for r in result.get("robots", []) if int(r["id"]) in late):
+        return None
+    return (f"the ADMM did not settle within its cap of {cap} rounds; --max-rounds raises the cap, and "
+            "--algorithm newton solves the same problem exactly in far fewer rounds")
 
 
 def _exit_code(result: dict[str, Any]) -> int:

@@ -164,6 +164,19 @@ def test_infeasible_grid_is_said_in_words(tmp_path):
     assert result["central"]["status"] == "infeasible" and not result["converged"]
 
 
+def test_a_fleet_that_only_ran_out_of_rounds_is_told_what_to_try(tmp_path):
+    """admm stopped by its cap with nothing else wrong: exit 1 and one hint (--max-rounds, newton);
+    a run that converges prints none."""
+    proc = run_cli("simulate", "--preset", "paper", "--max-rounds", "30", "--out", str(tmp_path / "o"))
+    assert proc.returncode == 1, proc.stderr
+    assert "NOT converged" in proc.stderr and "Traceback" not in proc.stderr
+    hints = [line for line in proc.stderr.splitlines() if line.startswith("shapefleet: hint:")]
+    assert len(hints) == 1 and "cap of 30 rounds" in hints[0] and "--algorithm newton" in hints[0]
+    proc = run_cli("simulate", "--preset", "paper", "--out", str(tmp_path / "ok"))
+    assert proc.returncode == 0, proc.stderr
+    assert "hint" not in proc.stderr
+
+
 def test_ct_admm_writes_the_trajectory(tmp_path):
     out = tmp_path / "ct"
     proc = run_cli("simulate", "--preset", "paper", "--algorithm", "ct-admm", "--ct-stop-time", "2s", "--out", str(out))
