@@ -146,8 +146,11 @@ def test_impostor_republishing_robot_1_changes_nothing(tmp_path, scale):
     out = tmp_path / "run"
     port = free_loopback_port()
     fleet = f"impostor-{int(scale * 100)}"
-    cmd = [*_cli(), "launch", "--preset", "paper", "--tol", "1e-4", "--out", str(out), "--fleet-id", fleet,
-           "--zenoh-port", str(port)]
+    # 5 ms of link delay: the 121 rounds take ~1 s, so the impostor (which can only connect once the
+    # launcher's router listens) forges through the run: without it the rounds took ~0.4 s and it
+    # forged 96-246 frames in six runs, sometimes under the bound below
+    cmd = [*_cli(), "launch", "--preset", "paper", "--tol", "1e-4", "--delay", "5ms", "--out", str(out),
+           "--fleet-id", fleet, "--zenoh-port", str(port)]
     with Impostor(router_endpoint(port), fleet, scale) as impostor:
         proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=80,
                               env=dict(os.environ, PYTHONPATH=str(ROOT)))
