@@ -405,8 +405,7 @@ class RobotSession:
     def to_send(self, now: float) -> list[tuple[int | None, bytes]]:
         """Frames to publish now (after running the timers): ``(BROADCAST, frame)`` pairs."""
         self.tick(now)
-        out, self._out = self._out, []
-        return out
+        return self.queued()
 
     def queued(self) -> list[tuple[int | None, bytes]]:
         """The frames queued so far (``advance``'s), without running the timers: for a shell that
