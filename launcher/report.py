@@ -957,6 +957,7 @@ def autogrid_progress(robot: dict[str, Any], function_error: float | None) -> li
 # -- terminal ---------------------------------------------------------------------------------
 def summary_table(result: dict[str, Any]) -> Any:
     """A short rich table: one row per robot, then the fleet's figures."""
+    from rich import box
     from rich.table import Table
 
     m = result["metrics"]
@@ -964,9 +965,11 @@ def summary_table(result: dict[str, Any]) -> Any:
         f"{result['algorithm']}: {'converged' if result['converged'] else 'NOT converged'} in "
         f"{result['rounds']} rounds, {result['wall_s']:.2f} s"
     )
-    table = Table(title=title)
+    # a simple head rule and no vertical lines: the nine columns fit an 80-column terminal whole
+    # (with the default box rich cut the numbers to "7.92e-...")
+    table = Table(title=title, box=box.SIMPLE_HEAD, pad_edge=False)
     for col in ("robot", "rounds", "gamma", "f-error", "sent", "bytes", "received", "lost", "rejected"):
-        table.add_column(col, justify="right")
+        table.add_column(col, justify="right", no_wrap=True)
     for r in result["robots"]:
         fe = r.get("function_error")
         table.add_row(
@@ -983,9 +986,10 @@ def summary_table(result: dict[str, Any]) -> Any:
     def fmt(value: float | None, spec: str) -> str:
         return "-" if value is None else format(value, spec)
 
+    table.caption_justify = "left"
     table.caption = (
-        f"function error {fmt(m['function_error'], '.2e')}  consensus error {fmt(m['consensus_error'], '.2e')}  "
-        f"train accuracy {fmt(m['train_accuracy'], '.3f')}  IoU {fmt(m['iou'], '.3f')}"
+        f"function error {fmt(m['function_error'], '.2e')}, consensus error {fmt(m['consensus_error'], '.2e')}\n"
+        f"train accuracy {fmt(m['train_accuracy'], '.3f')}, IoU {fmt(m['iou'], '.3f')}"
     )
     w = result.get("world")
     if w:
