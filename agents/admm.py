@@ -685,6 +685,18 @@ def polish_payload_size(dim: int) -> int:
     return dim * (dim + 1) // 2 + dim
 
 
+#: the guard asks bound <= certify x max(tol, CERTIFY_TOL_FLOOR): the bound is loose by a square root and
+#: with piqp's local solves (1e-10) it floors at 3e-4..1.6e-3 where the inexact map stagnates (true error
+#: 2e-9..1.3e-6; docs/algorithm.md), so a guard at certify x 1e-6 would never pass; below 1e-3 the rule's
+#: own estimate decides the last digits and the guard refuses the far-off stops
+CERTIFY_TOL_FLOOR = 1e-3
+
+
+def certify_threshold(params: ADMMParams) -> float:
+    """The certified bound a guarded stop needs (ADMMParams.certify > 0)."""
+    return params.certify * max(params.tol, CERTIFY_TOL_FLOOR)
+
+
 def certify_slot(params: ADMMParams) -> bool:
     """True when hub frames carry the certificate's payload (agents/certificate.py): the guard is
     on and the polish, which certifies its own stop, is off."""
@@ -1045,7 +1057,7 @@ class ConsensusADMM(RoundCore):
             self._held = 0
             below = error_estimate(self._residuals, typical_older=True) < self.params.tol
         if self.cert_active:  # the guard: the rule's stop also needs the certified bound
-            below = below and self._fleet_bound <= self.params.certify * self.params.tol
+            below = below and self._fleet_bound <= certify_threshold(self.params)
         new = self._primal_step()
         if self._cert_slot:
             self._prev_cert_payload, self._cert_payload = self._cert_payload, self._own_payload(new)
