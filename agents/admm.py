@@ -529,6 +529,8 @@ def _digest(*parts: bytes | np.ndarray) -> bytes:
 #: is no longer here is simply computed again. SHARED_STEPS_KEPT = 0 turns the sharing off.
 _SHARED_STEPS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 SHARED_STEPS_KEPT = 64
+#: certificates computed lately in this process (ConsensusADMM._certify), by the digest of their inputs
+_SHARED_CERTS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 _SHARED_LOCK = threading.Lock()  # fleets run in worker threads (launcher/api.py run_async) share it
 
 
@@ -684,6 +686,11 @@ def polish_payload_size(dim: int) -> int:
     verdict rounds reuse its first three entries)."""
     return dim * (dim + 1) // 2 + dim
 
+
+#: the guard's certificate is evaluated where it decides -- rounds whose rule passed, and the last
+#: round of a capped run -- and every round with CERTIFY_EVERY_ROUND (benchmarks/stop_certificate.py
+#: --check; the same stops: only the rounds that decide use it). A robot always sends its payload
+CERTIFY_EVERY_ROUND = False
 
 #: the guard asks bound <= certify x max(tol, CERTIFY_TOL_FLOOR): the bound is loose by a square root and
 #: with piqp's local solves (1e-10) it floors at 3e-4..1.6e-3 where the inexact map stagnates (true error
@@ -955,6 +962,7 @@ class ConsensusADMM(RoundCore):
         self._fleet_bound = math.inf  # its bound over the robots' values of that round
         if self._cert_slot:
             self._phi_max = cert_math.phi_max(self._qp._rows)
+            self._pos = self._qp._rows[:, -1] > 0
             self._pdiag = self._hub.penalty.copy()  # the step QP's diagonal, as MarginQP builds it
             self._pdiag[:-1] += 1.0 / n_robots
         self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
@@ -1048,7 +1056,8 @@ class ConsensusADMM(RoundCore):
             frames, payloads = np.ascontiguousarray(frames[:, : 2 * self.dim]), frames[:, 2 * self.dim :]
         elif self._cert_slot:  # ... and the certificate on its payloads
             frames, certs = np.ascontiguousarray(frames[:, : 2 * self.dim]), np.ascontiguousarray(frames[:, 2 * self.dim :])
-        self._prev_mean, self.residual = self._shared_step(frames, certs)
+        s_before, mean_before = hub.s, self._prev_mean  # (the step replaces them, never changes them in place)
+        self._prev_mean, self.residual = self._shared_step(frames)
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW :]
         if hub.plain:  # after the stall switch: the plain map's stop rule, safe on its slow modes
             self._held = plain_stop_held(self._residuals, self._held, self.params.tol)
@@ -1057,6 +1066,10 @@ class ConsensusADMM(RoundCore):
             self._held = 0
             below = error_estimate(self._residuals, typical_older=True) < self.params.tol
         if self.cert_active:  # the guard: the rule's stop also needs the certified bound
+            self._fleet_bound = math.inf
+            last = self.round + 1 >= self._round_cap  # (a capped run reports a bound too)
+            if (below or last or CERTIFY_EVERY_ROUND) and s_before is not None and mean_before is not None:
+                self._certify(frames, certs, s_before, mean_before)  # only where it can decide: the rule passed
             below = below and self._fleet_bound <= certify_threshold(self.params)
         new = self._primal_step()
         if self._cert_slot:
@@ -1079,11 +1092,13 @@ class ConsensusADMM(RoundCore):
         rows = qp._rows
         lam = np.maximum(lam[: len(rows)], 0.0)  # any lam >= 0 gives a valid dual: clip round-off
         grad = self._pdiag * v + (-hub.penalty * hub.center(self.robot_id))  # (the step's q, as solved)
-        resid = cert_math.norm((_dots(rows.T, lam) - grad)[:-1])
-        margins = cert_math.margin_extremes(rows, _dots(rows[:, :-1], mean[:-1]))
-        return cert_math.payload(margins, rows, lam, resid, self._phi_max)
+        # robot-local products (its own numbers, like its QP's): plain BLAS; only the fleet's sums
+        # over robots must be exactly rounded
+        resid = cert_math.norm((lam @ rows - grad)[:-1])
+        margins = cert_math.margin_extremes(rows[:, :-1] @ mean[:-1], self._pos)
+        return cert_math.payload(margins, self._pos, lam, resid, self._phi_max)
 
-    def _shared_step(self, frames: np.ndarray, certs: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    def _shared_step(self, frames: np.ndarray) -> tuple[np.ndarray, float]:
         """The part of a hub round every copy computes alike -- the hub's step on the robots' v and
         w (a row [v; w] per robot in id order; rows of v alone: no w in the frames, each copy
         computes them), the mean of the v's and the residual -- taken once per process: a copy with
@@ -1094,19 +1109,11 @@ class ConsensusADMM(RoundCore):
         assert hub is not None
         prev = self._prev_mean
         d, with_w = self.dim, frames.shape[1] != self.dim
-        certify = certs is not None and self.cert_active and hub.s is not None and prev is not None
         key = _digest(hub.token, b"w" if with_w else b"-", b"p" if prev is not None else b"-",
-                      b"" if prev is None else prev, frames, *((b"c", certs) if certify else ()))
+                      b"" if prev is None else prev, frames)
 
         def compute() -> tuple[Any, ...]:
             values = frames[:, :d]
-            cert, bound = None, math.inf
-            if certify:  # the fleet's certificate, from the state at which these v were computed
-                s = hub.s
-                grads = self._pdiag * values - hub.penalty * (s[:d] - s[d:].reshape(len(values), d))
-                cert = fleet_certificate(certs, prev[:-1], _pairwise_sum(grads)[:-1])
-                if cert is not None:
-                    bound = cert.fleet_bound(values)
             if not with_w:
                 shares = values if hub.s is None else [hub.message(i, v) for i, v in zip(hub.ids, values)]
                 synced = True
@@ -1124,15 +1131,32 @@ class ConsensusADMM(RoundCore):
             dual = 0.0 if prev is None else float(gaps[-1])
             residual = max(primal, dual)
             hub.watch(residual)
-            return (hub.snapshot(), mean, residual, cert, bound)
+            return (hub.snapshot(), mean, residual)
 
         done, adopted = shared_step(_SHARED_STEPS, key, compute, SHARED_STEPS_KEPT)
         if adopted:
             hub.adopt(done[0])
         hub.token = key
-        if certify:
-            self._certificate, self._fleet_bound = done[3], done[4]
         return done[1], done[2]
+
+    def _certify(self, frames: np.ndarray, certs: np.ndarray, s: np.ndarray, mean: np.ndarray) -> None:
+        """The fleet's certificate of this round (agents/certificate.py) from the frames' v and
+        payloads, the hub state s at which those v were computed and the mean of the round before
+        (where the payloads' margins were taken); its bound over the frames' v. The same bits on
+        every copy; computed once per process (`_SHARED_CERTS`, as the hub's step)."""
+        d = self.dim
+        values = frames[:, :d]
+
+        def compute() -> tuple[Certificate | None, float]:
+            grads = self._pdiag * values - self._hub.penalty * (s[:d] - s[d:].reshape(len(values), d))
+            cert = fleet_certificate(certs, mean[:-1], _pairwise_sum(grads)[:-1])
+            return cert, (math.inf if cert is None else cert.fleet_bound(values))
+
+        key = _digest(b"cert", self._hub.token, s, mean, frames, certs)
+        (cert, bound), _ = shared_step(_SHARED_CERTS, key, compute, SHARED_STEPS_KEPT)
+        self._fleet_bound = bound
+        if cert is not None:  # (an older certificate stays a valid proof: P >= P* >= D held then)
+            self._certificate = cert
 
     def _save_state(self) -> dict[str, Any]:
         return {

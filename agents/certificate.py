@@ -39,23 +39,21 @@ PAYLOAD = 6
 NONE = 1e300
 
 
-def margin_extremes(rows: np.ndarray, products: np.ndarray) -> tuple[float, float]:
-    """(m+_l, m-_l) of one robot: products = rows[:, :-1] @ x_bar (= y_i phi_i' x_bar), the caller's
-    exactly rounded dot products. NONE / -NONE for a label the robot has no row of."""
-    pos = rows[:, -1] > 0
-    m_pos = float(products[pos].min()) if pos.any() else NONE
-    m_neg = float((-products[~pos]).max()) if (~pos).any() else -NONE
-    return m_pos, m_neg
+def margin_extremes(products: np.ndarray, pos: np.ndarray) -> tuple[float, float]:
+    """(m+_l, m-_l) of one robot: products = rows[:, :-1] @ x_bar (= y_i phi_i' x_bar; robot-local,
+    so any deterministic product will do), pos = its positive rows (rows[:, -1] > 0). NONE / -NONE
+    for a label the robot has no row of."""
+    p, n = products[pos], products[~pos]
+    return (float(p.min()) if len(p) else NONE), (float(-n.min()) if len(n) else -NONE)
 
 
-def payload(margins: tuple[float, float], rows: np.ndarray, lam: np.ndarray, residual: float,
+def payload(margins: tuple[float, float], pos: np.ndarray, lam: np.ndarray, residual: float,
             phi_max: float) -> np.ndarray:
-    """A robot's PAYLOAD floats: its margins at the mean, its multipliers' per-side sums, the norm of
-    its KKT residual, its largest |phi_i|. Zeros (no certificate) when anything is not finite."""
-    pos = rows[:, -1] > 0
-    out = np.array([margins[0], margins[1], math.fsum(lam[pos].tolist()), math.fsum(lam[~pos].tolist()),
-                    residual, phi_max])
-    return out if bool(np.isfinite(out).all()) else np.zeros(PAYLOAD)
+    """A robot's PAYLOAD floats: its margins at the mean, its multipliers' per-side sums (pos: its
+    positive rows), the norm of its KKT residual, its largest |phi_i|. Zeros (no certificate) when
+    anything is not finite."""
+    out = [margins[0], margins[1], math.fsum(lam[pos].tolist()), math.fsum(lam[~pos].tolist()), residual, phi_max]
+    return np.array(out) if all(map(math.isfinite, out)) else np.zeros(PAYLOAD)
 
 
 def phi_max(rows: np.ndarray) -> float:
@@ -103,13 +101,16 @@ def fleet_certificate(payloads: np.ndarray, x_bar: np.ndarray, w_x: np.ndarray) 
     x_bar at which the margins were taken and w_x, the x part of sum_l grad_l; None where none
     exists (no balanced dual, the mean not separating, a bad payload)."""
     p = np.asarray(payloads, dtype=float)
-    if p.ndim != 2 or p.shape[1] != PAYLOAD or not bool(np.isfinite(p).all()) or bool((p[:, 2:] < 0).any()):
+    if p.ndim != 2 or p.shape[1] != PAYLOAD or not len(p):
         return None
-    m_pos, m_neg = float(p[:, 0].min()), float(p[:, 1].max())
+    cols = list(zip(*p.tolist()))  # (plain floats: these few scalars cost less outside numpy)
+    if not all(map(math.isfinite, [x for col in cols for x in col])) or min(min(col) for col in cols[2:]) < 0:
+        return None
+    m_pos, m_neg = min(cols[0]), max(cols[1])
     if not (m_pos > m_neg and m_pos < NONE and m_neg > -NONE):
         return None
-    s_pos, s_neg = math.fsum(p[:, 2].tolist()), math.fsum(p[:, 3].tolist())
-    resid, phi = math.fsum(p[:, 4].tolist()), float(p[:, 5].max())
+    s_pos, s_neg = math.fsum(cols[2]), math.fsum(cols[3])
+    resid, phi = math.fsum(cols[4]), max(cols[5])
     small, big = min(s_pos, s_neg), max(s_pos, s_neg)
     if not small > 0:
         return None

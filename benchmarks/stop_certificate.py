@@ -78,8 +78,8 @@ class Stop:
 def run(kwargs: dict, *, certify: float, warm: bool, max_rounds: int, check: bool = False,
         tol: float = TOL, trace: int = 0) -> Stop:
     """The fleet as `simulate` runs it (lock step), with ADMMParams.certify and WARM_QP as given."""
-    old = admm.WARM_QP
-    admm.WARM_QP = warm
+    old = admm.WARM_QP, admm.CERTIFY_EVERY_ROUND
+    admm.WARM_QP, admm.CERTIFY_EVERY_ROUND = warm, check or bool(trace)  # (the same stops either way)
     try:
         cores, error, _active = fleet_probe({**kwargs, "tol": tol}, max_rounds, params={"certify": certify})
         unsafe = checked = 0
@@ -101,7 +101,7 @@ def run(kwargs: dict, *, certify: float, warm: bool, max_rounds: int, check: boo
         return Stop(form_name(cores[0]), cores[0].round, error(), None if None in bounds else max(bounds),
                     all(c.converged for c in cores), unsafe, checked)
     finally:
-        admm.WARM_QP = old
+        admm.WARM_QP, admm.CERTIFY_EVERY_ROUND = old
 
 
 def _cell(s: Stop) -> str:
