@@ -28,7 +28,9 @@ exactly rounded, so the copies stay bit-for-bit equal on any machine; sum_l u_l 
 the fixed point is still the centralized solution. The map is built from shared data -- each robot
 sends w_l = h_l + u_l from its own copy beside v_l -- so copies that came to differ (survivors
 dropping a dead robot in different rounds) still share one map and its exact fixed point; they
-take plain steps until they agree again. `anderson = 0` keeps the edge form everywhere.
+take plain steps until they agree again. `anderson = 0` keeps the edge form everywhere. On hard
+margins the hub's stop is guarded by a proven bound on the error (agents/certificate.py, `certify`):
+the rule proposes, the bound must agree.
 
 No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 """
@@ -69,7 +71,7 @@ class ADMMParams:
     relay: bool = True  # sparse graphs of <= 16 robots run the relay hub (agents/relay_hub.py); False: edge form
     polish: bool = False  # hub form, hard margin: the exact active-set end-game (`_Polish`, docs/algorithm.md)
     # hub form, hard margin, no polish: a stop also needs the fleet's certified error bound
-    # (agents/certificate.py) <= certify x tol; 0 = the rule alone (today's frames and bits)
+    # (agents/certificate.py) <= certify x max(tol, 1e-3); 0 = the rule alone (main's frames and bits)
     certify: float = 10.0
 
     def __post_init__(self) -> None:
