@@ -964,7 +964,7 @@ class ConsensusADMM(RoundCore):
         self._fleet_bound = math.inf  # its bound over the robots' values of that round
         if self._cert_slot:
             self._phi_max = cert_math.phi_max(self._qp._rows)
-            self._pos = self._qp._rows[:, -1] > 0
+            self._sides = cert_math.sides(self._qp._rows)
             self._pdiag = self._hub.penalty.copy()  # the step QP's diagonal, as MarginQP builds it
             self._pdiag[:-1] += 1.0 / n_robots
         self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
@@ -1097,8 +1097,8 @@ class ConsensusADMM(RoundCore):
         # robot-local products (its own numbers, like its QP's): plain BLAS; only the fleet's sums
         # over robots must be exactly rounded
         resid = cert_math.norm((lam @ rows - grad)[:-1])
-        margins = cert_math.margin_extremes(rows[:, :-1] @ mean[:-1], self._pos)
-        return cert_math.payload(margins, self._pos, lam, resid, self._phi_max)
+        margins = cert_math.margin_extremes(rows[:, :-1] @ mean[:-1], self._sides)
+        return cert_math.payload(margins, self._sides, lam, resid, self._phi_max)
 
     def _shared_step(self, frames: np.ndarray) -> tuple[np.ndarray, float]:
         """The part of a hub round every copy computes alike -- the hub's step on the robots' v and

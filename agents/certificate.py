@@ -39,20 +39,27 @@ PAYLOAD = 6
 NONE = 1e300
 
 
-def margin_extremes(products: np.ndarray, pos: np.ndarray) -> tuple[float, float]:
+def sides(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The indices of a robot's positive and negative rows (rows = y [phi, 1]), made once."""
+    pos = rows[:, -1] > 0
+    return np.flatnonzero(pos), np.flatnonzero(~pos)
+
+
+def margin_extremes(products: np.ndarray, side: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
     """(m+_l, m-_l) of one robot: products = rows[:, :-1] @ x_bar (= y_i phi_i' x_bar; robot-local,
-    so any deterministic product will do), pos = its positive rows (rows[:, -1] > 0). NONE / -NONE
-    for a label the robot has no row of."""
-    p, n = products[pos], products[~pos]
-    return (float(p.min()) if len(p) else NONE), (float(-n.min()) if len(n) else -NONE)
+    so any deterministic product will do), side = `sides(rows)`. NONE / -NONE for a label the robot
+    has no row of. (Plain floats: a min of 20 values costs less outside numpy.)"""
+    p, n = products.take(side[0]).tolist(), products.take(side[1]).tolist()
+    return (min(p) if p else NONE), (-min(n) if n else -NONE)
 
 
-def payload(margins: tuple[float, float], pos: np.ndarray, lam: np.ndarray, residual: float,
+def payload(margins: tuple[float, float], side: tuple[np.ndarray, np.ndarray], lam: np.ndarray, residual: float,
             phi_max: float) -> np.ndarray:
-    """A robot's PAYLOAD floats: its margins at the mean, its multipliers' per-side sums (pos: its
-    positive rows), the norm of its KKT residual, its largest |phi_i|. Zeros (no certificate) when
+    """A robot's PAYLOAD floats: its margins at the mean, its multipliers' per-side sums (side =
+    `sides(rows)`), the norm of its KKT residual, its largest |phi_i|. Zeros (no certificate) when
     anything is not finite."""
-    out = [margins[0], margins[1], math.fsum(lam[pos].tolist()), math.fsum(lam[~pos].tolist()), residual, phi_max]
+    out = [margins[0], margins[1], math.fsum(lam.take(side[0]).tolist()), math.fsum(lam.take(side[1]).tolist()),
+           residual, phi_max]
     return np.array(out) if all(map(math.isfinite, out)) else np.zeros(PAYLOAD)
 
 

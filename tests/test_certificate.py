@@ -12,7 +12,7 @@ import pytest
 
 import agents.admm as admm
 from agents.admm import ADMMParams
-from agents.certificate import PAYLOAD, fleet_certificate, margin_extremes, payload
+from agents.certificate import PAYLOAD, fleet_certificate, margin_extremes, payload, sides
 from agents.spec import build_core
 from protocol.frames import StateUpdate
 
@@ -24,7 +24,7 @@ L_SHAPE = "x,y\n-2,-1.5\n2,-1.5\n2,0\n0,0\n0,1.5\n-2,1.5\n"
 # two points on a line: phi = (1, 0) labelled +1, phi = (-1, 0) labelled -1; rows y [phi, 1].
 # Optimum x* = (1, 0), gamma* = 0, P* = 1/2, multipliers 1/2 each.
 ROWS = np.array([[1.0, 0.0, 1.0], [1.0, 0.0, -1.0]])
-POS = ROWS[:, -1] > 0
+POS = sides(ROWS)
 
 
 def _two_point(lam: np.ndarray, x_bar: np.ndarray):
