@@ -28,7 +28,9 @@ exactly rounded, so the copies stay bit-for-bit equal on any machine; sum_l u_l 
 the fixed point is still the centralized solution. The map is built from shared data -- each robot
 sends w_l = h_l + u_l from its own copy beside v_l -- so copies that came to differ (survivors
 dropping a dead robot in different rounds) still share one map and its exact fixed point; they
-take plain steps until they agree again. `anderson = 0` keeps the edge form everywhere.
+take plain steps until they agree again. `anderson = 0` keeps the edge form everywhere. On hard
+margins the hub's stop is guarded by a proven bound on the error (agents/certificate.py, `certify`):
+the rule proposes, the bound must agree.
 
 No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 """
@@ -46,6 +48,8 @@ from typing import Any
 
 import numpy as np
 
+from agents import certificate as cert_math
+from agents.certificate import Certificate, fleet_certificate
 from agents.messages import StateUpdate
 from agents.params import check_counts, check_diameter, check_positive, params_from
 from agents.problem import MarginQP
@@ -66,6 +70,9 @@ class ADMMParams:
     safeguard: float = 2.0  # restart Anderson when the fixed-point residual exceeds this x its best
     relay: bool = True  # sparse graphs of <= 16 robots run the relay hub (agents/relay_hub.py); False: edge form
     polish: bool = False  # hub form, hard margin: the exact active-set end-game (`_Polish`, docs/algorithm.md)
+    # hub form, hard margin, no polish: a stop also needs the fleet's certified error bound
+    # (agents/certificate.py) <= certify x max(tol, 1e-3); 0 = the rule alone (main's frames and bits)
+    certify: float = 10.0
 
     def __post_init__(self) -> None:
         check_positive(self, "rho", "gamma_penalty")
@@ -78,6 +85,8 @@ class ADMMParams:
             raise ValueError(f"anderson memory must be in [0, 100], got {self.anderson}")
         if not self.safeguard > 1:
             raise ValueError(f"safeguard must be above 1, got {self.safeguard}")
+        if not (isinstance(self.certify, (int, float)) and 0 <= self.certify < math.inf):
+            raise ValueError(f"certify must be a number >= 0 (0: off), got {self.certify!r}")
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> ADMMParams:
@@ -522,6 +531,8 @@ def _digest(*parts: bytes | np.ndarray) -> bytes:
 #: is no longer here is simply computed again. SHARED_STEPS_KEPT = 0 turns the sharing off.
 _SHARED_STEPS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 SHARED_STEPS_KEPT = 64
+#: certificates computed lately in this process (ConsensusADMM._certify), by the digest of their inputs
+_SHARED_CERTS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 _SHARED_LOCK = threading.Lock()  # fleets run in worker threads (launcher/api.py run_async) share it
 
 
@@ -678,9 +689,33 @@ def polish_payload_size(dim: int) -> int:
     return dim * (dim + 1) // 2 + dim
 
 
+#: the guard's certificate is evaluated where it decides -- rounds whose rule passed, and the last
+#: round of a capped run -- and every round with CERTIFY_EVERY_ROUND (benchmarks/stop_certificate.py
+#: --check; the same stops: only the rounds that decide use it). A robot always sends its payload
+CERTIFY_EVERY_ROUND = False
+
+#: the guard asks bound <= certify x max(tol, CERTIFY_TOL_FLOOR): the bound is loose by a square root and
+#: with piqp's local solves (1e-10) it floors at 3e-4..1.6e-3 where the inexact map stagnates (true error
+#: 2e-9..1.3e-6; docs/algorithm.md), so a guard at certify x 1e-6 would never pass; below 1e-3 the rule's
+#: own estimate decides the last digits and the guard refuses the far-off stops
+CERTIFY_TOL_FLOOR = 1e-3
+
+
+def certify_threshold(params: ADMMParams) -> float:
+    """The certified bound a guarded stop needs (ADMMParams.certify > 0)."""
+    return params.certify * max(params.tol, CERTIFY_TOL_FLOOR)
+
+
+def certify_slot(params: ADMMParams) -> bool:
+    """True when hub frames carry the certificate's payload (agents/certificate.py): the guard is
+    on and the polish, which certifies its own stop, is off."""
+    return params.certify > 0 and not params.polish
+
+
 def hub_frame_dim(params: ADMMParams, dim: int) -> int:
-    """A hub frame's length: [v; w], and the polish payload when the polish is on."""
-    return 2 * dim + (polish_payload_size(dim) if params.polish else 0)
+    """A hub frame's length: [v; w], and the polish payload when the polish is on, or the
+    certificate's PAYLOAD floats when the certified guard is on."""
+    return 2 * dim + (polish_payload_size(dim) if params.polish else cert_math.PAYLOAD if certify_slot(params) else 0)
 
 
 def polish_solve(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -920,6 +955,18 @@ class ConsensusADMM(RoundCore):
                     self._polish.guess(self._values)
                 else:  # soft margins: the frame keeps its layout, the polish stays off
                     self._polish.stop()
+        # the certified guard (params.certify): a payload of PAYLOAD floats follows [v; w]; it decides
+        # (beside the rule) on hard margins while no robot was dropped, else the rule alone
+        self._cert_slot = self._hub_frames and certify_slot(params)
+        self._cert_payload = np.zeros(cert_math.PAYLOAD)
+        self._prev_cert_payload = np.zeros(cert_math.PAYLOAD)
+        self._certificate: Certificate | None = None  # the last round's fleet certificate
+        self._fleet_bound = math.inf  # its bound over the robots' values of that round
+        if self._cert_slot:
+            self._phi_max = cert_math.phi_max(self._qp._rows)
+            self._sides = cert_math.sides(self._qp._rows)
+            self._pdiag = self._hub.penalty.copy()  # the step QP's diagonal, as MarginQP builds it
+            self._pdiag[:-1] += 1.0 / n_robots
         self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
         self._prev_w: np.ndarray | None = None
         self._record()
@@ -932,12 +979,36 @@ class ConsensusADMM(RoundCore):
         message built (its checks run once), from fresh concatenations: no copies of v first."""
         if not self._hub_frames:
             return super().outgoing()
-        pol = self._polish
         prev = None if self._prev_values is None or self._prev_w is None else np.concatenate(
-            [self._prev_values, self._prev_w] if pol is None else [self._prev_values, self._prev_w, pol.prev_payload])
-        now = [self._values, self._w] if pol is None else [self._values, self._w, pol.payload]
+            [self._prev_values, self._prev_w, *self._extras(prev=True)])
+        now = [self._values, self._w, *self._extras(prev=False)]
         return StateUpdate(sender=self.robot_id, round=self.round, values=np.concatenate(now),
                            flags=self._flags, prev_values=prev, prev_flags=self._prev_flags)
+
+    def _extras(self, *, prev: bool) -> list[np.ndarray]:
+        """What a hub frame carries after [v; w]: the polish's payload or the certificate's (or nothing)."""
+        if self._polish is not None:
+            return [self._polish.prev_payload if prev else self._polish.payload]
+        if self._cert_slot:
+            return [self._prev_cert_payload if prev else self._cert_payload]
+        return []
+
+    @property
+    def cert_active(self) -> bool:
+        """True when the certified guard decides beside the rule: its slot in the frames, a hard
+        margin, no robot dropped (the survivors' problem is not the one the dual bounds)."""
+        return self._cert_slot and self._C is None and not self.dropped
+
+    def error_bound(self) -> float | None:
+        """A proven upper bound on this robot's function error against the exact optimum, from the
+        last round's fleet certificate (agents/certificate.py); None where there is none."""
+        if not self.cert_active or self._certificate is None:
+            return None
+        b = self._certificate.bound(self._values)
+        return b if math.isfinite(b) else None
+
+    def result(self) -> dict[str, Any]:
+        return {**super().result(), "error_bound": self.error_bound()}
 
     def status(self) -> dict[str, Any]:
         if self._hub is not None and self._hub.plain:
@@ -980,11 +1051,14 @@ class ConsensusADMM(RoundCore):
         # every robot's frame in id order as one (robots x frame) array: one concatenation instead
         # of slicing v and w out of each frame and joining each half (the rows hold the same numbers)
         pol = self._polish
-        own = (mine if not self._hub_frames else np.concatenate([mine, self._w]) if pol is None
-               else np.concatenate([mine, self._w, pol.payload]))
+        own = mine if not self._hub_frames else np.concatenate([mine, self._w, *self._extras(prev=False)])
         frames = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
+        certs = None
         if pol is not None:  # the hub steps on [v; w] alone, the polish on the rest
             frames, payloads = np.ascontiguousarray(frames[:, : 2 * self.dim]), frames[:, 2 * self.dim :]
+        elif self._cert_slot:  # ... and the certificate on its payloads
+            frames, certs = np.ascontiguousarray(frames[:, : 2 * self.dim]), np.ascontiguousarray(frames[:, 2 * self.dim :])
+        s_before, mean_before = hub.s, self._prev_mean  # (the step replaces them, never changes them in place)
         self._prev_mean, self.residual = self._shared_step(frames)
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW :]
         if hub.plain:  # after the stall switch: the plain map's stop rule, safe on its slow modes
@@ -993,13 +1067,38 @@ class ConsensusADMM(RoundCore):
         else:
             self._held = 0
             below = error_estimate(self._residuals, typical_older=True) < self.params.tol
+        if self.cert_active:  # the guard: the rule's stop also needs the certified bound
+            self._fleet_bound = math.inf
+            last = self.round + 1 >= self._round_cap  # (a capped run reports a bound too)
+            if (below or last or CERTIFY_EVERY_ROUND) and s_before is not None and mean_before is not None:
+                self._certify(frames, certs, s_before, mean_before)  # only where it can decide: the rule passed
+            below = below and self._fleet_bound <= certify_threshold(self.params)
         new = self._primal_step()
+        if self._cert_slot:
+            self._prev_cert_payload, self._cert_payload = self._cert_payload, self._own_payload(new)
         if pol is not None:
             done = pol.step(payloads, new)
             if done is not None:  # certified by every robot: the exact optimum, the same bits everywhere
                 new, below = done.copy(), True
         self._prev_w, self._w = self._w, hub.message(me, new)
         return new, below
+
+    def _own_payload(self, v: np.ndarray) -> np.ndarray:
+        """This robot's certificate payload for the frame of v (agents/certificate.py): its margins
+        at the last mean, its step's multipliers' side sums and KKT residual |A' lam - grad| (x
+        part; grad = P v + q as every copy computes it), its largest |phi|. Zeros where there is none."""
+        hub, qp, mean = self._hub, self._qp, self._prev_mean
+        lam = qp.multipliers
+        if not self.cert_active or hub is None or hub.s is None or mean is None or lam is None:
+            return np.zeros(cert_math.PAYLOAD)
+        rows = qp._rows
+        lam = np.maximum(lam[: len(rows)], 0.0)  # any lam >= 0 gives a valid dual: clip round-off
+        grad = self._pdiag * v + (-hub.penalty * hub.center(self.robot_id))  # (the step's q, as solved)
+        # robot-local products (its own numbers, like its QP's): plain BLAS; only the fleet's sums
+        # over robots must be exactly rounded
+        resid = cert_math.norm((lam @ rows - grad)[:-1])
+        margins = cert_math.margin_extremes(rows[:, :-1] @ mean[:-1], self._sides)
+        return cert_math.payload(margins, self._sides, lam, resid, self._phi_max)
 
     def _shared_step(self, frames: np.ndarray) -> tuple[np.ndarray, float]:
         """The part of a hub round every copy computes alike -- the hub's step on the robots' v and
@@ -1042,6 +1141,25 @@ class ConsensusADMM(RoundCore):
         hub.token = key
         return done[1], done[2]
 
+    def _certify(self, frames: np.ndarray, certs: np.ndarray, s: np.ndarray, mean: np.ndarray) -> None:
+        """The fleet's certificate of this round (agents/certificate.py) from the frames' v and
+        payloads, the hub state s at which those v were computed and the mean of the round before
+        (where the payloads' margins were taken); its bound over the frames' v. The same bits on
+        every copy; computed once per process (`_SHARED_CERTS`, as the hub's step)."""
+        d = self.dim
+        values = frames[:, :d]
+
+        def compute() -> tuple[Certificate | None, float]:
+            grads = self._pdiag * values - self._hub.penalty * (s[:d] - s[d:].reshape(len(values), d))
+            cert = fleet_certificate(certs, mean[:-1], _pairwise_sum(grads)[:-1])
+            return cert, (math.inf if cert is None else cert.fleet_bound(values))
+
+        key = _digest(b"cert", self._hub.token, s, mean, frames, certs)
+        (cert, bound), _ = shared_step(_SHARED_CERTS, key, compute, SHARED_STEPS_KEPT)
+        self._fleet_bound = bound
+        if cert is not None:  # (an older certificate stays a valid proof: P >= P* >= D held then)
+            self._certificate = cert
+
     def _save_state(self) -> dict[str, Any]:
         return {
             "edges": {j: e.state() for j, e in self._edges.items()},
@@ -1052,6 +1170,10 @@ class ConsensusADMM(RoundCore):
             "w": to_bytes(self._w),
             "prev_w": to_bytes(self._prev_w),
             **({} if self._polish is None else {"polish": self._polish.state()}),
+            **({} if not self._cert_slot else {"cert": {
+                "payload": to_bytes(self._cert_payload), "prev_payload": to_bytes(self._prev_cert_payload),
+                "certificate": None if self._certificate is None else self._certificate.as_list(),
+                "bound": self._fleet_bound}}),
         }
 
     def _load_state(self, state: dict[str, Any]) -> None:
@@ -1065,6 +1187,12 @@ class ConsensusADMM(RoundCore):
         self._w, self._prev_w = from_bytes(state["w"]), from_bytes(state["prev_w"])
         if self._polish is not None:
             self._polish.load(state["polish"])
+        if self._cert_slot:
+            cert = state["cert"]
+            self._cert_payload, self._prev_cert_payload = from_bytes(cert["payload"]), from_bytes(cert["prev_payload"])
+            c = cert["certificate"]
+            self._certificate = None if c is None else Certificate.from_list([float(x) for x in c])
+            self._fleet_bound = float(cert["bound"])
 
     # -- internals ----------------------------------------------------------------------------
     def _build_qp(self) -> MarginQP:

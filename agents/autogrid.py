@@ -248,6 +248,7 @@ class AdaptiveGridCore(RoundCore):
         sub_params = ADMMParams(
             rho=p.rho, relax=p.relax, tol=p.tol, diameter=p.diameter,
             max_rounds=p.hard_rounds if mode == "hard" else p.soft_rounds,
+            certify=0.0,  # the nested runs keep the rule alone (their frames have no room for the guard)
         )
         C = None if mode == "hard" else (p.C if p.C is not None else p.soft_C)
         self._sub = WarmADMM(

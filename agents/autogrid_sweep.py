@@ -114,6 +114,7 @@ class SigmaSweep:
         sub_params = ADMMParams(
             rho=params.rho, relax=params.relax, tol=params.validate_tol,
             max_rounds=params.validate_rounds, diameter=params.diameter,
+            certify=0.0,  # the rule alone: the nested runs' frames have no room for the guard
         )
         self.tasks: list[SweepTask] = []
         self._raster: dict[int, _RasterBasis] = {}  # per candidate (its folds share the basis)

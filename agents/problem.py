@@ -54,13 +54,15 @@ def _new_solver() -> piqp.DenseSolver:
 
 def _piqp_solve(solver: piqp.DenseSolver, qp: MarginQP, full_q: np.ndarray) -> np.ndarray:
     """Set ``solver`` up on ``qp`` with cost ``full_q`` (a full set-up: nothing of an earlier
-    solve survives it) and solve; the solution as a fresh array, or the QP's errors."""
+    solve survives it) and solve; the solution as a fresh array, or the QP's errors. The margin
+    rows' multipliers (piqp's z_l: G' z_l = P z + q) are kept in ``qp.multipliers``."""
     solver.setup(qp._P, full_q, None, None, qp._G, qp._h_l, qp._h_u, qp._x_l, qp._x_u)
     status = solver.solve()
     if status == piqp.PIQP_PRIMAL_INFEASIBLE:
         raise InfeasibleError(INFEASIBLE_ADVICE)
     if status != piqp.PIQP_SOLVED:
         raise SolverError(f"piqp returned {status}")
+    qp.multipliers = np.array(solver.result.z_l, dtype=float)
     return np.array(solver.result.x, dtype=float)
 
 
@@ -129,6 +131,9 @@ class MarginQP:
         # core, which one thread drives): a second caller gets a solver of its own
         self._solver: piqp.DenseSolver | None = None
         self._solver_lock = threading.Lock()
+        #: the last solve's margin multipliers lam >= 0 (A' lam = P v + q up to the solver's
+        #: residual): what the certified stop's dual is built from (agents/certificate.py)
+        self.multipliers: np.ndarray | None = None
 
     def _set_weights(self, prox: float | np.ndarray) -> None:
         """P = x_weight on x, plus a proximal weight per variable of (x, gamma) (a scalar for all),
@@ -183,10 +188,12 @@ class MarginQP:
         if self._hessian is not None:
             exact = solve_box_dual(self._rows, self._d, self._hessian, q, self._upper)
             if exact is not None:
+                self.multipliers = exact[1]
                 return exact[0], True
         elif guess is not None and self._warm is not None:
             v = self._warm.solve(q, guess)
             if v is not None:
+                self.multipliers = self._warm.multipliers()
                 return v, True
         return self._piqp(q), False
 
@@ -250,6 +257,13 @@ class _WarmKKT:
         # the last answer and its margins A v: the next round's guess is that answer (identity),
         # so its margins need not be computed again (the same product, the same bits)
         self._last: tuple[np.ndarray, np.ndarray] | None = None
+        self._lam: tuple[np.ndarray, np.ndarray] = (np.zeros(0, dtype=int), np.zeros(0))  # (W, lam_W)
+
+    def multipliers(self) -> np.ndarray:
+        """The last certified solve's multipliers, one per row (zero off its set W)."""
+        lam = np.zeros(len(self.rows))
+        lam[self._lam[0]] = self._lam[1]
+        return lam
 
     def solve(self, q: np.ndarray, guess: np.ndarray) -> np.ndarray | None:
         rows, rows_d = self.rows, self.rows_d
@@ -282,6 +296,7 @@ class _WarmKKT:
                     if not (float(_max(g_w)) <= 1.0 + KKT_TOL and float(_min(g_w)) >= 1.0 - KKT_TOL):
                         return None
                 self._last = (v, g)
+                self._lam = (free, lam_f) if len(free) else (free, np.zeros(0))
                 return v
             free = np.union1d(free, [int(g.argmin())])
         return None

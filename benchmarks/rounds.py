@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable
+from typing import Any
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -179,20 +180,25 @@ STRETCH_FLEETS = [
 ACTIVE_EPS = 1e-7
 
 
-def fleet_probe(kwargs: dict, max_rounds: int) -> tuple[list, Callable[[], float], Callable[[], list[frozenset]]]:
-    """A fleet's cores in process (the paper preset), its error against the exact central QP and
-    its active set: every robot's set of margin rows at equality in its local solve
-    (rows @ v <= 1 + ACTIVE_EPS), read from the cores' data -- an analysis, not a protocol."""
+def fleet_probe(kwargs: dict, max_rounds: int, params: dict | None = None) -> tuple[list, Callable[..., Any],
+                                                                                 Callable[[], list[frozenset]]]:
+    """A fleet's cores in process (the paper preset; ``params`` override the fleet file's algorithm
+    parameters, e.g. ADMMParams.certify), its error against the exact central QP (the max over
+    robots, or with ``each=True`` every robot's) and its active set: every robot's set of margin rows
+    at equality in its local solve (rows @ v <= 1 + ACTIVE_EPS), read from the cores' data -- an
+    analysis, not a protocol."""
     import numpy as np
 
     world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
+    spec.params.update(params or {})
     central = solve_central(spec.basis, world.points, world.labels, spec.C)
     b = spec.basis
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     rows = [c._qp._rows for c in cores]  # margin_rows of the robot's data (hub and relay hub cores alike)
 
-    def error() -> float:
-        return max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores)
+    def error(each: bool = False) -> Any:
+        errors = [b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores]
+        return errors if each else max(errors)
 
     def active() -> list[frozenset]:
         return [frozenset(np.flatnonzero(r @ c.values <= 1 + ACTIVE_EPS).tolist()) for r, c in zip(rows, cores)]

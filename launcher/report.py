@@ -297,6 +297,7 @@ def build_result(
         "metrics": {
             "function_error": _num(function),
             "consensus_error": _num(consensus),
+            "error_bound": _error_bound(robots),
             "train_accuracy": accuracy,
             "iou": iou,
             **bytes_metrics(robots),
@@ -305,6 +306,16 @@ def build_result(
     }
     result.update(extra or {})
     return result
+
+
+def _error_bound(robots: list[dict[str, Any]]) -> float | None:
+    """The fleet's certified bound on its function error (admm's hub form, agents/certificate.py):
+    the largest robot's ``error_bound``, a proven upper bound against the exact optimum; None
+    when a robot has none (another form or algorithm, a soft margin, a dropped robot)."""
+    bounds = [r.get("error_bound") for r in robots]
+    if not bounds or any(b is None for b in bounds):
+        return None
+    return float(max(bounds))
 
 
 # -- autogrid: every robot measured on its own final grid and sigma -----------------------------
@@ -991,6 +1002,8 @@ def summary_table(result: dict[str, Any]) -> Any:
         f"function error {fmt(m['function_error'], '.2e')}, consensus error {fmt(m['consensus_error'], '.2e')}\n"
         f"train accuracy {fmt(m['train_accuracy'], '.3f')}, IoU {fmt(m['iou'], '.3f')}"
     )
+    if m.get("error_bound") is not None:  # proven: the function error is at most this (agents/certificate.py)
+        table.caption += f"\ncertified: function error <= {m['error_bound']:.2e} (duality-gap bound)"
     w = result.get("world")
     if w:
         lengths = ", ".join(f"{k.replace('_', '-')} {w[k]:.6g}{'' if k.replace('_', '-') in w['given'] else '*'}"

@@ -16,6 +16,7 @@ import pytest
 
 from agents.admm import ADMMParams, ConsensusADMM
 from agents.autogrid import AdaptiveGridCore, AutoGridParams, holdout_units
+from agents.certificate import PAYLOAD
 from agents.problem import solve_central
 from agents.spec import build_core, restore_core
 from launcher.world import Options, build_world
@@ -120,7 +121,8 @@ def test_shared_map_is_the_old_map_bit_for_bit_while_copies_agree():
         ]
 
     new, old = fleet(True), fleet(False)
-    assert new[0].outgoing().values.size == 2 * new[0].dim and old[0].outgoing().values.size == new[0].dim
+    # ([v; w] and the certified guard's payload, agents/certificate.py)
+    assert new[0].outgoing().values.size == 2 * new[0].dim + PAYLOAD and old[0].outgoing().values.size == new[0].dim
     for _ in range(1000):
         if all(c.finished for c in new):
             break

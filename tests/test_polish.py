@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from agents.admm import _Polish, hub_frame_dim, polish_payload_size, polish_solve
+from agents.certificate import PAYLOAD
 from agents.problem import certify_hard_margin, margin_rows
 from agents.spec import build_core
 
@@ -72,7 +73,8 @@ def test_a_restored_robot_continues_the_polish_bit_for_bit():
 def test_the_flag_off_leaves_the_frames_as_they_were():
     _w, spec, _c, cores = _fleet(False)
     dim = spec.basis.size + 1
-    assert spec.dim == 2 * dim == cores[0].frame_dim == len(cores[0].outgoing().values)
+    # (without the polish the certified guard's payload follows [v; w]: agents/certificate.py)
+    assert spec.dim == 2 * dim + PAYLOAD == cores[0].frame_dim == len(cores[0].outgoing().values)
     assert getattr(cores[0], "_polish") is None
     _w, spec, _c, cores = _fleet(True)
     assert spec.dim == 2 * dim + polish_payload_size(dim) == cores[0].frame_dim == len(cores[0].outgoing().values)

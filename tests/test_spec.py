@@ -78,8 +78,9 @@ def test_fixed_grid_algorithms_need_grid_and_sigma(auto):
     with pytest.raises(ValueError, match="admm needs a grid and a sigma"):
         dataclasses.replace(spec, algorithm="admm")
     _, paper, _ = make_run()
-    # the paper's fleet is complete: the hub form's frames carry [v; w], 2 x (15 + 1) floats
-    assert paper.algorithm == "admm" and paper.sigma == 1.0 and paper.dim == 32
+    # the paper's fleet is complete: the hub form's frames carry [v; w], 2 x (15 + 1) floats, and the
+    # certified guard's 6 (agents/certificate.py)
+    assert paper.algorithm == "admm" and paper.sigma == 1.0 and paper.dim == 32 + 6
     _, ring, _ = make_run(robots=4, topology="ring")
     assert ring.dim == 4 * 16  # the relay hub sends a relayed a per robot (agents/relay_hub.py)
     ring.params["relay"] = False
