@@ -78,8 +78,10 @@ class Stop:
 def run(kwargs: dict, *, certify: float, warm: bool, max_rounds: int, check: bool = False,
         tol: float = TOL, trace: int = 0) -> Stop:
     """The fleet as `simulate` runs it (lock step), with ADMMParams.certify and WARM_QP as given."""
-    old = admm.WARM_QP, admm.CERTIFY_EVERY_ROUND
+    old = admm.WARM_QP, admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM
     admm.WARM_QP, admm.CERTIFY_EVERY_ROUND = warm, check or bool(trace)  # (the same stops either way)
+    if check or trace:  # the payload in every frame (else only in armed rounds): a fresh bound every round
+        admm.CERTIFY_ARM = math.inf
     try:
         cores, error, _active = fleet_probe({**kwargs, "tol": tol}, max_rounds, params={"certify": certify})
         unsafe = checked = 0
@@ -101,7 +103,7 @@ def run(kwargs: dict, *, certify: float, warm: bool, max_rounds: int, check: boo
         return Stop(form_name(cores[0]), cores[0].round, error(), None if None in bounds else max(bounds),
                     all(c.converged for c in cores), unsafe, checked)
     finally:
-        admm.WARM_QP, admm.CERTIFY_EVERY_ROUND = old
+        admm.WARM_QP, admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = old
 
 
 def _cell(s: Stop) -> str:
