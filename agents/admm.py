@@ -1098,10 +1098,12 @@ class ConsensusADMM(RoundCore):
             if (below or last or CERTIFY_EVERY_ROUND) and s_before is not None and mean_before is not None:
                 self._certify(frames, certs, s_before, mean_before)  # only where it can decide: the rule passed
             below = below and self._fleet_bound <= certify_threshold(self.params)
-        new = self._primal_step()
-        if self._cert_slot:
+        if self._cert_slot:  # (decided before the step: its solve keeps its multipliers only when armed)
             armed = self.cert_active and cert_armed(self._residuals, self.params.tol, plain=hub.plain,
                                                      next_is_last=self.round + 2 >= self._round_cap)
+            self._qp.keep_multipliers = armed
+        new = self._primal_step()
+        if self._cert_slot:
             self._prev_cert_payload, self._cert_payload = (
                 self._cert_payload, self._own_payload(new) if armed else _NO_PAYLOAD)
         if pol is not None:
