@@ -8,7 +8,9 @@ for several values of certify (0: the rule alone, main's bits) with `agents.admm
 reports the round at stop, the true error there (max over robots, `GridBasis.function_error` against
 `solve_central`), the fleet's certified bound at the stop (max over robots of their `error_bound`, the
 bound of their *final* values), whether it stopped by its rule, and -- with --check -- on how many
-robot-rounds the bound was below the true error (never, if the proof and its arithmetic hold).
+robot-rounds the bound was below the true error (never, if the proof and its arithmetic hold). --check and
+--trace arm the payload every round (`admm.CERTIFY_ARM` = inf; by default only where the next round's rule
+can pass, branch guardcost), so that every round has a fresh certificate.
 
     .venv/bin/python benchmarks/stop_certificate.py                  # the issue fleets, certify 0 / 10 / 1, piqp and WARM_QP
     .venv/bin/python benchmarks/stop_certificate.py --fleet "8 robots, blob, seed 2" --certify 10
