@@ -138,11 +138,12 @@ def test_certify_zero_keeps_the_frames_and_the_iterates():
     assert max(_errors(spec, central, on)) <= max(bounds) <= 10 * spec.params["tol"]
 
 
-def test_a_checkpoint_resumes_bit_for_bit_with_the_guard_on():
+@pytest.mark.parametrize("at", [60, 118])  # (after round 118 the checkpoint holds an armed payload; stop at 120)
+def test_a_checkpoint_resumes_bit_for_bit_with_the_guard_on(at):
     _, spec, central = make_run()
     assert spec.algorithm_params.certify == 10.0  # the default
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
-    for _ in range(60):
+    for _ in range(at):
         step_all(cores)
     twin = restored_twin(spec, cores[1])
     while not all(c.finished for c in cores):
