@@ -134,8 +134,9 @@ class MarginQP:
         #: the last solve's margin multipliers lam >= 0 (A' lam = P v + q up to the solver's
         #: residual): what the certified stop's dual is built from (agents/certificate.py)
         self.multipliers: np.ndarray | None = None
-        #: False: piqp's solves skip that copy (the hub core clears it outside its guard's armed rounds)
-        self.keep_multipliers = True
+        #: kept only when asked (the hub core asks in its guard's armed rounds): piqp's solves skip
+        #: the copy otherwise
+        self.keep_multipliers = False
 
     def _set_weights(self, prox: float | np.ndarray) -> None:
         """P = x_weight on x, plus a proximal weight per variable of (x, gamma) (a scalar for all),
@@ -190,7 +191,7 @@ class MarginQP:
         if self._hessian is not None:
             exact = solve_box_dual(self._rows, self._d, self._hessian, q, self._upper)
             if exact is not None:
-                self.multipliers = exact[1]
+                self.multipliers = exact[1] if self.keep_multipliers else None
                 return exact[0], True
         elif guess is not None and self._warm is not None:
             v = self._warm.solve(q, guess)
