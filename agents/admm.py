@@ -701,6 +701,31 @@ CERTIFY_EVERY_ROUND = False
 CERTIFY_TOL_FLOOR = 1e-3
 
 
+#: the guard's payload is computed and sent only in "armed" rounds, those whose next round's rule
+#: can pass: `cert_armed`'s lower bound on the next round's estimate below CERTIFY_ARM x tol (> 1: a
+#: margin for rounding), or the next round a capped run's last; other frames carry PAYLOAD zeros (the
+#: same length), from which no certificate and so no stop follows. inf: every round (the guard's
+#: first form, benchmarks/stop_certificate.py --check); 0: only a capped run's last round
+CERTIFY_ARM = 2.0
+_NO_PAYLOAD = np.zeros(cert_math.PAYLOAD)
+_NO_PAYLOAD.flags.writeable = False
+
+
+def cert_armed(residuals: list[float], tol: float, *, plain: bool, next_is_last: bool) -> bool:
+    """True when a robot computes and sends its certificate payload for its next frame: there the
+    rule may pass. The next round's estimate is the estimate of these residuals (the last
+    2 RATE_WINDOW) shifted by one with the next residual appended, and it only grows with that
+    residual, so the estimate with a residual of 0 is a lower bound on it: the rule cannot pass
+    where this bound is >= tol (the plain map's rule: STALL_STOP_MARGIN x it; a mode switch between
+    the rounds at worst moves the stop by a round). A pure function of the fleet residuals, which
+    every copy holds alike (the same arming on every copy), computed in the round before."""
+    if next_is_last or CERTIFY_ARM == math.inf:
+        return True
+    ahead = residuals[-(2 * RATE_WINDOW - 1) :] + [0.0]
+    bound = STALL_STOP_MARGIN * error_estimate(ahead) if plain else error_estimate(ahead, typical_older=True)
+    return bound < CERTIFY_ARM * tol
+
+
 def certify_threshold(params: ADMMParams) -> float:
     """The certified bound a guarded stop needs (ADMMParams.certify > 0)."""
     return params.certify * max(params.tol, CERTIFY_TOL_FLOOR)
@@ -1073,9 +1098,14 @@ class ConsensusADMM(RoundCore):
             if (below or last or CERTIFY_EVERY_ROUND) and s_before is not None and mean_before is not None:
                 self._certify(frames, certs, s_before, mean_before)  # only where it can decide: the rule passed
             below = below and self._fleet_bound <= certify_threshold(self.params)
+        if self._cert_slot:  # (decided before the step: its solve keeps its multipliers only when armed)
+            armed = self.cert_active and cert_armed(self._residuals, self.params.tol, plain=hub.plain,
+                                                     next_is_last=self.round + 2 >= self._round_cap)
+            self._qp.keep_multipliers = armed
         new = self._primal_step()
         if self._cert_slot:
-            self._prev_cert_payload, self._cert_payload = self._cert_payload, self._own_payload(new)
+            self._prev_cert_payload, self._cert_payload = (
+                self._cert_payload, self._own_payload(new) if armed else _NO_PAYLOAD)
         if pol is not None:
             done = pol.step(payloads, new)
             if done is not None:  # certified by every robot: the exact optimum, the same bits everywhere

@@ -62,7 +62,7 @@ def _piqp_solve(solver: piqp.DenseSolver, qp: MarginQP, full_q: np.ndarray) -> n
         raise InfeasibleError(INFEASIBLE_ADVICE)
     if status != piqp.PIQP_SOLVED:
         raise SolverError(f"piqp returned {status}")
-    qp.multipliers = np.array(solver.result.z_l, dtype=float)
+    qp.multipliers = np.array(solver.result.z_l, dtype=float) if qp.keep_multipliers else None
     return np.array(solver.result.x, dtype=float)
 
 
@@ -134,6 +134,9 @@ class MarginQP:
         #: the last solve's margin multipliers lam >= 0 (A' lam = P v + q up to the solver's
         #: residual): what the certified stop's dual is built from (agents/certificate.py)
         self.multipliers: np.ndarray | None = None
+        #: kept only when asked (the hub core asks in its guard's armed rounds): piqp's solves skip
+        #: the copy otherwise
+        self.keep_multipliers = False
 
     def _set_weights(self, prox: float | np.ndarray) -> None:
         """P = x_weight on x, plus a proximal weight per variable of (x, gamma) (a scalar for all),
@@ -188,12 +191,12 @@ class MarginQP:
         if self._hessian is not None:
             exact = solve_box_dual(self._rows, self._d, self._hessian, q, self._upper)
             if exact is not None:
-                self.multipliers = exact[1]
+                self.multipliers = exact[1] if self.keep_multipliers else None
                 return exact[0], True
         elif guess is not None and self._warm is not None:
             v = self._warm.solve(q, guess)
             if v is not None:
-                self.multipliers = self._warm.multipliers()
+                self.multipliers = self._warm.multipliers() if self.keep_multipliers else None
                 return v, True
         return self._piqp(q), False
 

@@ -8,7 +8,9 @@ for several values of certify (0: the rule alone, main's bits) with `agents.admm
 reports the round at stop, the true error there (max over robots, `GridBasis.function_error` against
 `solve_central`), the fleet's certified bound at the stop (max over robots of their `error_bound`, the
 bound of their *final* values), whether it stopped by its rule, and -- with --check -- on how many
-robot-rounds the bound was below the true error (never, if the proof and its arithmetic hold).
+robot-rounds the bound was below the true error (never, if the proof and its arithmetic hold). --check and
+--trace arm the payload every round (`admm.CERTIFY_ARM` = inf; by default only where the next round's rule
+can pass, branch guardcost), so that every round has a fresh certificate.
 
     .venv/bin/python benchmarks/stop_certificate.py                  # the issue fleets, certify 0 / 10 / 1, piqp and WARM_QP
     .venv/bin/python benchmarks/stop_certificate.py --fleet "8 robots, blob, seed 2" --certify 10
@@ -78,8 +80,10 @@ class Stop:
 def run(kwargs: dict, *, certify: float, warm: bool, max_rounds: int, check: bool = False,
         tol: float = TOL, trace: int = 0) -> Stop:
     """The fleet as `simulate` runs it (lock step), with ADMMParams.certify and WARM_QP as given."""
-    old = admm.WARM_QP, admm.CERTIFY_EVERY_ROUND
+    old = admm.WARM_QP, admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM
     admm.WARM_QP, admm.CERTIFY_EVERY_ROUND = warm, check or bool(trace)  # (the same stops either way)
+    if check or trace:  # the payload in every frame (else only in armed rounds): a fresh bound every round
+        admm.CERTIFY_ARM = math.inf
     try:
         cores, error, _active = fleet_probe({**kwargs, "tol": tol}, max_rounds, params={"certify": certify})
         unsafe = checked = 0
@@ -101,7 +105,7 @@ def run(kwargs: dict, *, certify: float, warm: bool, max_rounds: int, check: boo
         return Stop(form_name(cores[0]), cores[0].round, error(), None if None in bounds else max(bounds),
                     all(c.converged for c in cores), unsafe, checked)
     finally:
-        admm.WARM_QP, admm.CERTIFY_EVERY_ROUND = old
+        admm.WARM_QP, admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = old
 
 
 def _cell(s: Stop) -> str:

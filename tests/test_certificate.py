@@ -68,6 +68,7 @@ def _errors(spec, central, cores) -> list[float]:
 @pytest.mark.parametrize("kwargs", [{}, {"shape": "crescent"}], ids=["paper", "crescent"])
 def test_the_bound_holds_every_round_against_the_central_solve(kwargs, monkeypatch):
     monkeypatch.setattr(admm, "CERTIFY_EVERY_ROUND", True)  # (else only rounds whose rule passed)
+    monkeypatch.setattr(admm, "CERTIFY_ARM", math.inf)  # (else the payloads only near the rule's stop)
     _, spec, central = make_run(tol=1e-14, max_rounds=160, **kwargs)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     bounded = 0
@@ -137,11 +138,12 @@ def test_certify_zero_keeps_the_frames_and_the_iterates():
     assert max(_errors(spec, central, on)) <= max(bounds) <= 10 * spec.params["tol"]
 
 
-def test_a_checkpoint_resumes_bit_for_bit_with_the_guard_on():
+@pytest.mark.parametrize("at", [60, 118])  # (after round 118 the checkpoint holds an armed payload; stop at 120)
+def test_a_checkpoint_resumes_bit_for_bit_with_the_guard_on(at):
     _, spec, central = make_run()
     assert spec.algorithm_params.certify == 10.0  # the default
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
-    for _ in range(60):
+    for _ in range(at):
         step_all(cores)
     twin = restored_twin(spec, cores[1])
     while not all(c.finished for c in cores):
@@ -176,6 +178,54 @@ def test_a_forged_payload_neither_crashes_a_robot_nor_lets_it_stop(monkeypatch):
             cores[0].receive(u)
         cores[0].advance()
         assert cores[0]._fleet_bound == math.inf and not cores[0]._flags & 1
+
+
+def _guarded_rounds(spec, rounds: int) -> tuple[list, int | None, list[int]]:
+    """Lock-step rounds of the fleet: (cores, the first round whose rule passed, the rounds in which
+    some robot voted stop), asserting that every vote came in a round whose frames all carried a
+    payload (an armed round) and whose fleet bound was <= the guard's threshold."""
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    tol, first_rule, votes = spec.params["tol"], None, []
+    for _ in range(rounds):
+        if all(c.finished for c in cores):
+            break
+        updates = [c.outgoing() for c in cores]
+        armed = all(np.any(u.values[-PAYLOAD:] != 0) for u in updates)
+        for c in cores:
+            for u in updates:
+                c.receive(u)
+        for c in cores:
+            c.advance()
+        if first_rule is None and cores[0].status()["error_estimate"] < tol:
+            first_rule = cores[0].round
+        if any(c._flags & 1 for c in cores):
+            votes.append(cores[0].round)
+            assert armed and all(c._fleet_bound <= 10 * tol for c in cores), (cores[0].round, armed)
+    return cores, first_rule, votes
+
+
+def test_no_stop_without_a_certificate_when_the_rule_passes_before_arming(monkeypatch):
+    """The payload is computed only in armed rounds (`admm.cert_armed`: the next round's rule may
+    pass, or it is the cap's last). Default: armed in time, the paper preset votes in round 119 as
+    unarmed. Armed a round late (once the rule has passed), the rule's first passing round has
+    frames without a payload: no certificate, no stop there -- the vote comes a round later, from
+    payloads of every robot. Never armed but in the cap's last round: no stop before it (the rule
+    passes from round 119 on)."""
+    _, spec, central = make_run()
+    _, first_default, votes_default = _guarded_rounds(spec, 400)
+    assert first_default == 119 and votes_default[0] == 119  # the paper preset's stop (round 120), as branch guard
+    # armed only once the rule has passed (a round late): its first passing round finds no payload
+    monkeypatch.setattr(admm, "cert_armed", lambda res, tol, **_: admm.error_estimate(res, typical_older=True) < tol)
+    _, first_rule, votes = _guarded_rounds(spec, 400)
+    assert first_rule == 119 and votes and votes[0] == 120
+    monkeypatch.undo()
+    monkeypatch.setattr(admm, "CERTIFY_ARM", 0.0)
+    spec.params["max_rounds"] = 200
+    cores, first_rule, votes = _guarded_rounds(spec, 400)
+    assert first_rule is not None and first_rule < 190 and set(votes) <= {200}  # none before the cap's last round
+    assert all(c.finished for c in cores) and cores[0].round == 200
+    bounds = [c.error_bound() for c in cores]  # the cap's last round was armed: a bound is reported
+    assert None not in bounds and max(_errors(spec, central, cores)) <= max(bounds)
 
 
 @pytest.mark.parametrize("certify", [-1.0, math.nan, math.inf])
