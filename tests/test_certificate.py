@@ -6,6 +6,7 @@ crash a robot nor let it stop by the certificate."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -58,6 +59,22 @@ def test_a_bad_payload_gives_no_certificate(bad):
         forged[k] = bad
         assert fleet_certificate(forged[None], np.array([1.0, 0.0]), np.array([1.0, 0.0])) is None
     assert payload((math.nan, -1.0), POS, np.array([0.5, 0.5]), 0.0, 1.0).tolist() == [0.0] * PAYLOAD  # sent as none
+
+
+@pytest.mark.parametrize("k", range(PAYLOAD))
+def test_a_huge_finite_payload_overflows_to_no_certificate_never_an_error(k):
+    """A forged or garbled frame with finite but huge numbers: float ** and fsum would raise
+    OverflowError inside the copy's certificate (a robot's crash); it gives no certificate instead."""
+    good = payload((1.0, -1.0), POS, np.array([0.5, 0.5]), 0.0, 1.0)
+    for huge in (1e300, -1e300, 1e-300):
+        forged = good.copy()
+        forged[k] = huge
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # not even a RuntimeWarning on the robot's stderr
+            cert = fleet_certificate(np.vstack([forged, good]), np.array([1.0, 0.0]), np.array([1.0, 0.0]))
+            assert cert is None or math.isfinite(cert.bound(np.array([1.0, 0.0, 0.0])))
+            if cert is not None:
+                assert cert.bound(np.array([1e300, -1e300, 1e300])) == math.inf
 
 
 def _errors(spec, central, cores) -> list[float]:
