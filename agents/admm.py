@@ -538,11 +538,13 @@ _SHARED_LOCK = threading.Lock()  # fleets run in worker threads (launcher/api.py
 
 #: the local step QPs (hard margin, n >= dim) first try the exact KKT solve on the active rows of
 #: the robot's previous v (agents/problem.py `_WarmKKT`, piqp when it does not certify): ~25-30 %
-#: cheaper per solve than piqp, but it moves the last bits and with them the chaotic Anderson path,
-#: and on one fleet of the suite (tests/test_simulate.py's L shape) the hub's stop rule then fires on
-#: a plateau at error 6.7e-2 (piqp's path: 2.6e-4). Off until the stop rule is safe there
-#: (benchmarks/results/round_cost.md, branch core3); the relay hub follows it too
-WARM_QP = False
+#: cheaper per solve than piqp, and its multipliers are exact, so the certified guard's bound has no
+#: floor from piqp's interior point (docs/algorithm.md, "A certified stop"). It moves the last bits and
+#: with them the chaotic Anderson path: on the L shape of tests/test_simulate.py the rule alone then
+#: stops on a plateau at error 6.7e-2 (branch core3). So it runs only where the guard decides
+#: (`ConsensusADMM.cert_active`): certify = 0, soft margins, the polish and the edge form keep piqp and
+#: main's bits. The relay hub, which has no guard, keeps piqp (relay_hub.RELAY_WARM_QP)
+WARM_QP = True
 
 #: restart the acceleration when its best residual has not improved for STALL x memory rounds
 STALL = 1.0
@@ -966,6 +968,7 @@ class ConsensusADMM(RoundCore):
         self._qp = self._build_qp()
         self._residuals: list[float] = []  # the last 2 * RATE_WINDOW, for the error estimate
         self._held = 0  # hub form on the plain map: rounds in a row its stop test has passed
+        self._cert_slot = False  # (known below, with the frame layout: round 0's step takes no guess)
         self._values = self._local_step()
         # hub form: frames carry [v; w] (see _Hub._map); without `hub_frames` (a frame layout with
         # no room for w) each copy computes every w itself -- exact only while the copies agree
@@ -1257,5 +1260,6 @@ class ConsensusADMM(RoundCore):
         return self._qp.solve_v(q, guess=self._warm_guess())
 
     def _warm_guess(self) -> np.ndarray | None:
-        """This robot's v for the step QP's exact warm-started solve when WARM_QP is on, else None."""
-        return self._values if WARM_QP else None
+        """This robot's v for the step QP's exact warm-started solve where the certified guard decides
+        (WARM_QP), else None: piqp answers."""
+        return self._values if WARM_QP and self.cert_active else None

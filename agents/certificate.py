@@ -69,8 +69,14 @@ def phi_max(rows: np.ndarray) -> float:
 
 
 def norm(v: np.ndarray) -> float:
-    """|v|, exactly rounded sum of squares (the same bits on every copy)."""
-    return math.sqrt(math.fsum((v * v).tolist()))
+    """|v|, exactly rounded sum of squares (the same bits on every copy); inf where the squares or
+    their sum overflow (an exploding iterate: no certificate, and no warning on the robot's stderr)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        squares = (v * v).tolist()
+    try:
+        return math.sqrt(math.fsum(squares))
+    except OverflowError:  # fsum's intermediate overflow of finite squares
+        return math.inf
 
 
 @dataclass(frozen=True)
@@ -85,9 +91,12 @@ class Certificate:
     phi_max: float
 
     def bound(self, v: np.ndarray) -> float:
-        """A proven upper bound on the function error of v = (x, gamma) against the exact optimum."""
+        """A proven upper bound on the function error of v = (x, gamma) against the exact optimum
+        (inf where it overflows)."""
         c = self.center
-        return ((norm(v[:-1] - c[:-1]) + self.e0) / self.den_x
+        with np.errstate(over="ignore", invalid="ignore"):
+            dx = v[:-1] - c[:-1]
+        return ((norm(dx) + self.e0) / self.den_x
                 + (abs(float(v[-1]) - float(c[-1])) + self.e0 * self.phi_max) / self.den_g)
 
     def fleet_bound(self, values: np.ndarray) -> float:
@@ -106,7 +115,16 @@ class Certificate:
 def fleet_certificate(payloads: np.ndarray, x_bar: np.ndarray, w_x: np.ndarray) -> Certificate | None:
     """The fleet's certificate from every robot's payload (a row per robot, id order), the mean
     x_bar at which the margins were taken and w_x, the x part of sum_l grad_l; None where none
-    exists (no balanced dual, the mean not separating, a bad payload)."""
+    exists (no balanced dual, the mean not separating, a bad payload). Finite but huge numbers (a
+    forged or garbled frame, an exploding iterate) overflow to no certificate, never to an error."""
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            return _fleet_certificate(payloads, x_bar, w_x)
+    except (OverflowError, ZeroDivisionError):  # float ** and fsum raise where numpy would give inf
+        return None
+
+
+def _fleet_certificate(payloads: np.ndarray, x_bar: np.ndarray, w_x: np.ndarray) -> Certificate | None:
     p = np.asarray(payloads, dtype=float)
     if p.ndim != 2 or p.shape[1] != PAYLOAD or not len(p):
         return None
@@ -129,4 +147,5 @@ def fleet_certificate(payloads: np.ndarray, x_bar: np.ndarray, w_x: np.ndarray) 
     if not (0 < dual < math.inf and math.isfinite(primal)):
         return None
     e0 = math.sqrt(2.0 * max(primal - dual, 0.0))
-    return Certificate(np.append(s * x_bar, s * g), e0, math.sqrt(2.0 * dual), max(1.0, abs(s * g) - e0 * phi), phi)
+    cert = Certificate(np.append(s * x_bar, s * g), e0, math.sqrt(2.0 * dual), max(1.0, abs(s * g) - e0 * phi), phi)
+    return cert if all(map(math.isfinite, cert.as_list())) else None

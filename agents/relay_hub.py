@@ -77,6 +77,10 @@ RELAY_REG = 3e-3
 #: rounds in a row (see `_fleet_step`)
 RELAY_HOLD = 40
 RELAY_STOP_MARGIN = 2.0
+#: the exact warm-started local QP (admm.WARM_QP) stays off here: the relay hub has no certified guard
+#: against the rule's plateau stops, and with it the 16-robot geometric fleet took 1022 rounds instead
+#: of 962 (branch guard, benchmarks/results/stop_certificate.md)
+RELAY_WARM_QP = False
 
 
 #: fleet steps taken lately in this process, by the digest of a copy's token and the step's inputs:
@@ -194,7 +198,7 @@ class RelayHubADMM(RoundCore):
             t = self._S[k + 1][self._slots[self.robot_id]]
         else:  # the first round's values are still on their way: t stays t^0 = the own solution
             t = self._a[self.robot_id][0]
-        x = self._solve(t, mine if admm.WARM_QP else None)
+        x = self._solve(t, mine if RELAY_WARM_QP else None)
         self._a[self.robot_id][k + 1] = 2.0 * x - t
         self._prune(k + 1 - D)
         return x, below

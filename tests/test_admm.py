@@ -369,10 +369,11 @@ def test_sessions_count_the_bytes_they_send_and_keep_them_over_a_restart():
 
 
 
-def test_warm_qp_switch(monkeypatch):
-    """admm.WARM_QP (off): the cores give their MarginQP no guess, so piqp answers every step (the bits
-    of main); switched on, the exact warm-started KKT solve answers and the paper preset still stops
-    within tol of the central QP, and a checkpointed robot resumes bit for bit (its guess is its v)."""
+def test_warm_qp_runs_only_where_the_guard_decides(monkeypatch):
+    """admm.WARM_QP: the exact warm-started KKT solve answers the hub's steps only where the certified
+    guard decides (certify > 0, hard margin); with certify = 0 the cores give their MarginQP no guess,
+    so piqp answers every step (main's bits). Guarded, the paper preset stops within tol of the central
+    QP and a checkpointed robot resumes bit for bit (its guess is its v)."""
     import agents.admm as admm
     import agents.problem as problem
 
@@ -380,11 +381,13 @@ def test_warm_qp_switch(monkeypatch):
     solve = problem._WarmKKT.solve
     monkeypatch.setattr(problem._WarmKKT, "solve", lambda self, q, g: calls.append(1) or solve(self, q, g))
     _, spec, central = make_run()
+    assert admm.WARM_QP is True and spec.params.get("certify", 10.0) > 0
+    spec.params["certify"] = 0.0
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     for _ in range(5):
         step_all(cores)
-    assert admm.WARM_QP is False and not calls
-    monkeypatch.setattr(admm, "WARM_QP", True)
+    assert not calls
+    spec.params["certify"] = 10.0
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     for _ in range(12):
         step_all(cores)

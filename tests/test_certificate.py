@@ -6,6 +6,7 @@ crash a robot nor let it stop by the certificate."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -60,6 +61,22 @@ def test_a_bad_payload_gives_no_certificate(bad):
     assert payload((math.nan, -1.0), POS, np.array([0.5, 0.5]), 0.0, 1.0).tolist() == [0.0] * PAYLOAD  # sent as none
 
 
+@pytest.mark.parametrize("k", range(PAYLOAD))
+def test_a_huge_finite_payload_overflows_to_no_certificate_never_an_error(k):
+    """A forged or garbled frame with finite but huge numbers: float ** and fsum would raise
+    OverflowError inside the copy's certificate (a robot's crash); it gives no certificate instead."""
+    good = payload((1.0, -1.0), POS, np.array([0.5, 0.5]), 0.0, 1.0)
+    for huge in (1e300, -1e300, 1e-300):
+        forged = good.copy()
+        forged[k] = huge
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # not even a RuntimeWarning on the robot's stderr
+            cert = fleet_certificate(np.vstack([forged, good]), np.array([1.0, 0.0]), np.array([1.0, 0.0]))
+            assert cert is None or math.isfinite(cert.bound(np.array([1.0, 0.0, 0.0])))
+            if cert is not None:
+                assert cert.bound(np.array([1e300, -1e300, 1e300])) == math.inf
+
+
 def _errors(spec, central, cores) -> list[float]:
     b = spec.basis
     return [b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores]
@@ -95,7 +112,8 @@ def _stop(spec, central, certify: float) -> tuple[int, float, float | None]:
 def test_the_guard_refuses_the_l_shapes_plateau_stop_with_the_warm_qp(tmp_path, monkeypatch):
     """With WARM_QP the rule alone stops the L shape of test_simulate on an Anderson plateau (measured:
     round 112, error 6.7e-2); the guard holds the fleet until its certified bound is <= 10 tol."""
-    monkeypatch.setattr(admm, "WARM_QP", True)
+    # the warm QP also without the guard (by default it runs only where the guard decides)
+    monkeypatch.setattr(admm.ConsensusADMM, "_warm_guess", lambda self: self._values if self._C is None else None)
     shape = tmp_path / "l.csv"
     shape.write_text(L_SHAPE)
     _, spec, central = make_run(shape_file=str(shape))
@@ -116,9 +134,11 @@ def test_the_guard_refuses_a_rule_that_always_says_stop(monkeypatch):
     assert error <= bound < 10 * tol and error < tol
 
 
-def test_certify_zero_keeps_the_frames_and_the_iterates():
+def test_certify_zero_keeps_the_frames_and_the_iterates(monkeypatch):
     """certify = 0: frames are [v; w] (main's layout), no bound; the guard only adds a payload and never
-    moves an iterate: certify 10 runs the paper preset through the very same values to the same stop."""
+    moves an iterate: certify 10 runs the paper preset through the very same values to the same stop
+    (with piqp's steps on both sides: the guard's default warm QP, admm.WARM_QP, moves the last bits)."""
+    monkeypatch.setattr(admm, "WARM_QP", False)
     _, spec, central = make_run()
     runs = {}
     for certify in (0.0, 10.0):

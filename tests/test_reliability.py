@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -370,9 +371,11 @@ def test_solver_failure_is_one_line_and_never_converged(tmp_path):
     with one line and exit 1, in process and over Zenoh, without a traceback in any log."""
     proc = _run("simulate", *PAPER, "--rho", "1e300", "--out", str(tmp_path / "sim"), timeout=25)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
-    assert proc.stderr.strip().splitlines() == [
-        "shapefleet: the run failed: robot 0 round 0: local solver failed: piqp returned Status.PIQP_MAX_ITER_REACHED"
-    ]
+    # (which robot and round meets piqp's failure first depends on the path: the guard's exact warm QP
+    # answers some steps piqp cannot)
+    (line,) = proc.stderr.strip().splitlines()
+    assert re.fullmatch(r"shapefleet: the run failed: robot \d+ round \d+: local solver failed: "
+                        r"piqp returned Status\.PIQP_MAX_ITER_REACHED", line), line
     out = tmp_path / "launch"
     proc = _run("launch", *PAPER, "--rho", "1e300", "--dead-after", "1s", "--out", str(out), timeout=35)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
