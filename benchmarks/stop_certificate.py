@@ -31,6 +31,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import agents.admm as admm  # noqa: E402
+import agents.relay_hub as relay_hub  # noqa: E402
 from benchmarks.common import add_row, lockstep_round, write_results  # noqa: E402
 from benchmarks.polish import fleet_kwargs  # noqa: E402
 from benchmarks.rounds import fleet_probe, form_name  # noqa: E402
@@ -79,9 +80,15 @@ class Stop:
 
 def run(kwargs: dict, *, certify: float, warm: bool, max_rounds: int, check: bool = False,
         tol: float = TOL, trace: int = 0) -> Stop:
-    """The fleet as `simulate` runs it (lock step), with ADMMParams.certify and WARM_QP as given."""
-    old = admm.WARM_QP, admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM
+    """The fleet as `simulate` runs it (lock step), with ADMMParams.certify as given and the warm QP
+    on (`warm`) wherever it applies -- also with the guard off and on the relay hub, as branch core3
+    measured it (by default it runs only where the guard decides) -- or nowhere (piqp)."""
+    old = admm.WARM_QP, admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM, relay_hub.RELAY_WARM_QP
+    old_guess = admm.ConsensusADMM._warm_guess
     admm.WARM_QP, admm.CERTIFY_EVERY_ROUND = warm, check or bool(trace)  # (the same stops either way)
+    relay_hub.RELAY_WARM_QP = warm
+    if warm:
+        admm.ConsensusADMM._warm_guess = lambda self: self._values
     if check or trace:  # the payload in every frame (else only in armed rounds): a fresh bound every round
         admm.CERTIFY_ARM = math.inf
     try:
@@ -105,7 +112,8 @@ def run(kwargs: dict, *, certify: float, warm: bool, max_rounds: int, check: boo
         return Stop(form_name(cores[0]), cores[0].round, error(), None if None in bounds else max(bounds),
                     all(c.converged for c in cores), unsafe, checked)
     finally:
-        admm.WARM_QP, admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = old
+        admm.WARM_QP, admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM, relay_hub.RELAY_WARM_QP = old
+        admm.ConsensusADMM._warm_guess = old_guess
 
 
 def _cell(s: Stop) -> str:
