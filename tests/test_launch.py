@@ -158,6 +158,10 @@ def test_three_robots_same_iterates_as_simulate_and_central(tmp_path):
     assert max_function_error(spec, central, out.robots) < 1e-3
     for r in out.robots:
         assert r["frames_lost"] == 0 and r["frames_rejected"] == 0 and r["restarts"] == 0
+        # the certified guard's bound (agents/certificate.py): over Zenoh the same number as in
+        # process, and a true upper bound on the robot's error against the exact optimum
+        assert r["error_bound"] == want[r["id"]]["error_bound"]
+        assert max_function_error(spec, central, [r]) <= r["error_bound"] <= 10 * 1e-3
         assert r["frames_rejected_by_reason"] == {}
         assert r["frames_sent"] > r["rounds"] and r["frames_received"] > 0
     assert out.states == {0: "finished", 1: "finished", 2: "finished"}
