@@ -227,6 +227,11 @@ def _non_negative(value: float) -> None:
         raise ValueError(f"{value!r} must be a non-negative number")
 
 
+def _finite_non_negative(value: float) -> None:
+    if not 0 <= value < math.inf:
+        raise ValueError(f"{value!r} must be a finite number >= 0")
+
+
 def _durations(value: str) -> None:
     from launcher.sweep import parse_list
 
@@ -390,6 +395,10 @@ OPTIONS: tuple[Option, ...] = (
            "active-set end-game (docs/algorithm.md, \"An exact end-game\"): the run ends at the KKT-certified optimum, "
            "2-5x fewer rounds; its frames carry sums of each robot's active feature rows' outer products, as newton's",
            group=ALGORITHM, section="algorithm", show_default=False),
+    Option("certify", FLOAT, None, "admm on a complete graph (the hub form), hard margin: a stop also needs the "
+           "fleet's proven bound on its error against the exact optimum <= CERTIFY x max(tol, 1e-3) (docs/algorithm.md, "
+           f"\"A certified stop\"; default {param_default('admm', 'certify'):g}); 0: the stopping rule alone",
+           group=ALGORITHM, section="algorithm", check=_finite_non_negative, show_default=False),
     Option("ct-step", DURATION, FROM_PARAMS, "ct-admm: integration step of the flow (the paper's)",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "step"}),
     Option("ct-period", DURATION, FROM_PARAMS, "ct-admm: communication period T_sp (the paper's)",

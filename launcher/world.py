@@ -151,6 +151,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
     params = algorithm_params(opts, opts.algorithm, diameter=diameter)
     if opts.polish and opts.algorithm == "admm":  # written only when asked: other fleets' files stay as they were
         params["polish"] = True
+    if opts.certify is not None and opts.algorithm == "admm":  # (likewise)
+        params["certify"] = float(opts.certify)
     if opts.algorithm == "ct-admm":
         try:
             CTADMMParams(**params)
@@ -180,6 +182,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         )
     if opts.polish:
         _check_polish(opts, spec)
+    if opts.certify is not None:
+        _check_certify(opts, spec)
     where = None if positions is None else dict(zip(ids, positions))
     return World(shape, robots, grid, bounds, neighbours, lengths, where), spec
 
@@ -193,6 +197,24 @@ def _check_polish(opts: Options, spec: FleetSpec) -> None:
     reason = spec.polish_refusal()
     if reason is not None:
         raise scenario.ScenarioError(f"--polish: {reason}")
+
+
+def _check_certify(opts: Options, spec: FleetSpec) -> None:
+    """--certify sets admm's certified stop guard, which exists for the hub form on hard margins
+    (docs/algorithm.md, "A certified stop"): a value that would change nothing says so instead."""
+    if opts.algorithm != "admm":
+        raise scenario.ScenarioError(f"--certify: the certified stop guard is built for --algorithm admm only (this run: "
+                                     f"{opts.algorithm}); give --grid and --sigma, or --preset paper")
+    if opts.certify == 0:
+        return
+    if spec.C is not None:
+        raise scenario.ScenarioError("--certify: the guard's bound needs a hard margin; drop --C (or give --certify 0)")
+    if opts.polish:
+        raise scenario.ScenarioError("--certify: with --polish the end-game certifies the stop itself; drop one of them")
+    if not spec._hub_form(spec.algorithm_params):
+        raise scenario.ScenarioError(
+            f"--certify: the guard needs a complete graph (the hub form); this graph of {spec.n_robots} robots is not "
+            "complete, and the relay hub and the edge form stop by their rule alone (docs/algorithm.md)")
 
 
 def _robots_and_lengths(opts: Options) -> tuple[Polygon | None, list[scenario.RobotData], scenario.WorldLengths]:

@@ -252,3 +252,46 @@ def test_no_stop_without_a_certificate_when_the_rule_passes_before_arming(monkey
 def test_a_bad_certify_is_refused(certify):
     with pytest.raises(ValueError, match="certify"):
         ADMMParams(certify=certify)
+
+
+def test_the_certify_flag_reaches_the_fleet_file_only_when_given():
+    from launcher.options import Options
+    from launcher.world import build_world
+
+    _w, spec = build_world(Options(fleet_id="c", preset="paper", certify=1.0))
+    assert spec.params["certify"] == 1.0 and spec.algorithm_params.certify == 1.0
+    _w, spec = build_world(Options(fleet_id="c", preset="paper"))
+    assert "certify" not in spec.params and spec.algorithm_params.certify == 10.0  # files stay as they were
+    _w, spec = build_world(Options(fleet_id="c", preset="paper", certify=0.0, topology="ring", robots=6))
+    assert spec.params["certify"] == 0.0  # 0 is accepted anywhere admm runs: the rule alone
+
+
+@pytest.mark.parametrize("kwargs, says", [
+    ({}, "--algorithm admm only (this run: autogrid)"),
+    ({"preset": "paper", "algorithm": "newton"}, "--algorithm admm only (this run: newton)"),
+    ({"preset": "paper", "C": 10.0}, "needs a hard margin"),
+    ({"preset": "paper", "polish": True}, "the end-game certifies the stop itself"),
+    ({"preset": "paper", "topology": "ring", "robots": 6}, "needs a complete graph"),
+])
+def test_the_certify_flag_refuses_what_would_change_nothing(kwargs, says):
+    from launcher.options import Options
+    from launcher.scenario import ScenarioError
+    from launcher.world import build_world
+
+    with pytest.raises(ScenarioError, match="--certify: ") as err:
+        build_world(Options(fleet_id="c", certify=1.0, **kwargs))
+    assert says in str(err.value)
+
+
+def test_the_certify_flag_on_the_command_line(tmp_path):
+    """--certify 0 is main's rule alone (no bound reported); a bad value is exit 2 with one line."""
+    from launcher.cli import main
+
+    assert main(["simulate", "--preset", "paper", "--certify", "0", "--out", str(tmp_path / "r")]) == 0
+    import json
+
+    result = json.loads((tmp_path / "r" / "result.json").read_text())
+    assert result["converged"] and result["rounds"] == 120 and result["metrics"]["error_bound"] is None
+    with pytest.raises(SystemExit) as exit_:
+        main(["simulate", "--preset", "paper", "--certify", "-1", "--out", str(tmp_path / "bad")])
+    assert exit_.value.code == 2
