@@ -58,7 +58,10 @@ from typing import Any
 import numpy as np
 
 from agents import admm
-from agents.admm import FRAME_BUDGET, RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, error_estimate, shared_step
+from agents import certificate as cert_math
+from agents.admm import (FRAME_BUDGET, RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, certify_slot,
+                         certify_threshold, error_estimate, shared_step)
+from agents.certificate import Certificate, fleet_certificate
 from agents.allreduce import _bfs, check_graph
 from agents.messages import StateUpdate
 from agents.problem import MarginQP, SolverError
@@ -88,6 +91,22 @@ RELAY_WARM_QP = False
 #: compute it once and adopt it (the same bits); a step no longer here is computed again
 _SHARED: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 SHARED_KEPT = 64
+#: the guard's certificates computed lately in this process (`RelayHubADMM._certify`), as _SHARED
+_SHARED_CERTS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
+
+
+def relay_cert_slot(params: ADMMParams, n: int, dim: int) -> bool:
+    """True when relay frames carry every robot's certificate payload beside its a (the guard,
+    admm.certify_slot): N (dim + PAYLOAD) floats must fit the frame budget of FRAME_BUDGET x dim
+    floats and a frame's MAX_DIM (N <= 11 on the paper grid); larger fleets stop by the rule alone."""
+    size = n * (dim + cert_math.PAYLOAD)
+    return certify_slot(params) and size <= FRAME_BUDGET * dim and size <= MAX_DIM
+
+
+def relay_frame_dim(params: ADMMParams, n: int, dim: int) -> int:
+    """A relay frame's length: N slots of a_l (dim floats), each followed by robot l's certificate
+    payload when the guard's slot fits (`relay_cert_slot`)."""
+    return n * (dim + (cert_math.PAYLOAD if relay_cert_slot(params, n, dim) else 0))
 
 
 def relay_form(params: ADMMParams, graph: Mapping[int, Sequence[int]], dim: int) -> bool:
@@ -130,13 +149,29 @@ class RelayHubADMM(RoundCore):
         # the neighbour nearest to l (ties: lowest id), whose frame of round r holds round r - d(j, l)
         self._route = {l: min(self.neighbours, key=lambda j: (hops[j][l], j)) for l in self.ids if l != me}
         self._route_hops = {l: hops[j][l] for l, j in self._route.items()}
-        self._slots = {l: slice(k * share.dim, (k + 1) * share.dim) for k, l in enumerate(self.ids)}  # l's a in a frame
-        self.frame_dim = n * self.dim
+        # the certified guard (admm's certify; docs/algorithm.md "A certified stop"): robot l's
+        # PAYLOAD floats ride beside its a_l, relayed alike; on where they fit the frame budget, and
+        # it decides for hard margins only (as the hub's cert_active)
+        self._cert_slot = relay_cert_slot(params, n, share.dim)
+        self._cert_on = self._cert_slot and share.C is None
+        width = share.dim + (cert_math.PAYLOAD if self._cert_slot else 0)
+        self._slots = {l: slice(k * width, (k + 1) * width) for k, l in enumerate(self.ids)}  # l's [a; p] in a frame
+        self._blocks = {l: slice(k * share.dim, (k + 1) * share.dim) for k, l in enumerate(self.ids)}  # t_l in S
+        self.frame_dim = n * width
         self._P = np.full(self.dim, params.rho)
         self._P[-1] *= params.gamma_penalty
+        self._pdiag = self._P.copy()  # the step QP's diagonal, as MarginQP builds it (1/N on x)
+        self._pdiag[:-1] += 1.0 / n
         self._w = np.tile(np.sqrt(self._P), n)  # Anderson's residual weights (the P-norm)
         self._memory = params.anderson
         self._qp = MarginQP(share.features, share.labels, x_weight=1.0 / n, prox_weight=self._P, C=share.C)
+        self._means: dict[int, np.ndarray] = {}  # the fleet's mean x of round j (the guard's margins)
+        self._certificate: Certificate | None = None  # the last fleet certificate computed
+        self._fleet_bound = math.inf
+        if self._cert_on:
+            self._qp.keep_multipliers = True
+            self._sides = cert_math.sides(self._qp._rows)
+            self._phi_max = cert_math.phi_max(self._qp._rows)
         self._broken: str | None = None
         # the shared fleet state by round (rounds k - D .. k), the relayed a's by robot and round
         self._S: dict[int, np.ndarray] = {}
@@ -158,7 +193,7 @@ class RelayHubADMM(RoundCore):
         finally:
             self._qp.set_prox(self._P)
         self._values = own
-        self._a[me][0] = own
+        self._a[me][0] = self._with_payload(own, None)  # (no step multipliers yet: no payload)
         self._frame = self._make_frame()
         self._record()
 
@@ -187,21 +222,81 @@ class RelayHubADMM(RoundCore):
             stamp = k - self._route_hops[l]
             if stamp >= 0:
                 a = theirs[j][self._slots[l]]
-                if not np.all(np.isfinite(a)):
+                if not np.all(np.isfinite(a[: self.dim])):  # (a bad payload: no certificate, no error)
                     raise SolverError(f"robot {j} relayed a non-finite value of robot {l}")
                 self._a[l][stamp] = a.copy()
         below = False
         j = k + 1 - D
         if j >= 0:  # every a_l of round j is here: F(S^j), Anderson -> S^(k+1)
-            A = np.array([self._a[l][j] for l in self.ids])
-            below = self._shared_step(self._state(j), A)
-            t = self._S[k + 1][self._slots[self.robot_id]]
+            held = np.array([self._a[l][j] for l in self.ids])
+            A = np.ascontiguousarray(held[:, : self.dim])
+            S = self._state(j)
+            below = self._shared_step(S, A)
+            self._means[j] = self._prev_mean
+            if self._cert_on:  # the guard: the rule's stop also needs the certified bound
+                self._fleet_bound = math.inf
+                last = k + 1 >= self._round_cap  # (a capped run reports a bound too)
+                if (below or last or admm.CERTIFY_EVERY_ROUND) and j - D in self._means:
+                    self._certify(S, A, np.ascontiguousarray(held[:, self.dim :]), self._means[j - D])
+                below = below and self._fleet_bound <= certify_threshold(self.params)
+            t = self._S[k + 1][self._blocks[self.robot_id]]
         else:  # the first round's values are still on their way: t stays t^0 = the own solution
-            t = self._a[self.robot_id][0]
+            t = self._a[self.robot_id][0][: self.dim]
         x = self._solve(t, mine if RELAY_WARM_QP else None)
-        self._a[self.robot_id][k + 1] = 2.0 * x - t
+        a = 2.0 * x - t
+        self._a[self.robot_id][k + 1] = self._with_payload(a, t, self._means.get(j))
         self._prune(k + 1 - D)
         return x, below
+
+    # -- the certified guard --------------------------------------------------------------------
+    def _with_payload(self, a: np.ndarray, t: np.ndarray | None, mean: np.ndarray | None = None) -> np.ndarray:
+        """My slot of the frames: a, and with the guard's slot my certificate payload of this step
+        (margins at the fleet mean `mean`, which every copy holds; zeros where there is none)."""
+        if not self._cert_slot:
+            return a
+        lam = self._qp.multipliers
+        if not self._cert_on or t is None or mean is None or lam is None:
+            return np.concatenate([a, np.zeros(cert_math.PAYLOAD)])
+        rows = self._qp._rows
+        lam = np.maximum(lam[: len(rows)], 0.0)  # any lam >= 0 gives a valid dual: clip round-off
+        # grad = P x + q of my step (P: 1/N + rho on x; q = -P_prox t), at x = (a + t) / 2 exactly as
+        # every copy rebuilds it (`_certify`): my residual then covers the copies' gradient bit for bit
+        grad = self._pdiag * (0.5 * (a + t)) - self._P * t
+        resid = cert_math.norm((lam @ rows - grad)[:-1])
+        margins = cert_math.margin_extremes(rows[:, :-1] @ mean[:-1], self._sides)
+        return np.concatenate([a, cert_math.payload(margins, self._sides, lam, resid, self._phi_max)])
+
+    def _certify(self, S: np.ndarray, A: np.ndarray, payloads: np.ndarray, mean: np.ndarray) -> None:
+        """The fleet's certificate of round j (agents/certificate.py): every robot's payload of its
+        step at S^j (multipliers; margins at the mean of round j - D), the x part of sum_l grad_l with
+        x_l = (a_l + t_l) / 2 and t_l from S^j; its bound over those x_l. Weak duality makes any
+        reported primal point and any dual-feasible multipliers a valid pair, so the older mean is
+        sound. The same bits on every copy; computed once per process (`_SHARED_CERTS`)."""
+        d, n = self.dim, self.n
+
+        def compute() -> tuple[Certificate | None, float]:
+            T = S.reshape(n, d)
+            X = 0.5 * (A + T)
+            grads = self._pdiag * X - self._P * T
+            cert = fleet_certificate(payloads, mean[:-1], _pairwise_sum(grads)[:-1])
+            return cert, (math.inf if cert is None else cert.fleet_bound(X))
+
+        key = _digest(b"cert", self._token, S, A.ravel(), payloads.ravel(), mean)
+        (cert, bound), _ = shared_step(_SHARED_CERTS, key, compute, SHARED_KEPT)
+        self._fleet_bound = bound
+        if cert is not None:  # (an older certificate stays a valid proof)
+            self._certificate = cert
+
+    def error_bound(self) -> float | None:
+        """A proven upper bound on this robot's function error against the exact optimum, from the
+        last fleet certificate (as the hub core's); None where there is none (guard off, soft margin)."""
+        if not self._cert_on or self._certificate is None:
+            return None
+        b = self._certificate.bound(self._values)
+        return b if math.isfinite(b) else None
+
+    def result(self) -> dict[str, Any]:
+        return {**super().result(), "error_bound": self.error_bound()}
 
     def advance(self) -> StateUpdate:
         """The round protocol's advance, then this round's relay frame."""
@@ -215,7 +310,7 @@ class RelayHubADMM(RoundCore):
         S stayed S^0 until the first step (round D)."""
         if j < self.delay:
             if 0 not in self._S:
-                self._S[0] = np.concatenate([self._a[l][0] for l in self.ids])
+                self._S[0] = np.concatenate([self._a[l][0][: self.dim] for l in self.ids])
             return self._S[0]
         return self._S[j]
 
@@ -330,6 +425,8 @@ class RelayHubADMM(RoundCore):
                     del held[r]
         for r in [r for r in self._S if r < oldest and r != 0]:
             del self._S[r]
+        for r in [r for r in self._means if r < oldest - self.delay + 1]:  # the guard reads round j - D
+            del self._means[r]
 
     def _forget_edge(self, j: int) -> None:
         """A neighbour died for good: the relay cannot continue exactly (see the module)."""
@@ -357,6 +454,9 @@ class RelayHubADMM(RoundCore):
             "prev_frame": to_bytes(self._prev_frame),
             "broken": self._broken,
             "token": self._token,
+            "means": [[r, to_bytes(m)] for r, m in sorted(self._means.items())],
+            "certificate": None if self._certificate is None else self._certificate.as_list(),
+            "fleet_bound": self._fleet_bound,
         }
 
     def _load_state(self, state: dict[str, Any]) -> None:
@@ -376,3 +476,7 @@ class RelayHubADMM(RoundCore):
         self._prev_frame = from_bytes(state["prev_frame"])
         self._broken = state["broken"]
         self._token = bytes(state["token"])
+        self._means = {int(r): from_bytes(m) for r, m in state.get("means", [])}
+        cert = state.get("certificate")
+        self._certificate = None if cert is None else Certificate.from_list([float(c) for c in cert])
+        self._fleet_bound = float(state.get("fleet_bound", math.inf))

@@ -31,6 +31,7 @@ from agents.admm import ADMMParams
 from agents.autogrid import AutoGridParams
 from agents.ct_admm import CTADMMParams
 from agents.extension import ENTRY_POINT_GROUP, load_algorithm
+from agents.relay_hub import relay_cert_slot, relay_form
 from agents.spec import ALGORITHMS, FleetSpec, RobotSpec
 from launcher import scenario, topology
 from launcher.options import (  # noqa: F401  (re-exported: Options and the presets are the table's)
@@ -211,10 +212,19 @@ def _check_certify(opts: Options, spec: FleetSpec) -> None:
         raise scenario.ScenarioError("--certify: the guard's bound needs a hard margin; drop --C (or give --certify 0)")
     if opts.polish:
         raise scenario.ScenarioError("--certify: with --polish the end-game certifies the stop itself; drop one of them")
-    if not spec._hub_form(spec.algorithm_params):
+    params, dim = spec.algorithm_params, len(spec.grid) + 1
+    if spec._hub_form(params):
+        return
+    if not relay_form(params, spec.graph, dim):
         raise scenario.ScenarioError(
-            f"--certify: the guard needs a complete graph (the hub form); this graph of {spec.n_robots} robots is not "
-            "complete, and the relay hub and the edge form stop by their rule alone (docs/algorithm.md)")
+            f"--certify: the guard needs a complete graph (the hub form) or the relay hub (a sparse graph of 3 to 16 "
+            f"robots); this graph of {spec.n_robots} robots runs the edge form, which stops by its rule alone "
+            "(docs/algorithm.md)")
+    if not relay_cert_slot(params, spec.n_robots, dim):
+        raise scenario.ScenarioError(
+            f"--certify: the relay hub carries the guard's payload only while N (M + 1 + 6) floats fit the frame "
+            f"budget; {spec.n_robots} robots on {dim - 1} grid points do not, and stop by the rule alone "
+            "(docs/algorithm.md)")
 
 
 def _robots_and_lengths(opts: Options) -> tuple[Polygon | None, list[scenario.RobotData], scenario.WorldLengths]:

@@ -271,7 +271,8 @@ def test_the_certify_flag_reaches_the_fleet_file_only_when_given():
     ({"preset": "paper", "algorithm": "newton"}, "--algorithm admm only (this run: newton)"),
     ({"preset": "paper", "C": 10.0}, "needs a hard margin"),
     ({"preset": "paper", "polish": True}, "the end-game certifies the stop itself"),
-    ({"preset": "paper", "topology": "ring", "robots": 6}, "needs a complete graph"),
+    ({"preset": "paper", "topology": "ring", "robots": 20}, "runs the edge form"),
+    ({"preset": "paper", "topology": "ring", "robots": 12}, "only while N (M + 1 + 6) floats fit"),
 ])
 def test_the_certify_flag_refuses_what_would_change_nothing(kwargs, says):
     from launcher.options import Options
@@ -281,6 +282,14 @@ def test_the_certify_flag_refuses_what_would_change_nothing(kwargs, says):
     with pytest.raises(ScenarioError, match="--certify: ") as err:
         build_world(Options(fleet_id="c", certify=1.0, **kwargs))
     assert says in str(err.value)
+
+
+def test_the_certify_flag_is_taken_by_the_relay_hub_where_its_payload_fits():
+    from launcher.options import Options
+    from launcher.world import build_world
+
+    _, spec = build_world(Options(fleet_id="c", certify=1.0, preset="paper", topology="ring", robots=11))
+    assert spec.algorithm_params.certify == 1.0 and spec.dim == 11 * (16 + PAYLOAD)
 
 
 def test_the_certify_flag_on_the_command_line(tmp_path):
