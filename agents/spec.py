@@ -21,7 +21,7 @@ from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.extension import load_algorithm
 from agents.kernel import GridBasis
 from agents.newton import DistributedNewton, NewtonParams, frame_size
-from agents.relay_hub import RelayHubADMM, relay_form
+from agents.relay_hub import RelayHubADMM, relay_form, relay_frame_dim
 from agents.params import params_from
 from agents.rounds import RobotShare
 from protocol.auth import FLEET_SECRET_BYTES, FrameAuth, new_fleet_secret
@@ -191,7 +191,7 @@ class FleetSpec:
         if self.algorithm == "admm" and self._hub_form(self.algorithm_params):
             return hub_frame_dim(self.algorithm_params, len(self.grid) + 1)  # [v; w] (+ the polish's payload)
         if self.algorithm == "admm" and relay_form(self.algorithm_params, self.graph, len(self.grid) + 1):
-            return self.n_robots * (len(self.grid) + 1)  # a relayed a per robot (agents/relay_hub.py)
+            return relay_frame_dim(self.algorithm_params, self.n_robots, len(self.grid) + 1)  # [a; payload] per robot
         return len(self.grid) + 1
 
     @cached_property

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from agents.admm import ADMMParams
+from agents.certificate import PAYLOAD
 from agents.problem import SolverError
 from agents.relay_hub import RELAY_MAX_ROBOTS, RelayHubADMM, relay_form
 from agents.spec import build_core, restore_core
@@ -39,7 +40,8 @@ def test_a_line_reaches_the_exact_optimum_with_identical_copies(monkeypatch):
     monkeypatch.setattr("agents.relay_hub.SHARED_KEPT", 0)
     _, spec, central, cores = _fleet(robots=3, topology="line", tol=1e-6)
     assert all(isinstance(c, RelayHubADMM) for c in cores)
-    assert spec.dim == 3 * (len(spec.grid) + 1) == cores[0].outgoing().values.shape[0]
+    # (+ each robot's certificate payload: the certified guard, certify 10 by default)
+    assert spec.dim == 3 * (len(spec.grid) + 1 + PAYLOAD) == cores[0].outgoing().values.shape[0]
     run_to_end(cores)
     assert all(c.converged for c in cores)
     assert max_function_error(spec, central, [c.result() for c in cores]) < 1e-5
