@@ -42,6 +42,14 @@ the mean's move); twice the edge form's estimate r / (1 - rate) must stay below 
 rounds in a row (a delayed Anderson can sit on a plateau the plain estimate passes, see
 docs/algorithm.md), then the stop flags flood as in every round-based core.
 
+Certified guard (admm's `certify`, hard margins, where N (M + 1 + 6) floats fit the frame budget):
+robot l's 6 certificate floats (agents/certificate.py) ride in its slot beside a_l -- the
+multipliers of its step at t_l and the margins at the fleet mean of the round its copy just stepped
+(j - D for the a_l of round j) -- and every copy computes the fleet certificate of round j from
+them, grad_l = (P + 1/N on x) x_l - P t_l, x_l = (a_l + t_l) / 2; the stop also needs its bound over
+the x_l of round j <= admm.certify_threshold. Weak duality: any reported primal point and any
+dual-feasible multipliers bound the error, so the older mean is sound (docs/algorithm.md).
+
 A robot that dies for good cannot be dropped consistently (its relays are gone and the delays of
 every path through it change): the relay robots then stop, not converged, with that reason; the
 edge form (`relay = False` in the fleet's params) keeps its survivors' answer. No I/O, no clock.
@@ -80,9 +88,10 @@ RELAY_REG = 3e-3
 #: rounds in a row (see `_fleet_step`)
 RELAY_HOLD = 40
 RELAY_STOP_MARGIN = 2.0
-#: the exact warm-started local QP (admm.WARM_QP) stays off here: the relay hub has no certified guard
-#: against the rule's plateau stops, and with it the 16-robot geometric fleet took 1022 rounds instead
-#: of 962 (branch guard, benchmarks/results/stop_certificate.md)
+#: the exact warm-started local QP (admm.WARM_QP) stays off here: with it the 16-robot geometric fleet
+#: took 1022 rounds instead of 962 (branch guard), and N = 16 has no room for the certified guard's
+#: payload; with the guard the 8-ring would take 859 rounds instead of 1006 (branch relayguard,
+#: benchmarks/results/stop_certificate.md)
 RELAY_WARM_QP = False
 
 
@@ -169,7 +178,6 @@ class RelayHubADMM(RoundCore):
         self._certificate: Certificate | None = None  # the last fleet certificate computed
         self._fleet_bound = math.inf
         if self._cert_on:
-            self._qp.keep_multipliers = True
             self._sides = cert_math.sides(self._qp._rows)
             self._phi_max = cert_math.phi_max(self._qp._rows)
         self._broken: str | None = None
@@ -242,13 +250,24 @@ class RelayHubADMM(RoundCore):
             t = self._S[k + 1][self._blocks[self.robot_id]]
         else:  # the first round's values are still on their way: t stays t^0 = the own solution
             t = self._a[self.robot_id][0][: self.dim]
+        armed = self._cert_on and self._armed()
+        self._qp.keep_multipliers = armed
         x = self._solve(t, mine if RELAY_WARM_QP else None)
         a = 2.0 * x - t
-        self._a[self.robot_id][k + 1] = self._with_payload(a, t, self._means.get(j))
+        self._a[self.robot_id][k + 1] = self._with_payload(a, t, self._means.get(j) if armed else None)
         self._prune(k + 1 - D)
         return x, below
 
     # -- the certified guard --------------------------------------------------------------------
+    def _armed(self) -> bool:
+        """True when my payload of this step (round k + 1) can decide: the copies read it in round
+        k + D, where a stop needs RELAY_HOLD passing rounds in a row -- and _held grows by at most one
+        a round -- or it is a capped run's last round. The same on every copy (_held is the copy's);
+        admm.CERTIFY_ARM = inf: every round (tests, the benchmark's --check). Elsewhere zeros go out."""
+        k, D = self.round, self.delay
+        return (admm.CERTIFY_ARM == math.inf or self._held + D >= RELAY_HOLD
+                or k + D + 1 >= self._round_cap)
+
     def _with_payload(self, a: np.ndarray, t: np.ndarray | None, mean: np.ndarray | None = None) -> np.ndarray:
         """My slot of the frames: a, and with the guard's slot my certificate payload of this step
         (margins at the fleet mean `mean`, which every copy holds; zeros where there is none)."""

@@ -2,7 +2,8 @@
 
 The hub's stop rule (r / (1 - rate)) is a heuristic that Anderson plateaus fool; since branch guard every
 hub copy also computes a duality-gap bound on the fleet's function error against the exact optimum
-(agents/certificate.py: the mathematics) and a stop needs the rule AND bound <= certify x tol. This
+(agents/certificate.py: the mathematics) and a stop needs the rule AND bound <= certify x tol; since
+branch relayguard the relay hub's copies too (agents/relay_hub.py, where the payload fits). This
 script runs each fleet exactly as `simulate` does (the cores in lock step, `benchmarks.rounds.fleet_probe`)
 for several values of certify (0: the rule alone, main's bits) with `agents.admm.WARM_QP` off and on, and
 reports the round at stop, the true error there (max over robots, `GridBasis.function_error` against
@@ -62,6 +63,11 @@ FLEETS: list[tuple[str, dict]] = [
     ("32 robots, geometric", fleet_kwargs("32 robots, geometric")),
     ("4 robots, ring (relay hub)", fleet_kwargs("4 robots, ring")),
     ("8 robots, ring (relay hub)", fleet_kwargs("8 robots, ring")),
+    # (since branch relayguard the relay hub has the guard where N (M + 1 + 6) fits the frame budget:
+    # not at N = 16, whose rows stay the rule alone)
+    ("5 robots, line (relay hub)", fleet_kwargs("5 robots, line")),
+    ("16 robots, geometric 3.0 (relay hub)", fleet_kwargs("16 robots, geometric 3.0")),
+    ("16 robots, ring (relay hub)", fleet_kwargs("16 robots, ring")),
 ]
 
 

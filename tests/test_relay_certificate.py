@@ -4,6 +4,7 @@ stop, certify 0 keeps main's frames and iterates, a checkpoint resumes bit for b
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -28,6 +29,7 @@ def _errors(spec, central, cores) -> list[float]:
                          ids=["4-ring", "6-line"])
 def test_the_relay_bound_holds_every_round_against_the_central_solve(kwargs, monkeypatch):
     monkeypatch.setattr(admm, "CERTIFY_EVERY_ROUND", True)  # (else only rounds whose rule passed)
+    monkeypatch.setattr(admm, "CERTIFY_ARM", math.inf)  # (else the payloads only near the rule's stop)
     _, spec, central = make_run(tol=1e-14, max_rounds=500, **kwargs)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     assert all(isinstance(c, RelayHubADMM) and c._cert_on for c in cores)
@@ -102,3 +104,34 @@ def test_the_relay_guard_is_off_where_the_payload_does_not_fit():
     core = build_core(spec, 0, keep_trace=False)
     assert isinstance(core, RelayHubADMM) and not core._cert_on and core.frame_dim == 16 * core.dim
     assert core.result()["error_bound"] is None and math.isfinite(spec.params["tol"])
+
+
+#: sha256 of every frame and the final values of the 4-ring with certify 0, run on main at cad30f5
+#: (before the relay's guard; /tmp/rg_digest.py of branch relayguard): 426 rounds
+MAIN_4_RING = "1a0675cb6a3fc67dea9cd229a9edf866a9ae4b54fecd01854c9fc6d21033ca60"
+
+
+def test_certify_zero_sends_mains_relay_frames_bit_for_bit():
+    _, spec, _ = make_run(topology="ring", robots=4, certify=0.0)
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    h = hashlib.sha256()
+    while not all(c.finished for c in cores) and cores[0].round < 3000:
+        for c in cores:
+            h.update(c.outgoing().values.tobytes())
+        step_all(cores)
+    for c in cores:
+        h.update(c.values.tobytes())
+    assert cores[0].round == 426 and h.hexdigest() == MAIN_4_RING
+
+
+def test_arming_moves_no_relay_stop(monkeypatch):
+    """Payloads only in armed rounds (`_armed`: _held within D of RELAY_HOLD) stop where payloads in
+    every round stop, with the same bound: a stop needs RELAY_HOLD passing rounds, held grows by one."""
+    _, spec, _ = make_run(topology="line", robots=5)
+    ends = []
+    for arm in (admm.CERTIFY_ARM, math.inf):
+        monkeypatch.setattr(admm, "CERTIFY_ARM", arm)
+        cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+        run_to_end(cores)
+        ends.append((cores[0].round, [c.error_bound() for c in cores], [c.values.tobytes() for c in cores]))
+    assert ends[0] == ends[1] and None not in ends[0][1]
