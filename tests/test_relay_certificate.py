@@ -15,6 +15,7 @@ import agents.relay_hub as relay_hub
 from agents.certificate import PAYLOAD
 from agents.relay_hub import RelayHubADMM
 from agents.spec import build_core
+from protocol.frames import StateUpdate
 
 from .conftest import make_run, run_to_end, step_all
 from .test_admm import restored_twin, step_with_twin
@@ -135,3 +136,36 @@ def test_arming_moves_no_relay_stop(monkeypatch):
         run_to_end(cores)
         ends.append((cores[0].round, [c.error_bound() for c in cores], [c.values.tobytes() for c in cores]))
     assert ends[0] == ends[1] and None not in ends[0][1]
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -5.0])
+def test_a_forged_relayed_payload_neither_crashes_a_robot_nor_lets_it_stop(bad, monkeypatch):
+    """Robot 0 of a 4-ring gets every relayed payload forged (non-finite -- a decoder would refuse
+    it -- or negative) for the D + 1 rounds up to the one where the honest payloads let it stop (the
+    rule patched to pass every round): the rounds run, the certificate is absent, no stop by it."""
+    monkeypatch.setattr(relay_hub, "error_estimate", lambda *a, **k: 0.0)
+    _, spec, _ = make_run(topology="ring", robots=4)
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    k = 0
+    while not cores[0]._flags & 1:  # the first round whose guard passes
+        step_all(cores)
+        k += 1
+    assert cores[0]._fleet_bound <= 10 * max(spec.params["tol"], 1e-3)
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    me, d, D = cores[0], cores[0].dim, cores[0].delay
+    for _ in range(k - D - 1):
+        step_all(cores)
+    for _ in range(D + 1):
+        updates = [c.outgoing() for c in cores]
+        for c in cores:
+            for u in updates:
+                if c is me and u.sender != 0:
+                    forged = u.values.copy().reshape(4, d + PAYLOAD)
+                    forged[:, d:] = bad
+                    u = StateUpdate(sender=u.sender, round=u.round, values=forged.ravel(), flags=u.flags,
+                                    prev_values=u.prev_values, prev_flags=u.prev_flags)
+                c.receive(u)
+        for c in cores:
+            c.advance()
+    assert me.round == k and me._fleet_bound == math.inf and not me._flags & 1
+    assert cores[2]._flags & 1  # (robot 2, which reads no value through robot 0, passes there)
