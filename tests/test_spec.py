@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from agents.autogrid import AdaptiveGridCore, AutoGridParams
+from agents.certificate import PAYLOAD
 from agents.spec import ALGORITHMS, FleetSpec, build_core
 
 from .conftest import make_run
@@ -82,6 +83,8 @@ def test_fixed_grid_algorithms_need_grid_and_sigma(auto):
     # certified guard's 6 (agents/certificate.py)
     assert paper.algorithm == "admm" and paper.sigma == 1.0 and paper.dim == 32 + 6
     _, ring, _ = make_run(robots=4, topology="ring")
-    assert ring.dim == 4 * 16  # the relay hub sends a relayed a per robot (agents/relay_hub.py)
+    # the relay hub sends a relayed a per robot and, with the certified guard (certify 10, the default),
+    # its 6 certificate floats (agents/relay_hub.py)
+    assert ring.dim == 4 * (16 + PAYLOAD)
     ring.params["relay"] = False
     assert ring.dim == 16  # the edge form sends v alone
