@@ -1030,10 +1030,7 @@ class ConsensusADMM(RoundCore):
     def error_bound(self) -> float | None:
         """A proven upper bound on this robot's function error against the exact optimum, from the
         last round's fleet certificate (agents/certificate.py); None where there is none."""
-        if not self.cert_active or self._certificate is None:
-            return None
-        b = self._certificate.bound(self._values)
-        return b if math.isfinite(b) else None
+        return cert_math.reported_bound(self._certificate if self.cert_active else None, self._values)
 
     def result(self) -> dict[str, Any]:
         return {**super().result(), "error_bound": self.error_bound()}

@@ -149,3 +149,13 @@ def _fleet_certificate(payloads: np.ndarray, x_bar: np.ndarray, w_x: np.ndarray)
     e0 = math.sqrt(2.0 * max(primal - dual, 0.0))
     cert = Certificate(np.append(s * x_bar, s * g), e0, math.sqrt(2.0 * dual), max(1.0, abs(s * g) - e0 * phi), phi)
     return cert if all(map(math.isfinite, cert.as_list())) else None
+
+
+def reported_bound(certificate: Certificate | None, values: np.ndarray) -> float | None:
+    """What a robot reports as its `error_bound`: the fleet's last certificate applied to its own
+    values (the bound holds for any point, so it is proven for what the robot returns); None where
+    there is no certificate or the bound overflows."""
+    if certificate is None:
+        return None
+    b = certificate.bound(values)
+    return b if math.isfinite(b) else None

@@ -309,10 +309,7 @@ class RelayHubADMM(RoundCore):
     def error_bound(self) -> float | None:
         """A proven upper bound on this robot's function error against the exact optimum, from the
         last fleet certificate (as the hub core's); None where there is none (guard off, soft margin)."""
-        if not self._cert_on or self._certificate is None:
-            return None
-        b = self._certificate.bound(self._values)
-        return b if math.isfinite(b) else None
+        return cert_math.reported_bound(self._certificate if self._cert_on else None, self._values)
 
     def result(self) -> dict[str, Any]:
         return {**super().result(), "error_bound": self.error_bound()}

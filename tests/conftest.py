@@ -191,3 +191,20 @@ def pytest_runtest_makereport(item, call):
         if not hasattr(report, "wasxfail"):
             report.outcome = "failed"
             report.longrepr = f"evidence test skipped ({report.longrepr}) while {REQUIRE_EVIDENCE_ENV} is set"
+
+
+def assert_bound_holds_every_round(spec, central, cores, rounds: int, errors, each_round=None) -> int:
+    """Step the fleet `rounds` times; every robot's certified `error_bound()` (where it has one) must be
+    >= its true error (`errors(spec, central, cores)`, per robot); `each_round(cores)` checks more after
+    every step. Returns how many robot-rounds had a bound (callers assert it is not a vacuous loop)."""
+    bounded = 0
+    for _ in range(rounds):
+        step_all(cores)
+        if each_round is not None:
+            each_round(cores)
+        for c, e in zip(cores, errors(spec, central, cores)):
+            b = c.error_bound()
+            if b is not None:
+                bounded += 1
+                assert b >= e, (c.round, b, e)
+    return bounded

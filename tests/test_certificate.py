@@ -17,7 +17,7 @@ from agents.certificate import PAYLOAD, fleet_certificate, margin_extremes, payl
 from agents.spec import build_core
 from protocol.frames import StateUpdate
 
-from .conftest import make_run, max_function_error, run_to_end, step_all
+from .conftest import assert_bound_holds_every_round, make_run, max_function_error, run_to_end, step_all
 from .test_admm import restored_twin, step_with_twin
 
 L_SHAPE = "x,y\n-2,-1.5\n2,-1.5\n2,0\n0,0\n0,1.5\n-2,1.5\n"
@@ -88,14 +88,7 @@ def test_the_bound_holds_every_round_against_the_central_solve(kwargs, monkeypat
     monkeypatch.setattr(admm, "CERTIFY_ARM", math.inf)  # (else the payloads only near the rule's stop)
     _, spec, central = make_run(tol=1e-14, max_rounds=160, **kwargs)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
-    bounded = 0
-    for _ in range(160):
-        step_all(cores)
-        for c, e in zip(cores, _errors(spec, central, cores)):
-            b = c.error_bound()
-            if b is not None:
-                bounded += 1
-                assert b >= e, (c.round, b, e)
+    bounded = assert_bound_holds_every_round(spec, central, cores, 160, _errors)
     assert bounded > 100 * len(cores)  # the certificate exists on most rounds (not a vacuous loop)
     assert max(c.error_bound() for c in cores) < 1e-3  # and certifies these fleets by round 160
 

@@ -16,7 +16,7 @@ from agents.relay_hub import RelayHubADMM
 from agents.spec import build_core
 from protocol.frames import StateUpdate
 
-from .conftest import make_run, run_to_end, step_all
+from .conftest import assert_bound_holds_every_round, make_run, run_to_end, step_all
 from .test_admm import restored_twin, step_with_twin
 
 
@@ -33,16 +33,11 @@ def test_the_relay_bound_holds_every_round_against_the_central_solve(kwargs, mon
     _, spec, central = make_run(tol=1e-14, max_rounds=500, **kwargs)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     assert all(isinstance(c, RelayHubADMM) and c._cert_on for c in cores)
-    bounded = 0
-    for _ in range(500):
-        step_all(cores)
-        for c, e in zip(cores, _errors(spec, central, cores)):
-            b = c.error_bound()
-            if b is not None:
-                bounded += 1
-                assert b >= e, (c.round, b, e)
-        # every copy decides on the same bound (the same bits)
+
+    def same_bound_on_every_copy(cores) -> None:  # every copy decides on the same bound (the same bits)
         assert len({c._fleet_bound for c in cores}) == 1
+
+    bounded = assert_bound_holds_every_round(spec, central, cores, 500, _errors, same_bound_on_every_copy)
     assert bounded > 400 * len(cores)  # the certificate exists on most rounds (not a vacuous loop)
     assert max(c.error_bound() for c in cores) < 1e-2, [c.error_bound() for c in cores]  # certified by round 500
 
