@@ -543,7 +543,7 @@ _SHARED_LOCK = threading.Lock()  # fleets run in worker threads (launcher/api.py
 #: with them the chaotic Anderson path: on the L shape of tests/test_simulate.py the rule alone then
 #: stops on a plateau at error 6.7e-2 (branch core3). So it runs only where the guard decides
 #: (`ConsensusADMM.cert_active`): certify = 0, soft margins, the polish and the edge form keep piqp and
-#: main's bits. The relay hub, which has no guard, keeps piqp (relay_hub.RELAY_WARM_QP)
+#: main's bits. The relay hub keeps piqp (relay_hub.RELAY_WARM_QP: its 16-robot fleets have no guard)
 WARM_QP = True
 
 #: restart the acceleration when its best residual has not improved for STALL x memory rounds
