@@ -993,8 +993,7 @@ class ConsensusADMM(RoundCore):
         if self._cert_slot:
             self._phi_max = cert_math.phi_max(self._qp._rows)
             self._sides = cert_math.sides(self._qp._rows)
-            self._pdiag = self._hub.penalty.copy()  # the step QP's diagonal, as MarginQP builds it
-            self._pdiag[:-1] += 1.0 / n_robots
+            self._pdiag = cert_math.step_diagonal(self._hub.penalty, n_robots)
         self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
         self._prev_w: np.ndarray | None = None
         self._record()
@@ -1121,14 +1120,8 @@ class ConsensusADMM(RoundCore):
         lam = qp.multipliers
         if not self.cert_active or hub is None or hub.s is None or mean is None or lam is None:
             return np.zeros(cert_math.PAYLOAD)
-        rows = qp._rows
-        lam = np.maximum(lam[: len(rows)], 0.0)  # any lam >= 0 gives a valid dual: clip round-off
         grad = self._pdiag * v + (-hub.penalty * hub.center(self.robot_id))  # (the step's q, as solved)
-        # robot-local products (its own numbers, like its QP's): plain BLAS; only the fleet's sums
-        # over robots must be exactly rounded
-        resid = cert_math.norm((lam @ rows - grad)[:-1])
-        margins = cert_math.margin_extremes(rows[:, :-1] @ mean[:-1], self._sides)
-        return cert_math.payload(margins, self._sides, lam, resid, self._phi_max)
+        return cert_math.robot_payload(qp._rows, self._sides, lam, grad, mean, self._phi_max)
 
     def _shared_step(self, frames: np.ndarray) -> tuple[np.ndarray, float]:
         """The part of a hub round every copy computes alike -- the hub's step on the robots' v and

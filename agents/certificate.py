@@ -63,6 +63,25 @@ def payload(margins: tuple[float, float], side: tuple[np.ndarray, np.ndarray], l
     return np.array(out) if all(map(math.isfinite, out)) else np.zeros(PAYLOAD)
 
 
+def step_diagonal(prox: np.ndarray, n_robots: int) -> np.ndarray:
+    """The diagonal of a robot's step QP, as MarginQP builds it: the proximal weight per variable of
+    (x, gamma) plus the objective's |x|^2 / (2 N) on x. grad_l = step_diagonal * v_l + q_l."""
+    d = np.array(prox, dtype=float)
+    d[:-1] += 1.0 / n_robots
+    return d
+
+
+def robot_payload(rows: np.ndarray, side: tuple[np.ndarray, np.ndarray], lam: np.ndarray, grad: np.ndarray,
+                  mean: np.ndarray, phi_max: float) -> np.ndarray:
+    """A robot's PAYLOAD for its step: its multipliers lam (clipped at 0: any lam >= 0 gives a valid
+    dual, so round-off below 0 goes), its KKT residual |A' lam - grad| on x, its margins at the fleet
+    mean `mean` (which every copy holds). Robot-local products: plain BLAS; only the fleet's sums
+    over robots must be exactly rounded."""
+    lam = np.maximum(lam[: len(rows)], 0.0)
+    resid = norm((lam @ rows - grad)[:-1])
+    return payload(margin_extremes(rows[:, :-1] @ mean[:-1], side), side, lam, resid, phi_max)
+
+
 def phi_max(rows: np.ndarray) -> float:
     """The largest |phi_i| of a robot's rows (rows = y [phi, 1])."""
     return max((math.sqrt(math.fsum((r * r).tolist())) for r in rows[:, :-1]), default=0.0)

@@ -169,8 +169,7 @@ class RelayHubADMM(RoundCore):
         self.frame_dim = n * width
         self._P = np.full(self.dim, params.rho)
         self._P[-1] *= params.gamma_penalty
-        self._pdiag = self._P.copy()  # the step QP's diagonal, as MarginQP builds it (1/N on x)
-        self._pdiag[:-1] += 1.0 / n
+        self._pdiag = cert_math.step_diagonal(self._P, n)  # the step QP's diagonal (1/N on x)
         self._w = np.tile(np.sqrt(self._P), n)  # Anderson's residual weights (the P-norm)
         self._memory = params.anderson
         self._qp = MarginQP(share.features, share.labels, x_weight=1.0 / n, prox_weight=self._P, C=share.C)
@@ -276,14 +275,10 @@ class RelayHubADMM(RoundCore):
         lam = self._qp.multipliers
         if not self._cert_on or t is None or mean is None or lam is None:
             return np.concatenate([a, np.zeros(cert_math.PAYLOAD)])
-        rows = self._qp._rows
-        lam = np.maximum(lam[: len(rows)], 0.0)  # any lam >= 0 gives a valid dual: clip round-off
         # grad = P x + q of my step (P: 1/N + rho on x; q = -P_prox t), at x = (a + t) / 2 exactly as
         # every copy rebuilds it (`_certify`): my residual then covers the copies' gradient bit for bit
         grad = self._pdiag * (0.5 * (a + t)) - self._P * t
-        resid = cert_math.norm((lam @ rows - grad)[:-1])
-        margins = cert_math.margin_extremes(rows[:, :-1] @ mean[:-1], self._sides)
-        return np.concatenate([a, cert_math.payload(margins, self._sides, lam, resid, self._phi_max)])
+        return np.concatenate([a, cert_math.robot_payload(self._qp._rows, self._sides, lam, grad, mean, self._phi_max)])
 
     def _certify(self, S: np.ndarray, A: np.ndarray, payloads: np.ndarray, mean: np.ndarray) -> None:
         """The fleet's certificate of round j (agents/certificate.py): every robot's payload of its
