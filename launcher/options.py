@@ -492,7 +492,8 @@ OPTIONS: tuple[Option, ...] = (
            "cores and memory)", group=PROCESSES, commands=("launch",), section="launch", metavar="N",
            check=at_least(1), target=None),
     Option("robots-per-process", STR, "auto", "robots run as asyncio tasks of one process, each with its own "
-           "Zenoh session and key; auto: one process per robot up to 2 per core, else one process per core "
+           "Zenoh session and key; auto: one process per robot when they fit the cores (or twice the cores, evenly), "
+           "up to 4 robots in one process when they outnumber the cores, else one process per core "
            "(a robot with a --crash plan always runs alone)", group=PROCESSES, commands=("launch",),
            section="launch", metavar="N|auto", check=_robots_per_process, target=None),
     # -- gridstudy ----------------------------------------------------------------------
