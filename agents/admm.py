@@ -42,6 +42,7 @@ import math
 import operator
 import threading
 from collections import OrderedDict
+from itertools import islice
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -123,6 +124,9 @@ class _Edge:
         self.z, self.lam = from_bytes(state[0]), from_bytes(state[1])
 
 
+_max_reduce, _all_reduce = np.maximum.reduce, np.logical_and.reduce  # (np.max / .all() without their wrappers)
+
+
 def _two_sum(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """a + b rounded, and its rounding error exactly (Knuth's TwoSum, elementwise)."""
     x = a + b
@@ -188,8 +192,9 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
 
 
 def _spd_factor(H: np.ndarray) -> tuple[list[list[float]], list[list[float]]]:
-    """`_solve_spd`'s Cholesky factor L of H, as its rows and its columns (Python lists): factor
-    once, solve many times with `_spd_solve` (the same operations as `_solve_spd`, the same bits)."""
+    """`_solve_spd`'s Cholesky factor L of H, as its rows and its columns read upwards (column i:
+    L[n-1][i], L[n-2][i], ..., as Python lists): factor once, solve many times with `_spd_solve`
+    (the same operations as `_solve_spd`, the same bits)."""
     n = len(H)
     A, diag, steps = _spd_workspace(n)
     np.copyto(A, H)
@@ -200,26 +205,29 @@ def _spd_factor(H: np.ndarray) -> tuple[list[list[float]], list[list[float]]]:
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
         pivots.append(lkk := sqrt(akk))
-        divide(col, lkk, col)
-        multiply(col_t, col, prod)  # the outer product col col^T
-        subtract(trail, prod, trail)
+        if k + 1 < n:  # (the last column has nothing below its pivot: no calls on empty views)
+            divide(col, lkk, col)
+            multiply(col_t, col, prod)  # the outer product col col^T
+            subtract(trail, prod, trail)
     diag[:] = pivots
-    return A.tolist(), A.T.tolist()
+    return A.tolist(), A[::-1].T.tolist()
 
 
 def _spd_solve(factor: tuple[list[list[float]], list[list[float]]], g: np.ndarray) -> np.ndarray:
-    """L L' x = g by the two triangular solves of `_solve_spd` (exactly rounded sums)."""
-    rows, cols = factor
-    n = len(rows)
+    """L L' x = g by the two triangular solves of `_solve_spd` (exactly rounded sums: math.fsum's
+    result does not depend on the order of its terms, so the back substitution takes x and the
+    columns from the bottom up, as they come, without slicing either)."""
+    rows, cols_up = factor
     rhs = g.tolist() if isinstance(g, np.ndarray) else [float(v) for v in g]
     fsum, mul = math.fsum, operator.mul
     y: list[float] = []
     for i, row in enumerate(rows):  # map stops at len(y) == i: the products row[:i] * y[:i]
         y.append((rhs[i] - fsum(map(mul, row, y))) / row[i])
-    x = [0.0] * n
-    for i in range(n - 1, -1, -1):
-        x[i] = (y[i] - fsum(map(mul, cols[i][i + 1 :], x[i + 1 :]))) / rows[i][i]
-    return np.array(x)
+    x_up: list[float] = []  # x[n-1], x[n-2], ...
+    for i in range(len(rows) - 1, -1, -1):  # map stops at len(x_up): L[j][i] x[j] for j > i
+        x_up.append((y[i] - fsum(map(mul, cols_up[i], x_up))) / rows[i][i])
+    x_up.reverse()
+    return np.array(x_up)
 
 
 _SPD_WORK = threading.local()  # fleets run in worker threads (launcher/api.py run_async)
@@ -332,7 +340,7 @@ class _Hub:
         h = self.relax * np.asarray(values) + (1.0 - self.relax) * self.s[:d]  # (elementwise: any layout)
         h += self.s[d:].reshape(h.shape)
         w = np.asarray(ws)
-        return h.shape == w.shape and bool((h == w).all())  # np.array_equal, without its wrapper
+        return h.shape == w.shape and bool(_all_reduce(h == w, axis=None))  # np.array_equal, without its wrappers
 
     def step(self, ws: list[np.ndarray], synced: bool = True) -> float:
         """Fold in the robots' w at s, move s to the next point; returns |T - s|.
@@ -433,8 +441,8 @@ class _Hub:
         (the least squares' right-hand side dg_i . g is `_rhs`, from `step`)."""
         m = len(self._dg)
         H = self._gram.copy()
-        scale = math.fsum(np.diag(H).tolist()) / m
-        H[np.diag_indices(m)] += ANDERSON_REG * max(scale, 1e-300)
+        scale = math.fsum(H.diagonal().tolist()) / m
+        H.reshape(-1)[:: m + 1] += ANDERSON_REG * max(scale, 1e-300)  # (the diagonal as a view: no index arrays)
         try:
             coef = _solve_spd(H, self._rhs)
         except np.linalg.LinAlgError:
@@ -591,9 +599,10 @@ def error_estimate(residuals: list[float], *, typical_older: bool = False) -> fl
     Infinite until two windows exist or while the residual is not shrinking.
     """
     w = RATE_WINDOW
-    if len(residuals) < 2 * w:
+    n = len(residuals)
+    if n < 2 * w:
         return float("inf")
-    recent = max(residuals[-w:])
+    recent = max(islice(residuals, n - w, n))  # (no slices: every robot runs this twice a round)
     before = residuals[-2 * w : -w]
     older = _median(before) if typical_older else max(before)
     if not older > 0:
@@ -615,7 +624,7 @@ def plain_stop_held(residuals: list[float], held: int, tol: float) -> int:
 def _median(xs: list[float]) -> float:
     """np.median's value (the two middle values' mean, (a + b) / 2, for an even count) without
     its ~50 us of overhead per call; NaN as np.median gives it."""
-    if any(x != x for x in xs):
+    if not all(map(operator.eq, xs, xs)):  # a NaN (x != x; operator.eq has no identity shortcut)
         return float("nan")
     s, h = sorted(xs), len(xs) // 2
     return s[h] if len(xs) % 2 else (s[h - 1] + s[h]) / 2
@@ -1152,7 +1161,7 @@ class ConsensusADMM(RoundCore):
             mean = hub._mean(values)
             # primal: the v's spread around their mean; dual: the mean's move since last round
             gaps = relative_gaps(mean, values if prev is None else np.concatenate([values, prev[None]]))
-            primal = float(np.max(gaps[: len(values)]))
+            primal = float(_max_reduce(gaps[: len(values)]))  # (np.max without its wrapper)
             dual = 0.0 if prev is None else float(gaps[-1])
             residual = max(primal, dual)
             hub.watch(residual)
