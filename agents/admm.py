@@ -974,6 +974,7 @@ class ConsensusADMM(RoundCore):
                 for j in self.neighbours
             }
         self._prev_mean: np.ndarray | None = None
+        self._step_q: tuple[np.ndarray | None, np.ndarray] = (None, np.zeros((0, 0)))  # (`_shared_step`)
         self._qp = self._build_qp()
         self._residuals: list[float] = []  # the last 2 * RATE_WINDOW, for the error estimate
         self._held = 0  # hub form on the plain map: rounds in a row its stop test has passed
@@ -1003,6 +1004,7 @@ class ConsensusADMM(RoundCore):
             self._phi_max = cert_math.phi_max(self._qp._rows)
             self._sides = cert_math.sides(self._qp._rows)
             self._pdiag = cert_math.step_diagonal(self._hub.penalty, n_robots)
+        self._frames: tuple[tuple[tuple[np.ndarray, ...], np.ndarray], ...] = (((), np.zeros(0)),) * 2  # (`_frame`)
         self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
         self._prev_w: np.ndarray | None = None
         self._record()
@@ -1015,11 +1017,24 @@ class ConsensusADMM(RoundCore):
         message built (its checks run once), from fresh concatenations: no copies of v first."""
         if not self._hub_frames:
             return super().outgoing()
-        prev = None if self._prev_values is None or self._prev_w is None else np.concatenate(
-            [self._prev_values, self._prev_w, *self._extras(prev=True)])
-        now = [self._values, self._w, *self._extras(prev=False)]
-        return StateUpdate(sender=self.robot_id, round=self.round, values=np.concatenate(now),
+        prev = None if self._prev_values is None or self._prev_w is None else self._frame(
+            self._prev_values, self._prev_w, *self._extras(prev=True))
+        return StateUpdate(sender=self.robot_id, round=self.round,
+                           values=self._frame(self._values, self._w, *self._extras(prev=False)),
                            flags=self._flags, prev_values=prev, prev_flags=self._prev_flags)
+
+    def _frame(self, *parts: np.ndarray) -> np.ndarray:
+        """The concatenation of a frame's parts ([v; w], a payload), read-only. The parts are never
+        changed in place once made, so the last two frames are kept by their parts' identity: a
+        round's frame is built once and serves as its message, as the next round's prev and as
+        the hub step's own row (the same numbers the concatenation would give again)."""
+        for kept, frame in self._frames:
+            if len(kept) == len(parts) and all(map(operator.is_, kept, parts)):
+                return frame
+        frame = np.concatenate(parts)
+        frame.flags.writeable = False
+        self._frames = (self._frames[-1], (parts, frame))
+        return frame
 
     def _extras(self, *, prev: bool) -> list[np.ndarray]:
         """What a hub frame carries after [v; w]: the polish's payload or the certificate's (or nothing)."""
@@ -1084,15 +1099,15 @@ class ConsensusADMM(RoundCore):
         # every robot's frame in id order as one (robots x frame) array: one concatenation instead
         # of slicing v and w out of each frame and joining each half (the rows hold the same numbers)
         pol = self._polish
-        own = mine if not self._hub_frames else np.concatenate([mine, self._w, *self._extras(prev=False)])
-        frames = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
-        certs = None
-        if pol is not None:  # the hub steps on [v; w] alone, the polish on the rest
-            frames, payloads = np.ascontiguousarray(frames[:, : 2 * self.dim]), frames[:, 2 * self.dim :]
+        own = mine if not self._hub_frames else self._frame(mine, self._w, *self._extras(prev=False))
+        rows = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
+        frames, certs = rows, None
+        if pol is not None:  # the hub steps on [v; w] alone, the polish on the rest (views: the
+            frames, payloads = rows[:, : 2 * self.dim], rows[:, 2 * self.dim :]  # arithmetic is elementwise)
         elif self._cert_slot:  # ... and the certificate on its payloads
-            frames, certs = np.ascontiguousarray(frames[:, : 2 * self.dim]), np.ascontiguousarray(frames[:, 2 * self.dim :])
+            frames, certs = rows[:, : 2 * self.dim], rows[:, 2 * self.dim :]
         s_before, mean_before = hub.s, self._prev_mean  # (the step replaces them, never changes them in place)
-        self._prev_mean, self.residual = self._shared_step(frames)
+        self._prev_mean, self.residual = self._shared_step(frames, rows)
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW :]
         if hub.plain:  # after the stall switch: the plain map's stop rule, safe on its slow modes
             self._held = plain_stop_held(self._residuals, self._held, self.params.tol)
@@ -1104,7 +1119,7 @@ class ConsensusADMM(RoundCore):
             self._fleet_bound = math.inf
             last = self.round + 1 >= self._round_cap  # (a capped run reports a bound too)
             if (below or last or CERTIFY_EVERY_ROUND) and s_before is not None and mean_before is not None:
-                self._certify(frames, certs, s_before, mean_before)  # only where it can decide: the rule passed
+                self._certify(frames, certs, s_before, mean_before, rows)  # only where it can decide: the rule passed
             below = below and self._fleet_bound <= certify_threshold(self.params)
         if self._cert_slot:  # (decided before the step: its solve keeps its multipliers only when armed)
             armed = self.cert_active and cert_armed(self._residuals, self.params.tol, plain=hub.plain,
@@ -1132,19 +1147,21 @@ class ConsensusADMM(RoundCore):
         grad = self._pdiag * v + (-hub.penalty * hub.center(self.robot_id))  # (the step's q, as solved)
         return cert_math.robot_payload(qp._rows, self._sides, lam, grad, mean, self._phi_max)
 
-    def _shared_step(self, frames: np.ndarray) -> tuple[np.ndarray, float]:
+    def _shared_step(self, frames: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """The part of a hub round every copy computes alike -- the hub's step on the robots' v and
         w (a row [v; w] per robot in id order; rows of v alone: no w in the frames, each copy
         computes them), the mean of the v's and the residual -- taken once per process: a copy with
         the same token and inputs adopts the step already taken (`_SHARED_STEPS`). Returns (mean,
         residual). The helpers take the rows as arrays where they took lists of rows: each stacks
-        them into a fresh contiguous array first, so the arithmetic and its order are unchanged."""
+        them into a fresh contiguous array first, so the arithmetic and its order are unchanged.
+        ``rows``: the whole frames (contiguous) of which ``frames`` may be the first columns (a
+        view, no copy): the step's key digests them (payloads included: the same on every copy)."""
         hub = self._hub
         assert hub is not None
         prev = self._prev_mean
         d, with_w = self.dim, frames.shape[1] != self.dim
         key = _digest(hub.token, b"w" if with_w else b"-", b"p" if prev is not None else b"-",
-                      b"" if prev is None else prev, frames)
+                      b"" if prev is None else prev, frames if rows is None else rows)
 
         def compute() -> tuple[Any, ...]:
             values = frames[:, :d]
@@ -1165,19 +1182,26 @@ class ConsensusADMM(RoundCore):
             dual = 0.0 if prev is None else float(gaps[-1])
             residual = max(primal, dual)
             hub.watch(residual)
-            return (hub.snapshot(), mean, residual)
+            # every robot's step cost q_l = -penalty (z - u_l) at the new state, a row each: the
+            # elementwise operations of `_primal_step`'s own, done once for the process
+            st = hub.s
+            qs = -hub.penalty * (st[:d] - st[d:].reshape(-1, d))
+            qs.flags.writeable = False
+            return (hub.snapshot(), mean, residual, (st, qs))
 
         done, adopted = shared_step(_SHARED_STEPS, key, compute, SHARED_STEPS_KEPT)
         if adopted:
             hub.adopt(done[0])
         hub.token = key
+        self._step_q = done[3]
         return done[1], done[2]
 
-    def _certify(self, frames: np.ndarray, certs: np.ndarray, s: np.ndarray, mean: np.ndarray) -> None:
+    def _certify(self, frames: np.ndarray, certs: np.ndarray, s: np.ndarray, mean: np.ndarray, rows: np.ndarray) -> None:
         """The fleet's certificate of this round (agents/certificate.py) from the frames' v and
-        payloads, the hub state s at which those v were computed and the mean of the round before
-        (where the payloads' margins were taken); its bound over the frames' v. The same bits on
-        every copy; computed once per process (`_SHARED_CERTS`, as the hub's step)."""
+        payloads (views of the whole frames ``rows``), the hub state s at which those v were
+        computed and the mean of the round before (where the payloads' margins were taken); its
+        bound over the frames' v. The same bits on every copy; computed once per process
+        (`_SHARED_CERTS`, as the hub's step)."""
         d = self.dim
         values = frames[:, :d]
 
@@ -1186,7 +1210,7 @@ class ConsensusADMM(RoundCore):
             cert = fleet_certificate(certs, mean[:-1], _pairwise_sum(grads)[:-1])
             return cert, (math.inf if cert is None else cert.fleet_bound(values))
 
-        key = _digest(b"cert", self._hub.token, s, mean, frames, certs)
+        key = _digest(b"cert", self._hub.token, s, mean, rows)
         (cert, bound), _ = shared_step(_SHARED_CERTS, key, compute, SHARED_STEPS_KEPT)
         self._fleet_bound = bound
         if cert is not None:  # (an older certificate stays a valid proof: P >= P* >= D held then)
@@ -1252,7 +1276,9 @@ class ConsensusADMM(RoundCore):
     def _primal_step(self) -> np.ndarray:
         hub = self._hub
         if hub is not None and hub.s is not None:  # (a hub has no edges)
-            return self._qp.solve_v(-hub.penalty * hub.center(self.robot_id), guess=self._warm_guess())
+            at, qs = self._step_q  # (the shared step's rows of q, kept for the state they were made at)
+            q = qs[hub.ids.index(self.robot_id)] if at is hub.s else -hub.penalty * hub.center(self.robot_id)
+            return self._qp.solve_v(q, guess=self._warm_guess())
         q = np.zeros(self.dim)
         for edge in self._edges.values():
             q += edge.sign * edge.lam - edge.rho * edge.z

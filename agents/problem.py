@@ -270,8 +270,9 @@ class _WarmKKT:
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         self._lam: tuple[np.ndarray, np.ndarray] = (np.zeros(0, dtype=int), np.zeros(0))  # (W, lam_W)
         # per active set W (its indices' bytes): A_W D^-1 and H_WW, the same rows `take` gives every
-        # time (W rarely changes between rounds; at most WARM_SUBSETS kept, the oldest dropped)
-        self._subs: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        # time, and whether W's solve ran once without a NaN (W rarely changes between rounds; at
+        # most WARM_SUBSETS kept, the oldest dropped)
+        self._subs: dict[bytes, tuple[np.ndarray, np.ndarray, bool]] = {}
 
     def multipliers(self) -> np.ndarray:
         """The last certified solve's multipliers, one per row (zero off its set W)."""
@@ -287,14 +288,22 @@ class _WarmKKT:
         q_d = q / self.d  # (D^-1 q: the same bits wherever the loop below needs it)
         for _ in range(WARM_TRIES + 1):
             if len(free):
-                a_wd, h_ww = self._sub(free)
+                a_wd, h_ww, clean = self._sub(free)
                 b_w = a_wd @ q
                 b_w += 1.0
                 # numpy's LU (not scipy's dposv: importing scipy.linalg costs a robot ~0.15 s), the gufunc
-                # of np.linalg.solve without its wrapper; a singular H_WW (W's rows dependent) gives NaN
-                with np.errstate(all="ignore"):
+                # of np.linalg.solve without its wrapper; a singular H_WW (W's rows dependent) gives NaN.
+                # Its floating-point flags are silenced (as np.linalg.solve does) until this W has been
+                # solved once without a NaN: the LU of a W depends on W alone, so from then on only an
+                # overflow of b_w's solve could raise one (a warning then, the same answer)
+                if clean:
                     lam_f = _gesv(h_ww, b_w, signature="dd->d")
+                else:
+                    with np.errstate(all="ignore"):
+                        lam_f = _gesv(h_ww, b_w, signature="dd->d")
                 low = float(_min(lam_f))
+                if not clean and low == low:
+                    self._subs[free.tobytes()] = (a_wd, h_ww, True)
                 if not low >= 0.0:  # a multiplier of the wrong sign leaves (NaN: singular, give up)
                     if low != low:
                         return None
@@ -316,14 +325,15 @@ class _WarmKKT:
             free = np.union1d(free, [int(g.argmin())])
         return None
 
-    def _sub(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(A_W D^-1, H_WW) for the active set ``free``, kept per set: copies of the same rows."""
+    def _sub(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """(A_W D^-1, H_WW, solved once without a NaN) for the active set ``free``, kept per set:
+        copies of the same rows."""
         key = free.tobytes()
         sub = self._subs.get(key)
         if sub is None:
             if len(self._subs) >= WARM_SUBSETS:
                 del self._subs[next(iter(self._subs))]
-            sub = self._subs[key] = (self.rows_d.take(free, 0), self.hessian.take(free, 0).take(free, 1))
+            sub = self._subs[key] = (self.rows_d.take(free, 0), self.hessian.take(free, 0).take(free, 1), False)
         return sub
 
 
