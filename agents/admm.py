@@ -54,7 +54,7 @@ from agents.certificate import Certificate, fleet_certificate
 from agents.messages import StateUpdate
 from agents.params import check_counts, check_diameter, check_positive, params_from
 from agents.problem import MarginQP
-from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gap, relative_gaps, to_bytes
+from agents.rounds import RobotShare, RoundCore, check_iterate, from_bytes, relative_gap, relative_gaps, to_bytes
 
 
 @dataclass(frozen=True)
@@ -1004,7 +1004,6 @@ class ConsensusADMM(RoundCore):
             self._phi_max = cert_math.phi_max(self._qp._rows)
             self._sides = cert_math.sides(self._qp._rows)
             self._pdiag = cert_math.step_diagonal(self._hub.penalty, n_robots)
-        self._frames: tuple[tuple[tuple[np.ndarray, ...], np.ndarray], ...] = (((), np.zeros(0)),) * 2  # (`_frame`)
         self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
         self._prev_w: np.ndarray | None = None
         self._record()
@@ -1017,24 +1016,15 @@ class ConsensusADMM(RoundCore):
         message built (its checks run once), from fresh concatenations: no copies of v first."""
         if not self._hub_frames:
             return super().outgoing()
-        prev = None if self._prev_values is None or self._prev_w is None else self._frame(
-            self._prev_values, self._prev_w, *self._extras(prev=True))
-        return StateUpdate(sender=self.robot_id, round=self.round,
-                           values=self._frame(self._values, self._w, *self._extras(prev=False)),
+        prev = None if self._prev_values is None or self._prev_w is None else np.concatenate(
+            [self._prev_values, self._prev_w, *self._extras(prev=True)])
+        now = [self._values, self._w, *self._extras(prev=False)]
+        return StateUpdate(sender=self.robot_id, round=self.round, values=np.concatenate(now),
                            flags=self._flags, prev_values=prev, prev_flags=self._prev_flags)
 
-    def _frame(self, *parts: np.ndarray) -> np.ndarray:
-        """The concatenation of a frame's parts ([v; w], a payload), read-only. The parts are never
-        changed in place once made, so the last two frames are kept by their parts' identity: a
-        round's frame is built once and serves as its message, as the next round's prev and as
-        the hub step's own row (the same numbers the concatenation would give again)."""
-        for kept, frame in self._frames:
-            if len(kept) == len(parts) and all(map(operator.is_, kept, parts)):
-                return frame
-        frame = np.concatenate(parts)
-        frame.flags.writeable = False
-        self._frames = (self._frames[-1], (parts, frame))
-        return frame
+    def divergence(self) -> str | None:
+        """`RoundCore.divergence` on v itself (the function: this core's `values` is a copy of it)."""
+        return check_iterate(self._values)
 
     def _extras(self, *, prev: bool) -> list[np.ndarray]:
         """What a hub frame carries after [v; w]: the polish's payload or the certificate's (or nothing)."""
@@ -1099,7 +1089,7 @@ class ConsensusADMM(RoundCore):
         # every robot's frame in id order as one (robots x frame) array: one concatenation instead
         # of slicing v and w out of each frame and joining each half (the rows hold the same numbers)
         pol = self._polish
-        own = mine if not self._hub_frames else self._frame(mine, self._w, *self._extras(prev=False))
+        own = mine if not self._hub_frames else np.concatenate([mine, self._w, *self._extras(prev=False)])
         rows = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
         frames, certs = rows, None
         if pol is not None:  # the hub steps on [v; w] alone, the polish on the rest (views: the
