@@ -315,10 +315,9 @@ class _WarmKKT:
                 v = -q_d
             g = rows @ v
             if float(_min(g)) >= 1.0 - KKT_TOL:  # every margin held; W's tight (else: ill-conditioned)
-                if len(free):
-                    g_w = g.take(free)
-                    if not (float(_max(g_w)) <= 1.0 + KKT_TOL and float(_min(g_w)) >= 1.0 - KKT_TOL):
-                        return None
+                # (W's margins are among those just held: only their upper side is left to check)
+                if len(free) and not float(_max(g.take(free))) <= 1.0 + KKT_TOL:
+                    return None
                 self._last = (v, g)
                 self._lam = (free, lam_f) if len(free) else (free, np.zeros(0))
                 return v
