@@ -211,9 +211,10 @@ def _prime(decoder: FrameDecoder, frame: dict[str, Any], body: bytes, seq: int,
     parsed = _body_of(sender, frame["round"], seq, frame["flags"], x, prev, frame["pflags"],
                       None if need is None else tuple(need), _read_only(x), None if prev is None else _read_only(prev),
                       valid=True)
-    _MEMO.put((decoder._profile, sender, body), parsed, len(body))
-    if envelope is not None:
-        wrapped, raw = envelope
+    if envelope is None:
+        _MEMO.put((decoder._profile, sender, body), parsed, len(body))
+    else:  # receivers look the envelope up and find the body's parse in it: the body's own entry
+        wrapped, raw = envelope  # would only be reached once the envelope's was evicted (it goes first)
         env = _Envelope(sender, body, dict(_TAG_ENTRY_STRUCT.iter_unpack(raw)))
         env.parsed[decoder._profile] = parsed
         _MEMO.put(wrapped, env, len(wrapped))
