@@ -42,6 +42,7 @@ import math
 import operator
 import threading
 from collections import OrderedDict
+from itertools import islice
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -53,7 +54,7 @@ from agents.certificate import Certificate, fleet_certificate
 from agents.messages import StateUpdate
 from agents.params import check_counts, check_diameter, check_positive, params_from
 from agents.problem import MarginQP
-from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gap, relative_gaps, to_bytes
+from agents.rounds import RobotShare, RoundCore, check_iterate, from_bytes, relative_gap, relative_gaps, to_bytes
 
 
 @dataclass(frozen=True)
@@ -123,6 +124,9 @@ class _Edge:
         self.z, self.lam = from_bytes(state[0]), from_bytes(state[1])
 
 
+_max_reduce, _all_reduce = np.maximum.reduce, np.logical_and.reduce  # (np.max / .all() without their wrappers)
+
+
 def _two_sum(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """a + b rounded, and its rounding error exactly (Knuth's TwoSum, elementwise)."""
     x = a + b
@@ -181,21 +185,29 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     overhead than numpy for vectors this short) -- no BLAS call whose summation order varies.
 
     The factorisation runs in a work matrix kept per size and thread (`_spd_workspace`: its views
-    made once, every ufunc writing into them, the pivots written back at the end), a hub step's
-    largest cost: 3 numpy calls a column and nothing allocated, the same operations in the same
-    order as a fresh matrix per call (tests/test_exact_arith.py compares with that plain form)."""
+    made once, every ufunc writing into them), a hub step's largest cost: 3 numpy calls a column
+    and nothing allocated, the last few columns on Python floats (`_spd_factor`), the same
+    operations in the same order as a fresh matrix per call (tests/test_exact_arith.py compares
+    with that plain form)."""
     return _spd_solve(_spd_factor(H), g)
 
 
-def _spd_factor(H: np.ndarray) -> tuple[list[list[float]], list[list[float]]]:
-    """`_solve_spd`'s Cholesky factor L of H, as its rows and its columns (Python lists): factor
-    once, solve many times with `_spd_solve` (the same operations as `_solve_spd`, the same bits)."""
+def _spd_factor(H: np.ndarray) -> tuple[list[list[float]], list[tuple[float, ...]]]:
+    """`_solve_spd`'s Cholesky factor L of H, as its rows (their lower triangle and diagonal: what
+    the solves read) and its columns read upwards (column i: L[n-1][i], L[n-2][i], ...), as Python
+    lists: factor once, solve many times with `_spd_solve` (the same operations as `_solve_spd`,
+    the same bits). The last SPD_SCALAR_TAIL columns run on Python floats, the lower triangle only:
+    each entry gets the same subtractions of the same products in the same order as numpy's
+    rank-1 updates would give it, at less than a numpy call's cost where the trailing block is a
+    few entries (measured: 147 -> 122 us per factor on the paper preset's Anderson systems, m ~23)."""
     n = len(H)
-    A, diag, steps = _spd_workspace(n)
+    A, _diag, steps = _spd_workspace(n)
     np.copyto(A, H)
     sqrt, divide, multiply, subtract, item = math.sqrt, np.divide, np.multiply, np.subtract, A.item
     pivots: list[float] = []
-    for k, (col, col_t, trail, prod) in enumerate(steps):  # A becomes L in its lower triangle
+    cut = max(n - SPD_SCALAR_TAIL, 0)
+    for k in range(cut):  # A becomes L in its lower triangle
+        col, col_t, trail, prod = steps[k]
         akk = item(k, k)
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
@@ -203,24 +215,43 @@ def _spd_factor(H: np.ndarray) -> tuple[list[list[float]], list[list[float]]]:
         divide(col, lkk, col)
         multiply(col_t, col, prod)  # the outer product col col^T
         subtract(trail, prod, trail)
-    diag[:] = pivots
-    return A.tolist(), A.T.tolist()
+    rows = A.tolist()
+    for k in range(cut, n):  # the same steps on the lower triangle of the last few columns
+        akk = rows[k][k]
+        if not akk > 0:
+            raise np.linalg.LinAlgError("not positive definite")
+        pivots.append(lkk := sqrt(akk))
+        for i in range(k + 1, n):
+            rows[i][k] /= lkk
+        for i in range(k + 1, n):
+            ri = rows[i]
+            li = ri[k]
+            for j in range(k + 1, i + 1):
+                ri[j] -= li * rows[j][k]
+    for k, lkk in enumerate(pivots):
+        rows[k][k] = lkk
+    return rows, list(zip(*rows[::-1]))
 
 
-def _spd_solve(factor: tuple[list[list[float]], list[list[float]]], g: np.ndarray) -> np.ndarray:
-    """L L' x = g by the two triangular solves of `_solve_spd` (exactly rounded sums)."""
-    rows, cols = factor
-    n = len(rows)
+def _spd_solve(factor: tuple[list[list[float]], list[tuple[float, ...]]], g: np.ndarray) -> np.ndarray:
+    """L L' x = g by the two triangular solves of `_solve_spd` (exactly rounded sums: math.fsum's
+    result does not depend on the order of its terms, so the back substitution takes x and the
+    columns from the bottom up, as they come, without slicing either)."""
+    rows, cols_up = factor
     rhs = g.tolist() if isinstance(g, np.ndarray) else [float(v) for v in g]
     fsum, mul = math.fsum, operator.mul
     y: list[float] = []
     for i, row in enumerate(rows):  # map stops at len(y) == i: the products row[:i] * y[:i]
         y.append((rhs[i] - fsum(map(mul, row, y))) / row[i])
-    x = [0.0] * n
-    for i in range(n - 1, -1, -1):
-        x[i] = (y[i] - fsum(map(mul, cols[i][i + 1 :], x[i + 1 :]))) / rows[i][i]
-    return np.array(x)
+    x_up: list[float] = []  # x[n-1], x[n-2], ...
+    for i in range(len(rows) - 1, -1, -1):  # map stops at len(x_up): L[j][i] x[j] for j > i
+        x_up.append((y[i] - fsum(map(mul, cols_up[i], x_up))) / rows[i][i])
+    x_up.reverse()
+    return np.array(x_up)
 
+
+#: columns of `_spd_factor` done on Python floats (the trailing blocks of at most 4 x 4 entries)
+SPD_SCALAR_TAIL = 5
 
 _SPD_WORK = threading.local()  # fleets run in worker threads (launcher/api.py run_async)
 
@@ -332,7 +363,7 @@ class _Hub:
         h = self.relax * np.asarray(values) + (1.0 - self.relax) * self.s[:d]  # (elementwise: any layout)
         h += self.s[d:].reshape(h.shape)
         w = np.asarray(ws)
-        return h.shape == w.shape and bool((h == w).all())  # np.array_equal, without its wrapper
+        return h.shape == w.shape and bool(_all_reduce(h == w, axis=None))  # np.array_equal, without its wrappers
 
     def step(self, ws: list[np.ndarray], synced: bool = True) -> float:
         """Fold in the robots' w at s, move s to the next point; returns |T - s|.
@@ -433,8 +464,8 @@ class _Hub:
         (the least squares' right-hand side dg_i . g is `_rhs`, from `step`)."""
         m = len(self._dg)
         H = self._gram.copy()
-        scale = math.fsum(np.diag(H).tolist()) / m
-        H[np.diag_indices(m)] += ANDERSON_REG * max(scale, 1e-300)
+        scale = math.fsum(H.diagonal().tolist()) / m
+        H.reshape(-1)[:: m + 1] += ANDERSON_REG * max(scale, 1e-300)  # (the diagonal as a view: no index arrays)
         try:
             coef = _solve_spd(H, self._rhs)
         except np.linalg.LinAlgError:
@@ -591,9 +622,10 @@ def error_estimate(residuals: list[float], *, typical_older: bool = False) -> fl
     Infinite until two windows exist or while the residual is not shrinking.
     """
     w = RATE_WINDOW
-    if len(residuals) < 2 * w:
+    n = len(residuals)
+    if n < 2 * w:
         return float("inf")
-    recent = max(residuals[-w:])
+    recent = max(islice(residuals, n - w, n))  # (no slices: every robot runs this twice a round)
     before = residuals[-2 * w : -w]
     older = _median(before) if typical_older else max(before)
     if not older > 0:
@@ -615,7 +647,7 @@ def plain_stop_held(residuals: list[float], held: int, tol: float) -> int:
 def _median(xs: list[float]) -> float:
     """np.median's value (the two middle values' mean, (a + b) / 2, for an even count) without
     its ~50 us of overhead per call; NaN as np.median gives it."""
-    if any(x != x for x in xs):
+    if not all(map(operator.eq, xs, xs)):  # a NaN (x != x; operator.eq has no identity shortcut)
         return float("nan")
     s, h = sorted(xs), len(xs) // 2
     return s[h] if len(xs) % 2 else (s[h - 1] + s[h]) / 2
@@ -965,6 +997,7 @@ class ConsensusADMM(RoundCore):
                 for j in self.neighbours
             }
         self._prev_mean: np.ndarray | None = None
+        self._step_q: tuple[np.ndarray | None, np.ndarray] = (None, np.zeros((0, 0)))  # (`_shared_step`)
         self._qp = self._build_qp()
         self._residuals: list[float] = []  # the last 2 * RATE_WINDOW, for the error estimate
         self._held = 0  # hub form on the plain map: rounds in a row its stop test has passed
@@ -1011,6 +1044,10 @@ class ConsensusADMM(RoundCore):
         now = [self._values, self._w, *self._extras(prev=False)]
         return StateUpdate(sender=self.robot_id, round=self.round, values=np.concatenate(now),
                            flags=self._flags, prev_values=prev, prev_flags=self._prev_flags)
+
+    def divergence(self) -> str | None:
+        """`RoundCore.divergence` on v itself (the function: this core's `values` is a copy of it)."""
+        return check_iterate(self._values)
 
     def _extras(self, *, prev: bool) -> list[np.ndarray]:
         """What a hub frame carries after [v; w]: the polish's payload or the certificate's (or nothing)."""
@@ -1076,14 +1113,14 @@ class ConsensusADMM(RoundCore):
         # of slicing v and w out of each frame and joining each half (the rows hold the same numbers)
         pol = self._polish
         own = mine if not self._hub_frames else np.concatenate([mine, self._w, *self._extras(prev=False)])
-        frames = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
-        certs = None
-        if pol is not None:  # the hub steps on [v; w] alone, the polish on the rest
-            frames, payloads = np.ascontiguousarray(frames[:, : 2 * self.dim]), frames[:, 2 * self.dim :]
+        rows = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
+        frames, certs = rows, None
+        if pol is not None:  # the hub steps on [v; w] alone, the polish on the rest (views: the
+            frames, payloads = rows[:, : 2 * self.dim], rows[:, 2 * self.dim :]  # arithmetic is elementwise)
         elif self._cert_slot:  # ... and the certificate on its payloads
-            frames, certs = np.ascontiguousarray(frames[:, : 2 * self.dim]), np.ascontiguousarray(frames[:, 2 * self.dim :])
+            frames, certs = rows[:, : 2 * self.dim], rows[:, 2 * self.dim :]
         s_before, mean_before = hub.s, self._prev_mean  # (the step replaces them, never changes them in place)
-        self._prev_mean, self.residual = self._shared_step(frames)
+        self._prev_mean, self.residual = self._shared_step(frames, rows)
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW :]
         if hub.plain:  # after the stall switch: the plain map's stop rule, safe on its slow modes
             self._held = plain_stop_held(self._residuals, self._held, self.params.tol)
@@ -1095,7 +1132,7 @@ class ConsensusADMM(RoundCore):
             self._fleet_bound = math.inf
             last = self.round + 1 >= self._round_cap  # (a capped run reports a bound too)
             if (below or last or CERTIFY_EVERY_ROUND) and s_before is not None and mean_before is not None:
-                self._certify(frames, certs, s_before, mean_before)  # only where it can decide: the rule passed
+                self._certify(frames, certs, s_before, mean_before, rows)  # only where it can decide: the rule passed
             below = below and self._fleet_bound <= certify_threshold(self.params)
         if self._cert_slot:  # (decided before the step: its solve keeps its multipliers only when armed)
             armed = self.cert_active and cert_armed(self._residuals, self.params.tol, plain=hub.plain,
@@ -1123,19 +1160,21 @@ class ConsensusADMM(RoundCore):
         grad = self._pdiag * v + (-hub.penalty * hub.center(self.robot_id))  # (the step's q, as solved)
         return cert_math.robot_payload(qp._rows, self._sides, lam, grad, mean, self._phi_max)
 
-    def _shared_step(self, frames: np.ndarray) -> tuple[np.ndarray, float]:
+    def _shared_step(self, frames: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """The part of a hub round every copy computes alike -- the hub's step on the robots' v and
         w (a row [v; w] per robot in id order; rows of v alone: no w in the frames, each copy
         computes them), the mean of the v's and the residual -- taken once per process: a copy with
         the same token and inputs adopts the step already taken (`_SHARED_STEPS`). Returns (mean,
         residual). The helpers take the rows as arrays where they took lists of rows: each stacks
-        them into a fresh contiguous array first, so the arithmetic and its order are unchanged."""
+        them into a fresh contiguous array first, so the arithmetic and its order are unchanged.
+        ``rows``: the whole frames (contiguous) of which ``frames`` may be the first columns (a
+        view, no copy): the step's key digests them (payloads included: the same on every copy)."""
         hub = self._hub
         assert hub is not None
         prev = self._prev_mean
         d, with_w = self.dim, frames.shape[1] != self.dim
         key = _digest(hub.token, b"w" if with_w else b"-", b"p" if prev is not None else b"-",
-                      b"" if prev is None else prev, frames)
+                      b"" if prev is None else prev, frames if rows is None else rows)
 
         def compute() -> tuple[Any, ...]:
             values = frames[:, :d]
@@ -1152,23 +1191,30 @@ class ConsensusADMM(RoundCore):
             mean = hub._mean(values)
             # primal: the v's spread around their mean; dual: the mean's move since last round
             gaps = relative_gaps(mean, values if prev is None else np.concatenate([values, prev[None]]))
-            primal = float(np.max(gaps[: len(values)]))
+            primal = float(_max_reduce(gaps[: len(values)]))  # (np.max without its wrapper)
             dual = 0.0 if prev is None else float(gaps[-1])
             residual = max(primal, dual)
             hub.watch(residual)
-            return (hub.snapshot(), mean, residual)
+            # every robot's step cost q_l = -penalty (z - u_l) at the new state, a row each: the
+            # elementwise operations of `_primal_step`'s own, done once for the process
+            st = hub.s
+            qs = -hub.penalty * (st[:d] - st[d:].reshape(-1, d))
+            qs.flags.writeable = False
+            return (hub.snapshot(), mean, residual, (st, qs))
 
         done, adopted = shared_step(_SHARED_STEPS, key, compute, SHARED_STEPS_KEPT)
         if adopted:
             hub.adopt(done[0])
         hub.token = key
+        self._step_q = done[3]
         return done[1], done[2]
 
-    def _certify(self, frames: np.ndarray, certs: np.ndarray, s: np.ndarray, mean: np.ndarray) -> None:
+    def _certify(self, frames: np.ndarray, certs: np.ndarray, s: np.ndarray, mean: np.ndarray, rows: np.ndarray) -> None:
         """The fleet's certificate of this round (agents/certificate.py) from the frames' v and
-        payloads, the hub state s at which those v were computed and the mean of the round before
-        (where the payloads' margins were taken); its bound over the frames' v. The same bits on
-        every copy; computed once per process (`_SHARED_CERTS`, as the hub's step)."""
+        payloads (views of the whole frames ``rows``), the hub state s at which those v were
+        computed and the mean of the round before (where the payloads' margins were taken); its
+        bound over the frames' v. The same bits on every copy; computed once per process
+        (`_SHARED_CERTS`, as the hub's step)."""
         d = self.dim
         values = frames[:, :d]
 
@@ -1177,7 +1223,7 @@ class ConsensusADMM(RoundCore):
             cert = fleet_certificate(certs, mean[:-1], _pairwise_sum(grads)[:-1])
             return cert, (math.inf if cert is None else cert.fleet_bound(values))
 
-        key = _digest(b"cert", self._hub.token, s, mean, frames, certs)
+        key = _digest(b"cert", self._hub.token, s, mean, rows)
         (cert, bound), _ = shared_step(_SHARED_CERTS, key, compute, SHARED_STEPS_KEPT)
         self._fleet_bound = bound
         if cert is not None:  # (an older certificate stays a valid proof: P >= P* >= D held then)
@@ -1243,7 +1289,9 @@ class ConsensusADMM(RoundCore):
     def _primal_step(self) -> np.ndarray:
         hub = self._hub
         if hub is not None and hub.s is not None:  # (a hub has no edges)
-            return self._qp.solve_v(-hub.penalty * hub.center(self.robot_id), guess=self._warm_guess())
+            at, qs = self._step_q  # (the shared step's rows of q, kept for the state they were made at)
+            q = qs[hub.ids.index(self.robot_id)] if at is hub.s else -hub.penalty * hub.center(self.robot_id)
+            return self._qp.solve_v(q, guess=self._warm_guess())
         q = np.zeros(self.dim)
         for edge in self._edges.values():
             q += edge.sign * edge.lam - edge.rho * edge.z

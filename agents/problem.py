@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import piqp
+from numpy.linalg import _umath_linalg
 
 from agents.kernel import GridBasis
 from agents.qp_dual import KKT_TOL, dual_hessian, solve_box_dual
@@ -235,7 +236,14 @@ WARM_ACTIVE = 1e-7
 WARM_TRIES = 3
 
 
+#: active sets whose sub-systems a `_WarmKKT` keeps (a robot's W moves among a few sets near the end)
+WARM_SUBSETS = 16
+
 _min, _max = np.minimum.reduce, np.maximum.reduce  # (np.min / np.max without their Python wrappers)
+#: the LAPACK gesv gufunc np.linalg.solve calls for a vector right-hand side (its wrapper's type
+#: checks and error-state set-up cost ~2 us more than the solve on the <= 16 rows here; the same
+#: routine, the same bits: tests/test_problem.py compares the two)
+_gesv = _umath_linalg.solve1
 
 
 class _WarmKKT:
@@ -261,6 +269,10 @@ class _WarmKKT:
         # so its margins need not be computed again (the same product, the same bits)
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         self._lam: tuple[np.ndarray, np.ndarray] = (np.zeros(0, dtype=int), np.zeros(0))  # (W, lam_W)
+        # per active set W (its indices' bytes): A_W D^-1 and H_WW, the same rows `take` gives every
+        # time, and whether W's solve ran once without a NaN (W rarely changes between rounds; at
+        # most WARM_SUBSETS kept, the oldest dropped)
+        self._subs: dict[bytes, tuple[np.ndarray, np.ndarray, bool]] = {}
 
     def multipliers(self) -> np.ndarray:
         """The last certified solve's multipliers, one per row (zero off its set W)."""
@@ -269,40 +281,59 @@ class _WarmKKT:
         return lam
 
     def solve(self, q: np.ndarray, guess: np.ndarray) -> np.ndarray | None:
-        rows, rows_d = self.rows, self.rows_d
+        rows = self.rows
         last = self._last
         margins = last[1] if last is not None and last[0] is guess else rows @ guess
         free = (margins <= 1.0 + WARM_ACTIVE).nonzero()[0]
+        q_d = q / self.d  # (D^-1 q: the same bits wherever the loop below needs it)
         for _ in range(WARM_TRIES + 1):
             if len(free):
-                a_wd = rows_d.take(free, 0)
+                a_wd, h_ww, clean = self._sub(free)
                 b_w = a_wd @ q
                 b_w += 1.0
-                try:  # (numpy's LU, not scipy's dposv: importing scipy.linalg costs a robot ~0.15 s)
-                    lam_f = np.linalg.solve(self.hessian.take(free, 0).take(free, 1), b_w)
-                except np.linalg.LinAlgError:  # singular: W's rows are dependent
-                    return None
+                # numpy's LU (not scipy's dposv: importing scipy.linalg costs a robot ~0.15 s), the gufunc
+                # of np.linalg.solve without its wrapper; a singular H_WW (W's rows dependent) gives NaN.
+                # Its floating-point flags are silenced (as np.linalg.solve does) until this W has been
+                # solved once without a NaN: the LU of a W depends on W alone, so from then on only an
+                # overflow of b_w's solve could raise one (a warning then, the same answer)
+                if clean:
+                    lam_f = _gesv(h_ww, b_w, signature="dd->d")
+                else:
+                    with np.errstate(all="ignore"):
+                        lam_f = _gesv(h_ww, b_w, signature="dd->d")
                 low = float(_min(lam_f))
-                if not low >= 0.0:  # a multiplier of the wrong sign leaves (NaN: give up)
+                if not clean and low == low:
+                    self._subs[free.tobytes()] = (a_wd, h_ww, True)
+                if not low >= 0.0:  # a multiplier of the wrong sign leaves (NaN: singular, give up)
                     if low != low:
                         return None
                     free = np.delete(free, int(lam_f.argmin()))
                     continue
                 v = a_wd.T @ lam_f  # D^-1 (A_W' lam - q)
-                v -= q / self.d
+                v -= q_d
             else:
-                v = -q / self.d
+                v = -q_d
             g = rows @ v
             if float(_min(g)) >= 1.0 - KKT_TOL:  # every margin held; W's tight (else: ill-conditioned)
-                if len(free):
-                    g_w = g.take(free)
-                    if not (float(_max(g_w)) <= 1.0 + KKT_TOL and float(_min(g_w)) >= 1.0 - KKT_TOL):
-                        return None
+                # (W's margins are among those just held: only their upper side is left to check)
+                if len(free) and not float(_max(g.take(free))) <= 1.0 + KKT_TOL:
+                    return None
                 self._last = (v, g)
                 self._lam = (free, lam_f) if len(free) else (free, np.zeros(0))
                 return v
             free = np.union1d(free, [int(g.argmin())])
         return None
+
+    def _sub(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """(A_W D^-1, H_WW, solved once without a NaN) for the active set ``free``, kept per set:
+        copies of the same rows."""
+        key = free.tobytes()
+        sub = self._subs.get(key)
+        if sub is None:
+            if len(self._subs) >= WARM_SUBSETS:
+                del self._subs[next(iter(self._subs))]
+            sub = self._subs[key] = (self.rows_d.take(free, 0), self.hessian.take(free, 0).take(free, 1), False)
+        return sub
 
 
 @dataclass(frozen=True)

@@ -510,6 +510,7 @@ class RobotShell:
         self._n_dropped = len(self.session.neighbours_dropped)
         self._router_ids: set[str] = set()
         self._waiter: asyncio.Future | None = None  # set while the main loop sleeps
+        self._timer: asyncio.TimerHandle | None = None  # the pending wake-up at a deadline (`_wait_kept`)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._inbox: _Inbox | None = None  # the loop's (run)
         self._closing = False
@@ -741,6 +742,7 @@ class RobotShell:
 
         A bare future plus one timer handle: cheaper than ``asyncio.wait_for(event.wait())``,
         which creates a task per wait (measured: about 0.2 ms per round less on 2 cores).
+        (The free-running shell borrows this one; the lockstep loop uses `_wait_kept`.)
         """
         timeout = deadline - self.clock()
         if timeout <= 0:
@@ -753,6 +755,37 @@ class RobotShell:
             timer.cancel()
             self._waiter = None
 
+    async def _wait_kept(self, deadline: float) -> None:
+        """`_wait`, with a timer that outlives the wait: a round usually ends by a frame long
+        before its deadline (a resend, tens of rounds away), and the next wait keeps a pending
+        timer that fires no later than it needs -- no timer made and cancelled per round. One that
+        fires early (the deadline moved later meanwhile) only costs a pass of the loop, which then
+        waits again (branch hubcost)."""
+        loop = self._loop
+        timeout = deadline - self.clock()
+        if timeout <= 0:
+            return
+        when = loop.time() + timeout
+        timer = self._timer
+        if timer is None or timer.when() > when:
+            if timer is not None:
+                timer.cancel()
+            self._timer = loop.call_at(when, self._on_timer)
+        self._waiter = waiter = loop.create_future()
+        try:
+            await waiter
+        finally:
+            self._waiter = None
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        self._wake()
+
+    def _cancel_timer(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
     def _crash_now(self) -> None:
         """The planned crash, at the planned round exactly (a SIGKILL from the launcher lands a
         few rounds late on a fast fleet): checkpoint this round, as the in-process fleet does,
@@ -764,9 +797,11 @@ class RobotShell:
     async def _drive(self) -> str:
         """Move frames and time between Zenoh and the session until it is done; why it stopped."""
         s = self.session
+        clean = self._clean_links  # (clean links: frames go straight to the session, none is ever in them)
         while True:
             now = self.clock()
-            self._pump(now)
+            if not clean:
+                self._pump(now)
             if s.ready():  # false once finished or stopped
                 prof, tt = self.profile, self._tt
                 t0, c0 = _pc(), tt()
@@ -809,13 +844,14 @@ class RobotShell:
                 elif s.stopped == "max_wall":
                     log.warning("robot %d: max_wall_s=%.1fs reached at round %d", self.me,
                                 s.timing.max_wall_s, self.core.round)
+                self._cancel_timer()
                 return str(s.stopped)
             deadline = s.next_deadline()
-            due = self.links.next_due()
+            due = None if clean else self.links.next_due()
             if due is not None:
                 deadline = min(deadline, due)
             t = _pc()
-            await self._wait(deadline)
+            await self._wait_kept(deadline)
             self.profile["wait"] += _pc() - t
             self._passes += 1
 
@@ -876,6 +912,7 @@ class RobotShell:
             result = self.result()
         finally:
             self._closing = True
+            self._cancel_timer()
             for ent in (token, *alive_subs, *self._subs.values(), self._pub):
                 if ent is not None:
                     try:

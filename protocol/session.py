@@ -35,11 +35,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from agents.messages import StateUpdate
 from protocol.auth import FrameAuth
-from protocol.frames import Decoded, FrameDecoder, Rejected, encode_state
+from protocol.frames import Decoded, FrameDecoder, Rejected, _all_finite, encode_state
 
 __all__ = [
     "BROADCAST",
@@ -370,7 +368,7 @@ class RobotSession:
         # Newton's frames carry reduction terms, autogrid's sweep carries flags as floats); a
         # frame must still be finite to be sent at all
         why = core.divergence()
-        if why is None and not np.isfinite(update.values).all():
+        if why is None and not _all_finite(update.values):
             why = "non-finite values in its frame"
         if why is not None:
             return self._stop("diverged", now, f"robot {self.me} round {update.round}: diverged: {why}")

@@ -67,6 +67,16 @@ def test_solve_spd_is_the_reference_bit_for_bit() -> None:
         assert np.array_equal(H, before)
 
 
+@pytest.mark.parametrize("tail", [0, 1, 3, 12, 100])
+def test_solve_spd_same_bits_wherever_the_scalar_tail_starts(monkeypatch: pytest.MonkeyPatch, tail: int) -> None:
+    """`_spd_factor` finishes its last SPD_SCALAR_TAIL columns on Python floats: all numpy (0),
+    all Python (100) or any split between must give the reference's bits."""
+    monkeypatch.setattr(admm, "SPD_SCALAR_TAIL", tail)
+    rng = np.random.default_rng(77)
+    for H, g in _systems(rng)[::3]:
+        assert admm._solve_spd(H, g).tobytes() == reference_solve_spd(H, g).tobytes(), len(H)
+
+
 def test_solve_spd_close_to_the_exact_rational_solution() -> None:
     """On well-conditioned systems the answer is within a few ulps of the exact one (Fractions):
     a rewrite that kept the bits of a wrong formula would fail here."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -217,3 +219,38 @@ def test_warm_solve_only_for_weighted_hard_steps_with_n_at_least_dim():
     soft, _ = _problem(5, 20, 15, 10.0)
     fewer, _ = _problem(5, 12, 30, None)
     assert soft._warm is None and fewer._warm is None and fewer._hessian is not None
+
+
+def test_warm_solve_calls_numpys_solve_routine():
+    """`_gesv` (the gufunc under np.linalg.solve, without its wrapper) gives np.linalg.solve's bits:
+    a numpy whose solve took another route would fail here, not move a robot's steps silently."""
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 5, 9, 16):
+        a = rng.normal(size=(n, n))
+        h, b = a @ a.T + 0.1 * np.eye(n), rng.normal(size=n)
+        assert problem._gesv(h, b, signature="dd->d").tobytes() == np.linalg.solve(h, b).tobytes()
+
+
+def test_warm_solve_on_dependent_rows_gives_nothing_and_no_warning():
+    """A guess whose tight rows are linearly dependent (an exactly singular H_WW): None (piqp
+    answers), as np.linalg.solve's LinAlgError gave, with no floating-point warning on the way."""
+    rows = np.array([[1.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [-1.0, 0.0, 1.0]])
+    warm = problem._WarmKKT(rows, np.ones(3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert warm.solve(np.zeros(3), np.array([0.0, 0.0, 1.0])) is None  # rows 0 and 1 tight: equal
+
+
+def test_warm_solve_keeps_a_bounded_set_of_subsystems():
+    """The per-active-set copies of A_W D^-1 and H_WW: at most WARM_SUBSETS, and answers equal to
+    those of a QP that kept none."""
+    qp, q, guess = _warm_case(4)
+    fresh, _, _ = _warm_case(4)
+    rng = np.random.default_rng(1)
+    for _ in range(3 * problem.WARM_SUBSETS):
+        g = guess + 0.05 * rng.normal(size=guess.shape)
+        a = qp._warm.solve(q, g.copy())
+        fresh._warm._subs.clear()
+        b = fresh._warm.solve(q, g.copy())
+        assert (a is None and b is None) or a.tobytes() == b.tobytes()
+    assert 0 < len(qp._warm._subs) <= problem.WARM_SUBSETS
