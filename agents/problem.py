@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import piqp
-from numpy.linalg import _umath_linalg
 
 from agents.kernel import GridBasis
 from agents.qp_dual import KKT_TOL, dual_hessian, solve_box_dual
@@ -243,7 +242,13 @@ _min, _max = np.minimum.reduce, np.maximum.reduce  # (np.min / np.max without th
 #: the LAPACK gesv gufunc np.linalg.solve calls for a vector right-hand side (its wrapper's type
 #: checks and error-state set-up cost ~2 us more than the solve on the <= 16 rows here; the same
 #: routine, the same bits: tests/test_problem.py compares the two)
-_gesv = _umath_linalg.solve1
+try:  # numpy's private module: where a numpy lacks it, the public wrapper (same routine, ~2 us slower)
+    from numpy.linalg import _umath_linalg
+
+    _gesv = _umath_linalg.solve1
+except (ImportError, AttributeError):  # pragma: no cover - depends on the numpy installed
+    def _gesv(a: np.ndarray, b: np.ndarray, signature: str = "dd->d") -> np.ndarray:
+        return np.linalg.solve(a, b)
 
 
 class _WarmKKT:
