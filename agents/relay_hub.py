@@ -399,9 +399,10 @@ class RelayHubADMM(RoundCore):
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW:]
         # twice the edge form's estimate (window maxima), held self._hold rounds in a row (RELAY_HOLD;
         # RELAY_HOLD_CERTIFIED where the guard decides too): a delayed Anderson can sit on a plateau
-        # where the fleet agrees and barely moves, the residual ~70x below the error (measured: 8-ring seed 2, error 1.1e-3 for 600 rounds at residual 1.6e-5,
-        # the estimate 2e-4..7e-4 for 40 rounds on end); the hub's and the edge form's rules, and the
-        # latter held 40 rounds, all stopped it there, above tol (docs/algorithm.md)
+        # where the fleet agrees and barely moves, the residual ~70x below the error (measured: 8-ring
+        # seed 2, error 1.1e-3 for 600 rounds at residual 1.6e-5, the estimate 2e-4..7e-4 for 40
+        # rounds on end); the hub's and the edge form's rules, and the latter held 40 rounds, all
+        # stopped it there, above tol (docs/algorithm.md)
         estimate = RELAY_STOP_MARGIN * error_estimate(self._residuals)
         self._held = self._held + 1 if estimate < self.params.tol else 0
         return self._held >= self._hold
