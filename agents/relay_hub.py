@@ -40,7 +40,15 @@ step fail as a local solve would (the session stops the robot with the reason, n
 Stop: every copy computes the fleet's residual of round k - D (the x_l's spread around their mean,
 the mean's move); twice the edge form's estimate r / (1 - rate) must stay below tol for RELAY_HOLD
 rounds in a row (a delayed Anderson can sit on a plateau the plain estimate passes, see
-docs/algorithm.md), then the stop flags flood as in every round-based core.
+docs/algorithm.md) -- RELAY_HOLD_CERTIFIED where the certified guard below decides too -- then the
+stop flags flood as in every round-based core.
+
+Anderson's design (memory RELAY_MEMORY, relaxation RELAY_RELAX, regularisation RELAY_REG): with
+delay D the D newest iterates are in flight when S^(k+1) is formed, so a window of m secant pairs
+spans about m / D extrapolations; a longer memory than the complete graph's and a stronger
+relaxation took fewer rounds on every relay fleet of rounds.md (docs/algorithm.md, the sweep in
+benchmarks/results/rounds-stop-relay.md). The path is chaotic in these constants (the 16-ring at
+memory 45 / 50 / 55: 1170 / 1070 / 1411 rounds), so they were chosen on sums over many fleets.
 
 Certified guard (admm's `certify`, hard margins, where N (M + 1 + 6) floats fit the frame budget):
 robot l's 6 certificate floats (agents/certificate.py) ride in its slot beside a_l -- the
@@ -78,8 +86,15 @@ from protocol.frames import MAX_DIM
 
 #: the frame budget: N vectors of M + 1 floats, at most FRAME_BUDGET (M + 1)
 RELAY_MAX_ROBOTS = FRAME_BUDGET
-#: relaxation eta of the Douglas-Rachford map (1: plain ADMM)
-RELAY_RELAX = 1.5
+#: relaxation eta of the Douglas-Rachford map (1: plain ADMM); 1.5 before branch relayaa
+RELAY_RELAX = 1.7
+#: Anderson's memory (secant pairs kept) on the relay hub; ADMMParams.anderson is the complete
+#: graph's (30). With delay D the D newest iterates are still in flight, so a window of m pairs spans
+#: about m / D extrapolation steps: 50 with eta 1.7 took seven relay fleets (4-ring .. 16-ring) from
+#: 5905 rounds at stop to 4387 and the 36 runs of rounds.py --stop-check from 59742 to 57264 (main:
+#: 30 pairs, eta 1.5; hold 40 in both; the sweep of memory, regularisation, relaxation and pair
+#: selection: docs/algorithm.md, benchmarks/relay_anderson.py)
+RELAY_MEMORY = 50
 #: restart Anderson when the residual exceeds this x its best since the last restart
 RELAY_SAFEGUARD = 10.0
 #: Tikhonov regularisation of Anderson's least squares, relative to the mean diagonal
@@ -87,6 +102,11 @@ RELAY_REG = 3e-3
 #: the stop test -- RELAY_STOP_MARGIN x the edge form's estimate below tol -- must pass this many
 #: rounds in a row (see `_fleet_step`)
 RELAY_HOLD = 40
+#: the hold where the certified guard decides too (`relay_cert_slot`, hard margins: N <= 11 on the
+#: paper grid): the stop then also needs the proven bound, and 20 held rounds kept every stop of the
+#: 42 measured guarded runs within 7.1e-5 of the exact optimum (tol 1e-3; the same largest error as
+#: 40), mostly 20 rounds earlier (benchmarks/results/rounds-stop-relay.md)
+RELAY_HOLD_CERTIFIED = 20
 RELAY_STOP_MARGIN = 2.0
 #: the exact warm-started local QP (admm.WARM_QP) stays off here: with it the 16-robot geometric fleet
 #: took 1022 rounds instead of 962 (branch guard), and N = 16 has no room for the certified guard's
@@ -102,6 +122,13 @@ _SHARED: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 SHARED_KEPT = 64
 #: the guard's certificates computed lately in this process (`RelayHubADMM._certify`), as _SHARED
 _SHARED_CERTS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
+
+
+def relay_memory(params: ADMMParams, n: int, dim: int, delay: int) -> int:
+    """Anderson's memory on the relay hub: RELAY_MEMORY for every fleet (`anderson` > 0 turns the
+    relay on; its value is the complete graph's memory). A function so that a sweep
+    (benchmarks/relay_anderson.py) can try rules in N, dim and the delay D."""
+    return RELAY_MEMORY
 
 
 def relay_cert_slot(params: ADMMParams, n: int, dim: int) -> bool:
@@ -163,6 +190,7 @@ class RelayHubADMM(RoundCore):
         # it decides for hard margins only (as the hub's cert_active)
         self._cert_slot = relay_cert_slot(params, n, share.dim)
         self._cert_on = self._cert_slot and share.C is None
+        self._hold = RELAY_HOLD_CERTIFIED if self._cert_on else RELAY_HOLD
         width = share.dim + (cert_math.PAYLOAD if self._cert_slot else 0)
         self._slots = {l: slice(k * width, (k + 1) * width) for k, l in enumerate(self.ids)}  # l's [a; p] in a frame
         self._blocks = {l: slice(k * share.dim, (k + 1) * share.dim) for k, l in enumerate(self.ids)}  # t_l in S
@@ -171,7 +199,7 @@ class RelayHubADMM(RoundCore):
         self._P[-1] *= params.gamma_penalty
         self._pdiag = cert_math.step_diagonal(self._P, n)  # the step QP's diagonal (1/N on x)
         self._w = np.tile(np.sqrt(self._P), n)  # Anderson's residual weights (the P-norm)
-        self._memory = params.anderson
+        self._memory = relay_memory(params, n, share.dim, self.delay)
         self._qp = MarginQP(share.features, share.labels, x_weight=1.0 / n, prox_weight=self._P, C=share.C)
         self._means: dict[int, np.ndarray] = {}  # the fleet's mean x of round j (the guard's margins)
         self._certificate: Certificate | None = None  # the last fleet certificate computed
@@ -186,7 +214,7 @@ class RelayHubADMM(RoundCore):
         self._forget()
         # digest of everything the copy's state follows from (see _SHARED); the data enter by S^0
         self._token = _digest(repr((self.ids, self.dim, self.delay, params.rho, params.gamma_penalty, params.tol,
-                                    self._memory, RELAY_RELAX, RELAY_SAFEGUARD, RELAY_REG)).encode())
+                                    self._memory, RELAY_RELAX, RELAY_SAFEGUARD, RELAY_REG, self._hold)).encode())
         self._residuals: list[float] = []
         self._held = 0  # consecutive rounds the stop test passed
         self._prev_mean: np.ndarray | None = None
@@ -260,11 +288,11 @@ class RelayHubADMM(RoundCore):
     # -- the certified guard --------------------------------------------------------------------
     def _armed(self) -> bool:
         """True when my payload of this step (round k + 1) can decide: the copies read it in round
-        k + D, where a stop needs RELAY_HOLD passing rounds in a row -- and _held grows by at most one
-        a round -- or it is a capped run's last round. The same on every copy (_held is the copy's);
+        k + D, where a stop needs its hold (RELAY_HOLD_CERTIFIED) of passing rounds in a row -- and
+        _held grows by at most one a round -- or it is a capped run's last round. The same on every copy (_held is the copy's);
         admm.CERTIFY_ARM = inf: every round (tests, the benchmark's --check). Elsewhere zeros go out."""
         k, D = self.round, self.delay
-        return (admm.CERTIFY_ARM == math.inf or self._held + D >= RELAY_HOLD
+        return (admm.CERTIFY_ARM == math.inf or self._held + D >= self._hold
                 or k + D + 1 >= self._round_cap)
 
     def _with_payload(self, a: np.ndarray, t: np.ndarray | None, mean: np.ndarray | None = None) -> np.ndarray:
@@ -369,14 +397,15 @@ class RelayHubADMM(RoundCore):
         self.residual = max(float(np.max(gaps[:n])), 0.0 if self._prev_mean is None else float(gaps[-1]))
         self._prev_mean = mean
         self._residuals = (self._residuals + [self.residual])[-2 * RATE_WINDOW:]
-        # twice the edge form's estimate (window maxima), held RELAY_HOLD rounds in a row: a delayed
-        # Anderson can sit on a plateau where the fleet agrees and barely moves, the residual ~70x
-        # below the error (measured: 8-ring seed 2, error 1.1e-3 for 600 rounds at residual 1.6e-5,
-        # the estimate 2e-4..7e-4 for 40 rounds on end); the hub's and the edge form's rules, and the
-        # latter held 40 rounds, all stopped it there, above tol (docs/algorithm.md)
+        # twice the edge form's estimate (window maxima), held self._hold rounds in a row (RELAY_HOLD;
+        # RELAY_HOLD_CERTIFIED where the guard decides too): a delayed Anderson can sit on a plateau
+        # where the fleet agrees and barely moves, the residual ~70x below the error (measured: 8-ring
+        # seed 2, error 1.1e-3 for 600 rounds at residual 1.6e-5, the estimate 2e-4..7e-4 for 40
+        # rounds on end); the hub's and the edge form's rules, and the latter held 40 rounds, all
+        # stopped it there, above tol (docs/algorithm.md)
         estimate = RELAY_STOP_MARGIN * error_estimate(self._residuals)
         self._held = self._held + 1 if estimate < self.params.tol else 0
-        return self._held >= RELAY_HOLD
+        return self._held >= self._hold
 
     # -- Anderson -------------------------------------------------------------------------------
     def _forget(self) -> None:

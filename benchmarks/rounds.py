@@ -32,7 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.admm import ADMMParams  # noqa: E402
 from agents.relay_hub import (  # noqa: E402
-    RELAY_HOLD, RELAY_MAX_ROBOTS, RELAY_REG, RELAY_RELAX, RELAY_SAFEGUARD, RELAY_STOP_MARGIN, RelayHubADMM,
+    RELAY_HOLD, RELAY_HOLD_CERTIFIED, RELAY_MAX_ROBOTS, RELAY_MEMORY, RELAY_REG, RELAY_RELAX, RELAY_SAFEGUARD,
+    RELAY_STOP_MARGIN, RelayHubADMM,
 )
 from protocol.frames import encode_state  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
@@ -321,9 +322,10 @@ def main() -> None:
         f"Defaults: rho {d.rho}, over-relaxation {d.relax}, tol {d.tol:g} (estimated error), grid {d.grid}, "
         f"sigma {d.sigma}, {d.points} points per robot, LiDAR offset {REFERENCE_LENGTHS['offset']:g} x the outline's scale (1 for the built-in shapes; the paper's preset, admm); "
         f"Anderson memory {p.anderson}, safeguard {p.safeguard:g} (complete graphs); sparse fleets of <= "
-        f"{RELAY_MAX_ROBOTS} robots run the relay hub (agents/relay_hub.py: rho {p.rho:g}, memory {p.anderson}, "
+        f"{RELAY_MAX_ROBOTS} robots run the relay hub (agents/relay_hub.py: rho {p.rho:g}, memory {RELAY_MEMORY}, "
         f"relaxation {RELAY_RELAX:g}, safeguard {RELAY_SAFEGUARD:g}, regularisation {RELAY_REG:g}, stop test "
-        f"{RELAY_STOP_MARGIN:g} x the edge form's estimate below tol for {RELAY_HOLD} rounds in a row). Errors are against the exact "
+        f"{RELAY_STOP_MARGIN:g} x the edge form's estimate below tol for {RELAY_HOLD} rounds in a row, "
+        f"{RELAY_HOLD_CERTIFIED} where the certified guard decides too). Errors are against the exact "
         "central QP (the grid's kernel matrix has full rank: column 'rank' = GridBasis.rank / M).",
         "Before (in brackets): main at commit 347b007, same scenarios, same data (complete graphs: the same hub "
         "form, the same bits; sparse graphs: the edge form, which the relay hub replaces). ms per robot-round "

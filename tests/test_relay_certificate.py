@@ -102,20 +102,20 @@ def test_the_relay_guard_is_off_where_the_payload_does_not_fit():
 
 
 def test_certify_zero_sends_mains_relay_frames():
-    """certify 0: main's relay layout (N vectors of M + 1, no payload) and main's stop (426 rounds, the
-    4-ring of rounds.md). (Bit equality of the iterates with the guard on: the test above; a pinned hash
-    of piqp's bits would tie the suite to this machine's CPU.)"""
+    """certify 0: main's relay layout (N vectors of M + 1, no payload) and the rule alone's stop (370 rounds, the
+    4-ring of rounds.md, held RELAY_HOLD rounds). (Bit equality of the iterates with the guard on: the
+    test above; a pinned hash of piqp's bits would tie the suite to this machine's CPU.)"""
     _, spec, _ = make_run(topology="ring", robots=4, certify=0.0)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     while not all(c.finished for c in cores) and cores[0].round < 3000:
         assert all(len(c.outgoing().values) == 4 * c.dim for c in cores)
         step_all(cores)
-    assert cores[0].round == 426 and all(c.converged and c.result()["error_bound"] is None for c in cores)
+    assert cores[0].round == 370 and all(c.converged and c.result()["error_bound"] is None for c in cores)
 
 
 def test_arming_moves_no_relay_stop(monkeypatch):
-    """Payloads only in armed rounds (`_armed`: _held within D of RELAY_HOLD) stop where payloads in
-    every round stop, with the same bound: a stop needs RELAY_HOLD passing rounds, held grows by one."""
+    """Payloads only in armed rounds (`_armed`: _held within D of the hold) stop where payloads in
+    every round stop, with the same bound: a stop needs the hold of passing rounds, held grows by one."""
     _, spec, _ = make_run(topology="line", robots=5)
     ends = []
     for arm in (admm.CERTIFY_ARM, math.inf):
