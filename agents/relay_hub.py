@@ -108,10 +108,11 @@ RELAY_HOLD = 40
 #: 40), mostly 20 rounds earlier (benchmarks/results/rounds-stop-relay.md)
 RELAY_HOLD_CERTIFIED = 20
 RELAY_STOP_MARGIN = 2.0
-#: the exact warm-started local QP (admm.WARM_QP) stays off here: with it the 16-robot geometric fleet
-#: took 1022 rounds instead of 962 (branch guard), and N = 16 has no room for the certified guard's
-#: payload; with the guard the 8-ring would take 859 rounds instead of 1006 (branch relayguard,
-#: benchmarks/results/stop_certificate.md)
+#: the exact warm-started local QP (admm.WARM_QP's KKT solve), only where the certified guard decides
+#: (`_cert_on`, as the hub's WARM_QP + cert_active; piqp elsewhere): stays off. Measured with the relayaa
+#: design (branch relayaa2, benchmarks/relay_anderson.py --warm-qp on): 8-ring 630 -> 757 rounds at stop,
+#: 4-ring, 5-line, 6-ring, 8-ring seeds 0-4 9320 -> 9869, the 36 runs of --stop-check 31 -> 29 stops
+#: (cross ring 6 s0 and star ring 6 s2 then hit the 5000 cap); the 16-robot fleets have no guard
 RELAY_WARM_QP = False
 
 
@@ -279,7 +280,7 @@ class RelayHubADMM(RoundCore):
             t = self._a[self.robot_id][0][: self.dim]
         armed = self._cert_on and self._armed()
         self._qp.keep_multipliers = armed
-        x = self._solve(t, mine if RELAY_WARM_QP else None)
+        x = self._solve(t, mine if RELAY_WARM_QP and self._cert_on else None)
         a = 2.0 * x - t
         self._a[self.robot_id][k + 1] = self._with_payload(a, t, self._means.get(j) if armed else None)
         self._prune(k + 1 - D)

@@ -8,6 +8,7 @@ is judged by its rounds and errors (no A/B needed), its CPU beside them (noisy: 
     .venv/bin/python benchmarks/relay_anderson.py                       # today's constants, the fleets
     .venv/bin/python benchmarks/relay_anderson.py --memory "min(100, n * dim // 2)" --reg 1e-3
     .venv/bin/python benchmarks/relay_anderson.py --fleets 8-ring 16-ring --jobs 2
+    .venv/bin/python benchmarks/relay_anderson.py --fleets 4-ring 6-ring 8-ring --seeds 0 1 2 3 4 --warm-qp on
 
 --memory is a Python expression in n (robots), dim (M + 1), D (the graph's diameter) and a (the
 fleet's ADMMParams.anderson); the other flags replace the module's constants for the run.
@@ -62,9 +63,12 @@ def stop_check_fleets() -> dict[str, dict[str, Any]]:
 
 def configure(variant: dict[str, Any]) -> None:
     """Replace the relay module's constants (and its memory rule) by the variant's."""
-    for key in ("RELAY_REG", "RELAY_SAFEGUARD", "RELAY_RELAX", "RELAY_HOLD", "RELAY_HOLD_CERTIFIED"):
+    for key in ("RELAY_REG", "RELAY_SAFEGUARD", "RELAY_RELAX", "RELAY_HOLD", "RELAY_HOLD_CERTIFIED", "RELAY_WARM_QP"):
         if variant.get(key) is not None:
             setattr(relay_hub, key, variant[key])
+    if variant.get("no_frame_budget"):  # what-if: the guard's payload on every relay fleet (MAX_DIM only)
+        relay_hub.relay_cert_slot = lambda params, n, dim: (  # noqa: E731
+            relay_hub.certify_slot(params) and n * (dim + relay_hub.cert_math.PAYLOAD) <= relay_hub.MAX_DIM)
     if variant.get("memory"):
         expr = variant["memory"]
         relay_hub.relay_memory = lambda params, n, dim, D: int(eval(expr, {"min": min, "max": max},  # noqa: E731
@@ -120,17 +124,28 @@ def main() -> None:
     ap.add_argument("--relax", type=float, default=None)
     ap.add_argument("--hold", type=int, default=None)
     ap.add_argument("--hold-certified", type=int, default=None, help="the hold where the certified guard decides")
+    ap.add_argument("--warm-qp", choices=("on", "off"), default=None,
+                    help="RELAY_WARM_QP: the exact warm-started local QP where the certified guard decides")
+    ap.add_argument("--no-frame-budget", action="store_true",
+                    help="what-if: the guard's payload wherever a frame's MAX_DIM allows (the 16-robot fleets), "
+                         "beyond the frame budget of FRAME_BUDGET x (M + 1) floats")
+    ap.add_argument("--seeds", nargs="*", type=int, default=None,
+                    help="run every chosen fleet at each of these seeds (the safety check of the hold)")
     ap.add_argument("--max-rounds", type=int, default=5000)
     ap.add_argument("--jobs", type=int, default=1)
     args = ap.parse_args()
     variant = {"memory": args.memory, "RELAY_REG": args.reg, "RELAY_SAFEGUARD": args.safeguard,
                "RELAY_RELAX": args.relax, "RELAY_HOLD": args.hold,
-               "RELAY_HOLD_CERTIFIED": args.hold_certified}
+               "RELAY_HOLD_CERTIFIED": args.hold_certified,
+               "RELAY_WARM_QP": None if args.warm_qp is None else args.warm_qp == "on",
+               "no_frame_budget": args.no_frame_budget}
     tol = ADMMParams().tol
     print(f"variant: {variant}", flush=True)
     print("| fleet | D | memory | rounds to 1e-3 | rounds at stop | converged | error at stop | restarts | "
           "CPU s | CPU ms per round |", flush=True)
     fleets = stop_check_fleets() if args.stop_check else {f: RELAY_FLEETS[f] for f in args.fleets}
+    if args.seeds is not None:
+        fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
     tasks = [(f, kw, variant, args.max_rounds) for f, kw in fleets.items()]
     total, worst = 0, 0.0
     with multiprocessing.Pool(args.jobs) as pool:

@@ -157,3 +157,29 @@ def test_a_forged_relayed_payload_neither_crashes_a_robot_nor_lets_it_stop(bad, 
             c.advance()
     assert me.round == k and me._fleet_bound == math.inf and not me._flags & 1
     assert cores[2]._flags & 1  # (robot 2, which reads no value through robot 0, passes there)
+
+
+def test_the_relay_warm_qp_runs_only_where_the_guard_decides(monkeypatch):
+    """RELAY_WARM_QP (off by default: measured worse on the relay fleets, docs/algorithm.md) gives the
+    local step a guess only where the certified guard decides (as the hub's admm.WARM_QP + cert_active):
+    its exact KKT steps took plateau stops the rule alone could not refuse. certify 0: piqp, no guess."""
+    from agents.problem import MarginQP
+
+    assert relay_hub.RELAY_WARM_QP is False
+    monkeypatch.setattr(relay_hub, "RELAY_WARM_QP", True)
+    guesses: list[bool] = []
+    solve = MarginQP.solve
+
+    def spy(self, q, guess=None):
+        guesses.append(guess is not None)
+        return solve(self, q, guess)
+
+    monkeypatch.setattr(MarginQP, "solve", spy)
+    for certify, guarded in ((10.0, True), (0.0, False)):
+        _, spec, _ = make_run(topology="ring", robots=4, certify=certify)
+        cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+        assert all(c._cert_on == guarded for c in cores)
+        guesses.clear()
+        for _ in range(5):
+            step_all(cores)
+        assert len(guesses) == 5 * 4 and all(g == guarded for g in guesses)
