@@ -105,7 +105,9 @@ RELAY_HOLD = 40
 #: the hold where the certified guard decides too (`relay_cert_slot`, hard margins: N <= 11 on the
 #: paper grid): the stop then also needs the proven bound, and 20 held rounds kept every stop of the
 #: 42 measured guarded runs within 7.1e-5 of the exact optimum (tol 1e-3; the same largest error as
-#: 40), mostly 20 rounds earlier (benchmarks/results/rounds-stop-relay.md)
+#: 40), mostly 20 rounds earlier (benchmarks/results/rounds-stop-relay.md); rechecked on the 4-, 5-, 6-,
+#: 8-robot seeds 0-4 (largest 7.3e-5) -- the guard's bound, not the hold, refuses the known plateau
+#: (even hold 1 did, branch relayaa2); 20 stays as a margin
 RELAY_HOLD_CERTIFIED = 20
 RELAY_STOP_MARGIN = 2.0
 #: the exact warm-started local QP (admm.WARM_QP's KKT solve), only where the certified guard decides

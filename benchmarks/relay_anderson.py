@@ -10,6 +10,9 @@ is judged by its rounds and errors (no A/B needed), its CPU beside them (noisy: 
     .venv/bin/python benchmarks/relay_anderson.py --fleets 8-ring 16-ring --jobs 2
     .venv/bin/python benchmarks/relay_anderson.py --fleets 4-ring 6-ring 8-ring --seeds 0 1 2 3 4 --warm-qp on
 
+--warm-qp sets RELAY_WARM_QP (the exact warm-started local QP where the guard decides), --seeds runs
+every chosen fleet at each seed (the hold's safety check), --no-frame-budget lets the guard's payload
+ride wherever a frame's MAX_DIM allows (a what-if for the 16-robot fleets, beyond the frame budget).
 --memory is a Python expression in n (robots), dim (M + 1), D (the graph's diameter) and a (the
 fleet's ADMMParams.anderson); the other flags replace the module's constants for the run.
 """
