@@ -31,6 +31,7 @@ or exploding iterate stops ``diverged``; ``max_wall_s`` on the shell's clock sto
 from __future__ import annotations
 
 import collections
+from bisect import bisect_left, insort
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -218,6 +219,9 @@ class RobotSession:
         self.prime_memo = False
         self.round_intervals: list[float] = []  # shell-clock seconds of each advance-to-advance
         self._intervals_for: tuple[int, tuple[float, float]] = (-1, (0.0, 0.0))  # resend cache
+        # the last ADAPT_WINDOW round_intervals, kept sorted as they come (the resend quartile's window:
+        # the same values sorted() of the slice gave, without a slice and a sort every round)
+        self._window: list[float] = []
         self.round_times: dict[int, float] = {int(core.round): 0.0}  # round -> when it was reached
         self._publish(core.outgoing(), now)
         self._enter_linger_if_finished(now)
@@ -373,7 +377,12 @@ class RobotSession:
         if why is not None:
             return self._stop("diverged", now, f"robot {self.me} round {update.round}: diverged: {why}")
         self._publish(update, now)
-        self.round_intervals.append(now - self._last_advance)
+        iv = now - self._last_advance
+        self.round_intervals.append(iv)
+        w = self._window
+        if len(w) == ADAPT_WINDOW:  # the interval leaving the window (an equal value: the same multiset)
+            del w[bisect_left(w, self.round_intervals[-ADAPT_WINDOW - 1])]
+        insort(w, iv)
         self._last_advance = now
         self.round_times[int(core.round)] = now - self.t0
         self._enter_linger_if_finished(now)
@@ -505,7 +514,7 @@ class RobotSession:
             return self._intervals_for[1]
         typical = 0.0
         if n >= ADAPT_MIN_ROUNDS:  # np.percentile(recent, 25), linear, without numpy's overhead
-            xs = sorted(self.round_intervals[-ADAPT_WINDOW:])
+            xs = self._window  # == sorted(self.round_intervals[-ADAPT_WINDOW:])
             pos = 0.25 * (len(xs) - 1)
             lo = int(pos)
             typical = xs[lo] + (xs[min(lo + 1, len(xs) - 1)] - xs[lo]) * (pos - lo)
