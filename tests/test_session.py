@@ -121,6 +121,30 @@ def test_resend_waits_a_round_of_this_fleet_from_its_second_round_on():
     assert a.next_deadline() == pytest.approx(now + ADAPT_FACTOR * 0.4)  # not now + retransmit_s (0.1)
 
 
+def test_resend_quartile_window_is_the_last_rounds_sorted_and_sets_the_interval():
+    """The window kept sorted as rounds come (branch hubcost2) holds exactly the last
+    ADAPT_WINDOW round intervals -- repeated values and values leaving it included -- and the
+    resend interval is the 25th percentile of them (np.percentile, linear) times ADAPT_FACTOR."""
+    from protocol.session import ADAPT_FACTOR, ADAPT_WINDOW
+
+    a, b = session(0, (1,), rounds=200), session(1, (0,), rounds=200)
+    now = 0.0
+    fa, fb = frames(a, now)[-1], frames(b, now)[-1]
+    rng = np.random.default_rng(7)
+    steps = [float(x) for x in rng.choice([0.2, 0.3, 0.35, 0.5, 0.9], size=3 * ADAPT_WINDOW)]
+    for k, step in enumerate(steps):
+        now += step
+        a.receive(1, fb, now)
+        b.receive(0, fa, now)
+        assert a.advance(now) and b.advance(now)
+        fa, fb = frames(a, now)[-1], frames(b, now)[-1]
+        last = a.round_intervals[-ADAPT_WINDOW:]
+        assert a._window == sorted(last)
+        if k + 1 >= 8:
+            periodic, _fast = a._resend_interval()
+            assert periodic == pytest.approx(max(TIMING.retransmit_s, ADAPT_FACTOR * float(np.percentile(last, 25))))
+
+
 def test_neighbour_one_round_behind_triggers_a_fast_resend():
     a, b = session(0, (1,)), session(1, (0,))
     fa, fb = frames(a, 0.0), frames(b, 0.0)
