@@ -446,8 +446,10 @@ class RobotSession:
             self._stop("max_wall", now)
             self._deadline = None
             return
+        n_dropped = len(self.neighbours_dropped)
         drop_deadline = self._check_neighbours(now)
-        if self.stopped is not None or self.core.ready():
+        # (only a drop can make the core ready here: it was not just above)
+        if self.stopped is not None or (len(self.neighbours_dropped) != n_dropped and self.core.ready()):
             self._deadline = None if self.done else now
             return
         self._deadline = min(self._resend(now), wall_end, drop_deadline)
@@ -456,7 +458,16 @@ class RobotSession:
         """Drop every neighbour we wait for that is gone for good; when to look again."""
         deadline = float("inf")
         dropped = False
+        t0, give_up, gone, last_heard, heard_round = (self.t0, self.timing.give_up_s, self._gone, self.last_heard,
+                                                      self.heard_round)
+        ahead = self.core.round + 2
         for j in self.core.missing():
+            if j not in gone:  # the usual case inline: `_drop_due`'s first branch, not due, not ahead
+                at = last_heard.get(j, t0) + give_up
+                if now < at and heard_round.get(j, -1) < ahead:
+                    if at < deadline:
+                        deadline = at
+                    continue
             when, why = self._drop_due(j, now)
             if why is None and self.heard_round.get(j, -1) >= self.core.round + 2:
                 # A live neighbour is never more than one round ahead of us unless it dropped us
