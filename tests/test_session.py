@@ -266,6 +266,29 @@ def test_a_neighbour_two_rounds_ahead_has_dropped_us():
     assert s.neighbours_dropped == [1] and s.stopped == "isolated"
 
 
+def test_a_neighbour_two_rounds_ahead_has_dropped_us_even_with_its_token_up():
+    """The same with the neighbour's liveliness token seen (the shell's usual case, which tick's
+    neighbour check runs inline since branch hubcost2): still dropped, and a live neighbour one
+    round ahead is waited for until give_up_s after it was last heard."""
+    s = session(0, (1,))
+    s.peer_up(1, 0.0)
+    ahead = session(1, ())  # alone it runs ahead
+    while ahead.advance(0.0):
+        if ahead.core.round == 2:
+            break
+    s.receive(1, frames(ahead, 0.0)[-1], 1.0)  # its round-2 frame
+    frames(s, 1.0)
+    assert s.neighbours_dropped == [1] and s.stopped == "isolated"
+    s = session(0, (1,))
+    s.peer_up(1, 0.0)
+    near = session(1, ())
+    near.advance(0.0)  # its round-1 frame: one round ahead, alive
+    s.receive(1, frames(near, 0.0)[-1], 1.0)
+    frames(s, 1.0)
+    assert s.neighbours_dropped == [] and s.stopped is None
+    assert s.next_deadline() <= 1.0 + TIMING.give_up_s
+
+
 # ----------------------------------------------------------------------------- stops and linger
 
 
