@@ -31,6 +31,7 @@ or exploding iterate stops ``diverged``; ``max_wall_s`` on the shell's clock sto
 from __future__ import annotations
 
 import collections
+from bisect import bisect_left, insort
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -218,6 +219,9 @@ class RobotSession:
         self.prime_memo = False
         self.round_intervals: list[float] = []  # shell-clock seconds of each advance-to-advance
         self._intervals_for: tuple[int, tuple[float, float]] = (-1, (0.0, 0.0))  # resend cache
+        # the last ADAPT_WINDOW round_intervals, kept sorted as they come (the resend quartile's window:
+        # the same values sorted() of the slice gave, without a slice and a sort every round)
+        self._window: list[float] = []
         self.round_times: dict[int, float] = {int(core.round): 0.0}  # round -> when it was reached
         self._publish(core.outgoing(), now)
         self._enter_linger_if_finished(now)
@@ -373,7 +377,12 @@ class RobotSession:
         if why is not None:
             return self._stop("diverged", now, f"robot {self.me} round {update.round}: diverged: {why}")
         self._publish(update, now)
-        self.round_intervals.append(now - self._last_advance)
+        iv = now - self._last_advance
+        self.round_intervals.append(iv)
+        w = self._window
+        if len(w) == ADAPT_WINDOW:  # the interval leaving the window (an equal value: the same multiset)
+            del w[bisect_left(w, self.round_intervals[-ADAPT_WINDOW - 1])]
+        insort(w, iv)
         self._last_advance = now
         self.round_times[int(core.round)] = now - self.t0
         self._enter_linger_if_finished(now)
@@ -437,8 +446,10 @@ class RobotSession:
             self._stop("max_wall", now)
             self._deadline = None
             return
+        n_dropped = len(self.neighbours_dropped)
         drop_deadline = self._check_neighbours(now)
-        if self.stopped is not None or self.core.ready():
+        # (only a drop can make the core ready here: it was not just above)
+        if self.stopped is not None or (len(self.neighbours_dropped) != n_dropped and self.core.ready()):
             self._deadline = None if self.done else now
             return
         self._deadline = min(self._resend(now), wall_end, drop_deadline)
@@ -447,7 +458,16 @@ class RobotSession:
         """Drop every neighbour we wait for that is gone for good; when to look again."""
         deadline = float("inf")
         dropped = False
+        t0, give_up, gone, last_heard, heard_round = (self.t0, self.timing.give_up_s, self._gone, self.last_heard,
+                                                      self.heard_round)
+        ahead = self.core.round + 2
         for j in self.core.missing():
+            if j not in gone:  # the usual case inline: `_drop_due`'s first branch, not due, not ahead
+                at = last_heard.get(j, t0) + give_up
+                if now < at and heard_round.get(j, -1) < ahead:
+                    if at < deadline:
+                        deadline = at
+                    continue
             when, why = self._drop_due(j, now)
             if why is None and self.heard_round.get(j, -1) >= self.core.round + 2:
                 # A live neighbour is never more than one round ahead of us unless it dropped us
@@ -505,7 +525,7 @@ class RobotSession:
             return self._intervals_for[1]
         typical = 0.0
         if n >= ADAPT_MIN_ROUNDS:  # np.percentile(recent, 25), linear, without numpy's overhead
-            xs = sorted(self.round_intervals[-ADAPT_WINDOW:])
+            xs = self._window  # == sorted(self.round_intervals[-ADAPT_WINDOW:])
             pos = 0.25 * (len(xs) - 1)
             lo = int(pos)
             typical = xs[lo] + (xs[min(lo + 1, len(xs) - 1)] - xs[lo]) * (pos - lo)

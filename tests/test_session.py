@@ -121,6 +121,30 @@ def test_resend_waits_a_round_of_this_fleet_from_its_second_round_on():
     assert a.next_deadline() == pytest.approx(now + ADAPT_FACTOR * 0.4)  # not now + retransmit_s (0.1)
 
 
+def test_resend_quartile_window_is_the_last_rounds_sorted_and_sets_the_interval():
+    """The window kept sorted as rounds come (branch hubcost2) holds exactly the last
+    ADAPT_WINDOW round intervals -- repeated values and values leaving it included -- and the
+    resend interval is the 25th percentile of them (np.percentile, linear) times ADAPT_FACTOR."""
+    from protocol.session import ADAPT_FACTOR, ADAPT_WINDOW
+
+    a, b = session(0, (1,), rounds=200), session(1, (0,), rounds=200)
+    now = 0.0
+    fa, fb = frames(a, now)[-1], frames(b, now)[-1]
+    rng = np.random.default_rng(7)
+    steps = [float(x) for x in rng.choice([0.2, 0.3, 0.35, 0.5, 0.9], size=3 * ADAPT_WINDOW)]
+    for k, step in enumerate(steps):
+        now += step
+        a.receive(1, fb, now)
+        b.receive(0, fa, now)
+        assert a.advance(now) and b.advance(now)
+        fa, fb = frames(a, now)[-1], frames(b, now)[-1]
+        last = a.round_intervals[-ADAPT_WINDOW:]
+        assert a._window == sorted(last)
+        if k + 1 >= 8:
+            periodic, _fast = a._resend_interval()
+            assert periodic == pytest.approx(max(TIMING.retransmit_s, ADAPT_FACTOR * float(np.percentile(last, 25))))
+
+
 def test_neighbour_one_round_behind_triggers_a_fast_resend():
     a, b = session(0, (1,)), session(1, (0,))
     fa, fb = frames(a, 0.0), frames(b, 0.0)
@@ -240,6 +264,29 @@ def test_a_neighbour_two_rounds_ahead_has_dropped_us():
     s.receive(1, frames(ahead, 0.0)[-1], 1.0)  # its round-2 frame
     frames(s, 1.0)
     assert s.neighbours_dropped == [1] and s.stopped == "isolated"
+
+
+def test_a_neighbour_two_rounds_ahead_has_dropped_us_even_with_its_token_up():
+    """The same with the neighbour's liveliness token seen (the shell's usual case, which tick's
+    neighbour check runs inline since branch hubcost2): still dropped, and a live neighbour one
+    round ahead is waited for until give_up_s after it was last heard."""
+    s = session(0, (1,))
+    s.peer_up(1, 0.0)
+    ahead = session(1, ())  # alone it runs ahead
+    while ahead.advance(0.0):
+        if ahead.core.round == 2:
+            break
+    s.receive(1, frames(ahead, 0.0)[-1], 1.0)  # its round-2 frame
+    frames(s, 1.0)
+    assert s.neighbours_dropped == [1] and s.stopped == "isolated"
+    s = session(0, (1,))
+    s.peer_up(1, 0.0)
+    near = session(1, ())
+    near.advance(0.0)  # its round-1 frame: one round ahead, alive
+    s.receive(1, frames(near, 0.0)[-1], 1.0)
+    frames(s, 1.0)
+    assert s.neighbours_dropped == [] and s.stopped is None
+    assert s.next_deadline() <= 1.0 + TIMING.give_up_s
 
 
 # ----------------------------------------------------------------------------- stops and linger
