@@ -458,16 +458,7 @@ class RobotSession:
         """Drop every neighbour we wait for that is gone for good; when to look again."""
         deadline = float("inf")
         dropped = False
-        t0, give_up, gone, last_heard, heard_round = (self.t0, self.timing.give_up_s, self._gone, self.last_heard,
-                                                      self.heard_round)
-        ahead = self.core.round + 2
         for j in self.core.missing():
-            if j not in gone:  # the usual case inline: `_drop_due`'s first branch, not due, not ahead
-                at = last_heard.get(j, t0) + give_up
-                if now < at and heard_round.get(j, -1) < ahead:
-                    if at < deadline:
-                        deadline = at
-                    continue
             when, why = self._drop_due(j, now)
             if why is None and self.heard_round.get(j, -1) >= self.core.round + 2:
                 # A live neighbour is never more than one round ahead of us unless it dropped us

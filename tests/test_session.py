@@ -258,7 +258,7 @@ def test_no_drop_while_disconnected_and_the_clock_restarts_on_reconnection():
 @pytest.mark.parametrize("token_seen", [False, True])
 def test_a_neighbour_two_rounds_ahead_has_dropped_us(token_seen: bool):
     """Dropped with or without the neighbour's liveliness token seen (with it: the shell's usual
-    case, which tick's neighbour check runs inline since branch hubcost2)."""
+    case)."""
     s = session(0, (1,))
     if token_seen:
         s.peer_up(1, 0.0)
@@ -273,7 +273,7 @@ def test_a_neighbour_two_rounds_ahead_has_dropped_us(token_seen: bool):
 
 def test_a_live_neighbour_one_round_ahead_is_waited_for():
     """A neighbour one round ahead with its token up is waited for until give_up_s after it was
-    last heard (tick's inline check)."""
+    last heard."""
     s = session(0, (1,))
     s.peer_up(1, 0.0)
     near = session(1, ())
