@@ -38,10 +38,11 @@ is refused by the round protocol (`RoundCore.receive`), and a non-finite relayed
 step fail as a local solve would (the session stops the robot with the reason, no traceback).
 
 Stop: every copy computes the fleet's residual of round k - D (the x_l's spread around their mean,
-the mean's move); twice the edge form's estimate r / (1 - rate) must stay below tol for RELAY_HOLD
-rounds in a row (a delayed Anderson can sit on a plateau the plain estimate passes, see
-docs/algorithm.md) -- RELAY_HOLD_CERTIFIED where the certified guard below decides too -- then the
-stop flags flood as in every round-based core.
+the mean's move) and the stop tests of `relay_stop_tests` on it -- margin x r / (1 - rate) over two
+windows below tol for a hold of rounds in a row (a delayed Anderson can sit on a plateau a short hold
+would stop on, see docs/algorithm.md): without the certified guard, main's test (2 x over windows of 20,
+held 40) or a faster one (3 x over windows of 10, held 24), whichever holds first; where the guard
+decides, main's test held 5 rounds and its bound -- then the stop flags flood as in every round-based core.
 
 Anderson's design (memory RELAY_MEMORY, relaxation RELAY_RELAX, regularisation RELAY_REG): with
 delay D the D newest iterates are in flight when S^(k+1) is formed, so a window of m secant pairs
@@ -330,12 +331,13 @@ class RelayHubADMM(RoundCore):
     # -- the certified guard --------------------------------------------------------------------
     def _armed(self) -> bool:
         """True when my payload of this step (round k + 1) can decide: the copies read it in round
-        k + D, where a stop needs its hold (RELAY_HOLD_CERTIFIED) of passing rounds in a row -- and
-        _held grows by at most one a round -- or it is a capped run's last round. The same on every copy (_held is the copy's);
-        admm.CERTIFY_ARM = inf: every round (tests, the benchmark's --check). Elsewhere zeros go out."""
+        k + D, where a stop needs a test's hold (RELAY_HOLD_CERTIFIED) of passing rounds in a row -- and
+        each _held grows by at most one a round -- or it is a capped run's last round. The same on every
+        copy (_held is the copy's); admm.CERTIFY_ARM = inf: every round (tests, the benchmark's --check).
+        Elsewhere zeros go out."""
         k, D = self.round, self.delay
-        return (admm.CERTIFY_ARM == math.inf or any(h + D >= hold for h, (_, _, hold) in zip(self._held, self._tests))
-                or k + D + 1 >= self._round_cap)
+        near = any(h + D >= hold for h, (_, _, hold) in zip(self._held, self._tests))
+        return admm.CERTIFY_ARM == math.inf or near or k + D + 1 >= self._round_cap
 
     def _with_payload(self, a: np.ndarray, t: np.ndarray | None, mean: np.ndarray | None = None) -> np.ndarray:
         """My slot of the frames: a, and with the guard's slot my certificate payload of this step

@@ -54,7 +54,7 @@ def test_a_line_reaches_the_exact_optimum_with_identical_copies(monkeypatch):
 def test_an_eight_robot_ring_stops_within_tol_of_the_exact_solution():
     """The issue's 8-ring (paper preset, default tol 1e-3): the relay hub's stop is within tol of
     the exact QP, in fewer rounds than main's relay design took (benchmarks/results/rounds.md: 1176
-    rounds for the edge form, 1006 with memory 30, eta 1.5, hold 40; measured 630 since branch relayaa)."""
+    rounds for the edge form, 1006 with memory 30, eta 1.5, hold 40; 630 since branch relayaa; measured 620 since branch relaystop)."""
     _, spec, central, cores = _fleet(preset="paper", robots=8, topology="ring", max_rounds=3000)
     run_to_end(cores, limit=3000)
     assert all(c.converged for c in cores)
