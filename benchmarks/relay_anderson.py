@@ -15,6 +15,15 @@ every chosen fleet at each seed (the hold's safety check), --no-frame-budget let
 ride wherever a frame's MAX_DIM allows (a what-if for the 16-robot fleets, beyond the frame budget).
 --memory is a Python expression in n (robots), dim (M + 1), D (the graph's diameter) and a (the
 fleet's ADMMParams.anderson); the other flags replace the module's constants for the run.
+
+The stop's lag (branch relaystop): a stop rule changes when the fleet stops, never the path, so rules are
+compared offline. --trace DIR runs each fleet with the stop disabled and records per round what a copy's
+rule may see and the true error of the robots' answer (DIR/<fleet>.json); --replay FILES replays main's
+rule (MAIN_RULES) and the module's (`relay_stop_tests`) on them, --as-unguarded the unguarded rule on
+every trace (its safety on the guarded fleets' plateaus too); --certify 0 runs every fleet without guard.
+
+    .venv/bin/python benchmarks/relay_anderson.py --jobs 2 --fleets 8-ring 16-ring --seeds 0 1 2 --trace /tmp/tr
+    .venv/bin/python benchmarks/relay_anderson.py --replay /tmp/tr/*.json [--as-unguarded] [--trace-tols 1e-3 1e-4]
 """
 
 from __future__ import annotations
