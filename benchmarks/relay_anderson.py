@@ -15,11 +15,22 @@ every chosen fleet at each seed (the hold's safety check), --no-frame-budget let
 ride wherever a frame's MAX_DIM allows (a what-if for the 16-robot fleets, beyond the frame budget).
 --memory is a Python expression in n (robots), dim (M + 1), D (the graph's diameter) and a (the
 fleet's ADMMParams.anderson); the other flags replace the module's constants for the run.
+
+The stop's lag (branch relaystop): a stop rule changes when the fleet stops, never the path, so rules are
+compared offline. --trace DIR runs each fleet with the stop disabled and records per round what a copy's
+rule may see and the true error of the robots' answer (DIR/<fleet>.json); --replay FILES replays main's
+rule (MAIN_RULES) and the module's (`relay_stop_tests`) on them, --as-unguarded the unguarded rule on
+every trace (its safety on the guarded fleets' plateaus too); --certify 0 runs every fleet without guard.
+
+    .venv/bin/python benchmarks/relay_anderson.py --jobs 2 --fleets 8-ring 16-ring --seeds 0 1 2 --trace /tmp/tr
+    .venv/bin/python benchmarks/relay_anderson.py --replay /tmp/tr/*.json [--as-unguarded] [--trace-tols 1e-3 1e-4]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import multiprocessing
 import sys
 import time
@@ -28,9 +39,12 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents import relay_hub  # noqa: E402
+from agents import admm, relay_hub  # noqa: E402
 from agents.admm import ADMMParams  # noqa: E402
 from benchmarks.common import lockstep_round  # noqa: E402
+
+#: rounds a trace runs on past the last stop of main's rule (`--trace`)
+TRACE_EXTRA = 300
 
 #: the relay fleets of issue 10 and rounds.md (label: Options keywords)
 RELAY_FLEETS: dict[str, dict[str, Any]] = {
@@ -64,11 +78,15 @@ def stop_check_fleets() -> dict[str, dict[str, Any]]:
     return fleets
 
 
+#: the relay module's constants a variant may replace
+_DEFAULTS = {key: getattr(relay_hub, key) for key in ("RELAY_REG", "RELAY_SAFEGUARD", "RELAY_RELAX", "RELAY_HOLD",
+                                                      "RELAY_HOLD_CERTIFIED", "RELAY_WARM_QP")}
+
+
 def configure(variant: dict[str, Any]) -> None:
     """Replace the relay module's constants (and its memory rule) by the variant's."""
-    for key in ("RELAY_REG", "RELAY_SAFEGUARD", "RELAY_RELAX", "RELAY_HOLD", "RELAY_HOLD_CERTIFIED", "RELAY_WARM_QP"):
-        if variant.get(key) is not None:
-            setattr(relay_hub, key, variant[key])
+    for key, default in _DEFAULTS.items():  # (a pool's process runs several tasks: reset what a trace changed)
+        setattr(relay_hub, key, default if variant.get(key) is None else variant[key])
     if variant.get("no_frame_budget"):  # what-if: the guard's payload on every relay fleet (MAX_DIM only)
         relay_hub.relay_cert_slot = lambda params, n, dim: (  # noqa: E731
             relay_hub.certify_slot(params) and n * (dim + relay_hub.cert_math.PAYLOAD) <= relay_hub.MAX_DIM)
@@ -76,6 +94,154 @@ def configure(variant: dict[str, Any]) -> None:
         expr = variant["memory"]
         relay_hub.relay_memory = lambda params, n, dim, D: int(eval(expr, {"min": min, "max": max},  # noqa: E731
                                                                     {"n": n, "dim": dim, "D": D, "a": params.anderson}))
+
+
+#: main's relay stop tests before branch relaystop, ((window, margin, hold), ...) without and with the guard
+MAIN_RULES: dict[bool, tuple[tuple[int, float, int], ...]] = {False: ((20, 2.0, 40),), True: ((20, 2.0, 20),)}
+Rules = dict[bool, tuple[tuple[int, float, int], ...]]
+
+
+def rule_stop(residuals: list[float | None], bounds: list[float], *, tol: float, guarded: bool, delay: int,
+              threshold: float, tests: tuple[tuple[int, float, int], ...]) -> int | None:
+    """A relay stop rule replayed on a trace (row R: the residual of the step that formed round R and
+    the guard's bound of that step): any test (window, margin, hold) with margin x relay_estimate(window)
+    below tol for `hold` rounds in a row, and where the guard decides the bound <= threshold, then D
+    rounds of flags (the core's arithmetic: a replay gives the core's stop round for round). Returns the
+    round the fleet stops at, or None."""
+    kept = 2 * max(w for w, _, _ in tests)
+    window: list[float] = []
+    held = [0] * len(tests)
+    for R, r in enumerate(residuals):
+        if r is None:
+            continue
+        window = (window + [r])[-kept:]
+        held = [h + 1 if margin * relay_hub.relay_estimate(window, w) < tol else 0
+                for h, (w, margin, _) in zip(held, tests)]
+        if any(h >= hold for h, (_, _, hold) in zip(held, tests)) and (not guarded or bounds[R] <= threshold):
+            return R + delay
+    return None
+
+
+def trace_stops(doc: dict[str, Any], tol: float, rules: Rules,
+                guarded: bool | None = None) -> int | None:
+    """The stop of `rules` (by guarded) on a trace document at tol; guarded=False replays the unguarded
+    rule on a guarded run (its safety on every trace, the guard ignored)."""
+    rows = doc["rows"]
+    on = doc["guarded"] if guarded is None else guarded
+    res = [row.get("residual") for row in rows]
+    bounds = [math.inf if row.get("bound") is None else row["bound"] for row in rows]
+    return rule_stop(res, bounds, tol=tol, guarded=on, delay=doc["D"],
+                     threshold=doc["certify"] * max(tol, admm.CERTIFY_TOL_FLOOR), tests=rules[on])
+
+
+def current_rules() -> Rules:
+    """The relay module's stop tests (as configured), by guarded."""
+    return {g: relay_hub.relay_stop_tests(g) for g in (False, True)}
+
+
+def trace_run(label: str, cores: list[Any], error: Any, max_rounds: int, tols: list[float],
+              out: Path, rules: Rules) -> dict[str, Any]:
+    """Run the fleet past every stop main's rule and `rules` would make (at each of `tols`, + TRACE_EXTRA
+    rounds or to the cap) with the stop disabled, recording per round everything a copy's stop rule may see and
+    the true error of the robots' answer (a stop rule changes when the fleet stops, never the path:
+    rules are then compared offline, `--replay`). Writes DIR/<label>.json."""
+    core = cores[0]
+    steps: dict[int, dict[str, Any]] = {}
+    step = relay_hub.RelayHubADMM._fleet_step
+    forget = relay_hub.RelayHubADMM._forget
+
+    def counted(self: relay_hub.RelayHubADMM) -> None:
+        steps.setdefault(self.round + 1, {})["restart"] = True
+        forget(self)
+
+    def recorded(self: relay_hub.RelayHubADMM, S: Any, A: Any) -> bool:
+        below = step(self, S, A)
+        g = self._hist_g[-1]
+        steps.setdefault(self.round + 1, {}).update(
+            residual=self.residual, fixed_point=math.sqrt(float(g @ g)), pairs=len(self._dg),
+            xnorm=math.sqrt(float(self._prev_mean[:-1] @ self._prev_mean[:-1])), gamma=float(self._prev_mean[-1]))
+        return below
+
+    relay_hub.RelayHubADMM._fleet_step = recorded  # type: ignore[method-assign]
+    relay_hub.RelayHubADMM._forget = counted  # type: ignore[method-assign]
+    rows: list[dict[str, Any]] = [{"round": 0, "error": error()}]
+    params = core.params
+    stops: dict[tuple[float, int], int | None] = {}
+    while core.round < max_rounds:
+        lockstep_round(cores)
+        R = core.round
+        info = steps.pop(R, {})
+        rows.append({"round": R, "error": error(), "residual": info.get("residual"),
+                     "fixed_point": info.get("fixed_point"), "pairs": info.get("pairs"),
+                     "xnorm": info.get("xnorm"), "gamma": info.get("gamma"),
+                     "restart": bool(info.get("restart")), "bound": core._fleet_bound if core._cert_on else None})
+        if R % 50 == 0 or R == max_rounds:
+            doc = {"rows": rows, "guarded": core._cert_on, "D": core.delay, "certify": params.certify}
+            for tol in tols:
+                for k, rs in enumerate((MAIN_RULES, rules)):
+                    if stops.get((tol, k)) is None:
+                        stops[tol, k] = trace_stops(doc, tol, rs)
+            if all(s is not None and R >= s + TRACE_EXTRA for s in stops.values()):
+                break
+    relay_hub.RelayHubADMM._fleet_step = step  # type: ignore[method-assign]
+    relay_hub.RelayHubADMM._forget = forget  # type: ignore[method-assign]
+    doc = {"label": label, "n": core.n, "D": core.delay, "guarded": core._cert_on, "tol": params.tol,
+           "certify": params.certify, "rules": [MAIN_RULES[core._cert_on], rules[core._cert_on]],
+           "stops": {f"{t:g} {('main', 'rule')[k]}": s for (t, k), s in stops.items()}, "rows": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / (label.replace(" ", "_") + ".json")).write_text(json.dumps(doc))
+    return doc
+
+
+def replay(paths: list[Path], tols: list[float], as_unguarded: bool = False) -> dict[str, Any]:
+    """Main's stop rule and the module's replayed on traces (`--trace`): per run and tol the round of
+    the stop and the true error there, and a summary (the rule's rounds against main's where both stop,
+    runs that stop later or no longer stop, every stop above tol). as_unguarded: the unguarded rule on
+    every trace, the guard ignored (its safety on the guarded fleets' plateaus too)."""
+    rules = current_rules()
+    print(f"main {MAIN_RULES}, rule {rules} ((window, margin, hold), ... by guarded); "
+          f"{'every run as unguarded' if as_unguarded else 'guard as run'}")
+    print("| run | guarded | D | tol | error < tol first | main: stop (error) | rule: stop (error) |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    sums = {"main": 0, "rule": 0, "both": 0, "earlier": 0, "later": 0, "no_longer": 0, "newly": 0,
+            "unsafe_main": [], "unsafe_rule": [], "worst_main": 0.0, "worst_rule": 0.0}
+    for path in paths:
+        doc = json.loads(path.read_text())
+        errors = [row["error"] for row in doc["rows"]]
+        guarded = False if as_unguarded else None
+        for tol in tols:
+            first = next((R for R, e in enumerate(errors) if e < tol), None)
+            cells, stops = [], []
+            for key, rs in (("main", MAIN_RULES), ("rule", rules)):
+                stop = trace_stops(doc, tol, rs, guarded)
+                if stop is not None and stop >= len(errors):
+                    stop = None  # (past the trace's end: not seen)
+                stops.append(stop)
+                if stop is None:
+                    cells.append("-")
+                    continue
+                err = errors[stop]
+                cells.append(f"{stop} ({err:.1e}{' ABOVE TOL' if err > tol else ''})")
+                sums[f"worst_{key}"] = max(sums[f"worst_{key}"], err)
+                if err > tol:
+                    sums[f"unsafe_{key}"].append(f"{doc['label']} tol {tol:g}: {stop} ({err:.2e})")
+            m, r = stops
+            if m is not None and r is not None:
+                sums["main"] += m
+                sums["rule"] += r
+                sums["both"] += 1
+                sums["earlier"] += r < m
+                sums["later"] += r > m
+            sums["no_longer"] += m is not None and r is None
+            sums["newly"] += m is None and r is not None
+            print(f"| {doc['label']} | {'yes' if doc['guarded'] and not as_unguarded else 'no'} | {doc['D']} | "
+                  f"{tol:g} | {first} | {cells[0]} | {cells[1]} |")
+    print(f"where both stop ({sums['both']} runs x tols): main {sums['main']} rounds, rule {sums['rule']} "
+          f"({sums['earlier']} earlier, {sums['later']} later); no longer stop {sums['no_longer']}, newly stop "
+          f"{sums['newly']}; largest error at a stop main {sums['worst_main']:.1e}, rule {sums['worst_rule']:.1e}; "
+          f"above tol: main {len(sums['unsafe_main'])} {sums['unsafe_main']}, rule {len(sums['unsafe_rule'])} "
+          f"{sums['unsafe_rule']}")
+    return sums
 
 
 def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]:
@@ -86,6 +252,11 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
 
     label, kwargs, variant, max_rounds = task
     configure(variant)
+    trace = variant.get("trace")
+    rules = current_rules()
+    if trace:  # never stop; the guard's bound every round (the path is the same: admm.CERTIFY_EVERY_ROUND)
+        relay_hub.RELAY_HOLD = relay_hub.RELAY_HOLD_CERTIFIED = 10**9
+        admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = True, math.inf
     restarts = [0]
     forget = relay_hub.RelayHubADMM._forget
 
@@ -94,7 +265,8 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
         forget(self)
 
     relay_hub.RelayHubADMM._forget = counted  # type: ignore[method-assign]
-    world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
+    extra = {} if variant.get("certify") is None else {"certify": variant["certify"]}
+    world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs, **extra))
     central = solve_central(spec.basis, world.points, world.labels, spec.C)
     b = spec.basis
     started = time.process_time()
@@ -105,6 +277,16 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
     def error() -> float:
         return max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores)
 
+    if trace:
+        doc = trace_run(label, cores, error, max_rounds, variant["trace_tols"], Path(trace), rules)
+        stop = doc["stops"][f"{variant['trace_tols'][0]:g} rule"]
+        errs = [row["error"] for row in doc["rows"]]
+        first = next((R for R, e in enumerate(errs) if e < 1e-3), None)
+        return {"fleet": label, "first": first, "stop": stop or max_rounds,
+                "error": errs[stop] if stop is not None and stop < len(errs) else errs[-1],
+                "converged": stop is not None, "restarts": sum(row.get("restart", False) for row in doc["rows"]),
+                "memory": cores[0]._memory, "D": cores[0].delay, "cpu": time.process_time() - started,
+                "ms_round": 0.0}
     first = None
     while not all(c.finished for c in cores):
         lockstep_round(cores)
@@ -134,14 +316,30 @@ def main() -> None:
                          "beyond the frame budget of FRAME_BUDGET x (M + 1) floats")
     ap.add_argument("--seeds", nargs="*", type=int, default=None,
                     help="run every chosen fleet at each of these seeds (the safety check of the hold)")
+    ap.add_argument("--trace", default=None, metavar="DIR",
+                    help="record per round the stop rule's inputs and the true error into DIR/<fleet>.json, "
+                         "the stop disabled (past main's stop by TRACE_EXTRA rounds): rules replayed offline")
+    ap.add_argument("--trace-tols", nargs="*", type=float, default=[1e-3],
+                    help="the trace runs past main's stop at each of these tolerances")
+    ap.add_argument("--replay", nargs="*", default=None, metavar="TRACE",
+                    help="no runs: replay main's stop rule and the module's on these trace files (at --trace-tols)")
+    ap.add_argument("--as-unguarded", action="store_true",
+                    help="with --replay: the unguarded rule on every trace, the guard ignored")
+    ap.add_argument("--label", default="", help="a prefix of the fleets' labels (trace file names)")
+    ap.add_argument("--certify", type=float, default=None,
+                    help="the fleets' certify (0: no guard anywhere, the unguarded stop rule on every fleet)")
     ap.add_argument("--max-rounds", type=int, default=5000)
     ap.add_argument("--jobs", type=int, default=1)
     args = ap.parse_args()
+    if args.replay is not None:
+        replay([Path(p) for p in args.replay], args.trace_tols, args.as_unguarded)
+        return
     variant = {"memory": args.memory, "RELAY_REG": args.reg, "RELAY_SAFEGUARD": args.safeguard,
                "RELAY_RELAX": args.relax, "RELAY_HOLD": args.hold,
                "RELAY_HOLD_CERTIFIED": args.hold_certified,
                "RELAY_WARM_QP": None if args.warm_qp is None else args.warm_qp == "on",
-               "no_frame_budget": args.no_frame_budget}
+               "no_frame_budget": args.no_frame_budget, "trace": args.trace, "trace_tols": args.trace_tols,
+               "certify": args.certify}
     tol = ADMMParams().tol
     print(f"variant: {variant}", flush=True)
     print("| fleet | D | memory | rounds to 1e-3 | rounds at stop | converged | error at stop | restarts | "
@@ -149,7 +347,7 @@ def main() -> None:
     fleets = stop_check_fleets() if args.stop_check else {f: RELAY_FLEETS[f] for f in args.fleets}
     if args.seeds is not None:
         fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
-    tasks = [(f, kw, variant, args.max_rounds) for f, kw in fleets.items()]
+    tasks = [(args.label + f, kw, variant, args.max_rounds) for f, kw in fleets.items()]
     total, worst = 0, 0.0
     with multiprocessing.Pool(args.jobs) as pool:
         for r in pool.imap(run, tasks):
