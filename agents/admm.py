@@ -610,18 +610,19 @@ def stall_watch(mark: float, since: int, residual: float) -> tuple[float, int, b
     return mark, since, since >= STALL_WINDOW
 
 
-def error_estimate(residuals: list[float], *, typical_older: bool = False) -> float:
+def error_estimate(residuals: list[float], *, typical_older: bool = False, window: int = RATE_WINDOW) -> float:
     """Distance to the fixed point implied by recent residuals: r / (1 - observed rate).
 
     ADMM's residuals oscillate, so the rate compares the largest residual of the last window
-    with that of the window before (a per-round geometric rate), which is robust to the swings.
+    (`window` rounds; the relay hub's fast stop test uses a shorter one) with that of the window
+    before (a per-round geometric rate), which is robust to the swings.
     With `typical_older` the window before counts with its median instead: Anderson's restarts
     put single spikes into the residual, and a spike in the older window would fake a fast rate
     on a slow plateau (measured: a stop at 2.4e-3 for tol 1e-3 on a crescent). Only a residual
     that falls below the old window's typical level -- Anderson's final, fast phase -- counts.
     Infinite until two windows exist or while the residual is not shrinking.
     """
-    w = RATE_WINDOW
+    w = window
     n = len(residuals)
     if n < 2 * w:
         return float("inf")

@@ -77,7 +77,7 @@ import numpy as np
 from agents import admm
 from agents import certificate as cert_math
 from agents.admm import (FRAME_BUDGET, RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, certify_slot,
-                         certify_threshold, shared_step)
+                         certify_threshold, error_estimate, shared_step)
 from agents.certificate import Certificate, fleet_certificate
 from agents.allreduce import _bfs, check_graph
 from agents.messages import StateUpdate
@@ -100,7 +100,7 @@ RELAY_MEMORY = 50
 RELAY_SAFEGUARD = 10.0
 #: Tikhonov regularisation of Anderson's least squares, relative to the mean diagonal
 RELAY_REG = 3e-3
-#: the stop tests (`relay_stop_tests`): margin x `relay_estimate` over windows of w rounds below tol for
+#: the stop tests (`relay_stop_tests`): margin x `admm.error_estimate` over windows of w rounds below tol for
 #: `hold` rounds in a row; where no certified guard decides (N >= 12 on the paper grid, soft margins)
 #: the fleet stops when either of two has held. Main's: 2 x over windows of RATE_WINDOW (20), held 40
 #: rounds -- on the plateaus a delayed Anderson can sit on (error just above tol, the residual ~70x
@@ -138,31 +138,26 @@ SHARED_KEPT = 64
 _SHARED_CERTS: OrderedDict[bytes, tuple[Any, ...]] = OrderedDict()
 
 
-def relay_estimate(residuals: Sequence[float], window: int) -> float:
-    """Distance to the fixed point implied by the recent residuals, r / (1 - rate), over two windows of
-    `window` rounds: r the recent window's largest residual, the rate the per-round ratio of the two
-    windows' largest (admm.error_estimate's form, whose window is fixed at RATE_WINDOW: the same bits at
-    window RATE_WINDOW). Infinite until two windows exist or while the residual is not shrinking."""
-    n = len(residuals)
-    if n < 2 * window:
-        return math.inf
-    recent = max(residuals[n - window:])
-    older = max(residuals[n - 2 * window: n - window])
-    if not older > 0:
-        return 0.0 if recent == 0 else math.inf
-    rate = (recent / older) ** (1.0 / window)
-    if rate >= 1.0:
-        return math.inf
-    return recent / (1.0 - rate)
-
-
 def relay_stop_tests(guarded: bool) -> tuple[tuple[int, float, int], ...]:
     """The relay's stop tests as (window, margin, hold): the fleet's stop test passes once any of them
-    has had margin x relay_estimate(window) below tol for hold rounds in a row; `guarded`: the certified
+    has had margin x error_estimate(window) below tol for hold rounds in a row; `guarded`: the certified
     guard decides too (its bound is then needed as well). See the constants."""
     if guarded:
         return ((RATE_WINDOW, RELAY_STOP_MARGIN, RELAY_HOLD_CERTIFIED),)
     return ((RATE_WINDOW, RELAY_STOP_MARGIN, RELAY_HOLD), (RELAY_FAST_WINDOW, RELAY_FAST_MARGIN, RELAY_FAST_HOLD))
+
+
+def relay_stop_held(held: Sequence[int], residuals: list[float], tests: Sequence[tuple[int, float, int]],
+                    tol: float) -> tuple[int, ...]:
+    """One round of the stop tests: each test's count of passing rounds in a row, after the newest
+    residual (margin x the estimate over its window below tol: one more; otherwise 0)."""
+    return tuple(h + 1 if margin * error_estimate(residuals, window=w) < tol else 0
+                 for h, (w, margin, _) in zip(held, tests))
+
+
+def relay_stop_passed(held: Sequence[int], tests: Sequence[tuple[int, float, int]]) -> bool:
+    """True once any stop test has passed for its hold."""
+    return any(h >= hold for h, (_, _, hold) in zip(held, tests))
 
 
 def relay_memory(params: ADMMParams, n: int, dim: int, delay: int) -> int:
@@ -446,10 +441,8 @@ class RelayHubADMM(RoundCore):
         # moves, the residual ~70x below the error (measured: 8-ring seed 2 of the old design, error
         # 1.1e-3 for 600 rounds at residual 1.6e-5), where isolated spikes in the older window fake a fast
         # rate: each hold is 1.7x the longest false streak traced (benchmarks/results/rounds-stop-relay.md)
-        tol = self.params.tol
-        self._held = tuple(h + 1 if margin * relay_estimate(self._residuals, w) < tol else 0
-                           for h, (w, margin, _) in zip(self._held, self._tests))
-        return any(h >= hold for h, (_, _, hold) in zip(self._held, self._tests))
+        self._held = relay_stop_held(self._held, self._residuals, self._tests, self.params.tol)
+        return relay_stop_passed(self._held, self._tests)
 
     # -- Anderson -------------------------------------------------------------------------------
     def _forget(self) -> None:
@@ -522,7 +515,7 @@ class RelayHubADMM(RoundCore):
 
     def estimate(self) -> float:
         """The stop tests' smallest margin x estimate (what the status shows against tol)."""
-        return min(margin * relay_estimate(self._residuals, w) for w, margin, _ in self._tests)
+        return min(margin * error_estimate(self._residuals, window=w) for w, margin, _ in self._tests)
 
     # -- checkpoint -----------------------------------------------------------------------------
     def _save_state(self) -> dict[str, Any]:
@@ -558,8 +551,10 @@ class RelayHubADMM(RoundCore):
         self._dg, self._df, self._gram = rows("dg"), rows("df"), rows("gram")
         self._best = float(state["best"])
         self._residuals = [float(r) for r in state["residuals"]]
-        held = state["held"]  # (a list per stop test; one int before branch relaystop)
-        self._held = tuple(int(h) for h in held) if isinstance(held, list) else (int(held),) * len(self._tests)
+        held = state["held"]  # a list per stop test; one int (main's test) before branch relaystop, whose
+        # count is main's test's only: the others start afresh (a later stop, never an earlier one)
+        self._held = (tuple(int(h) for h in held) if isinstance(held, list)
+                      else (int(held),) + (0,) * (len(self._tests) - 1))
         self._prev_mean = from_bytes(state["prev_mean"])
         self._frame = from_bytes(state["frame"])
         self._prev_frame = from_bytes(state["prev_frame"])

@@ -104,20 +104,19 @@ Rules = dict[bool, tuple[tuple[int, float, int], ...]]
 def rule_stop(residuals: list[float | None], bounds: list[float], *, tol: float, guarded: bool, delay: int,
               threshold: float, tests: tuple[tuple[int, float, int], ...]) -> int | None:
     """A relay stop rule replayed on a trace (row R: the residual of the step that formed round R and
-    the guard's bound of that step): any test (window, margin, hold) with margin x relay_estimate(window)
+    the guard's bound of that step): any test (window, margin, hold) with margin x error_estimate(window)
     below tol for `hold` rounds in a row, and where the guard decides the bound <= threshold, then D
     rounds of flags (the core's arithmetic: a replay gives the core's stop round for round). Returns the
     round the fleet stops at, or None."""
     kept = 2 * max(w for w, _, _ in tests)
     window: list[float] = []
-    held = [0] * len(tests)
+    held: tuple[int, ...] = (0,) * len(tests)
     for R, r in enumerate(residuals):
         if r is None:
             continue
         window = (window + [r])[-kept:]
-        held = [h + 1 if margin * relay_hub.relay_estimate(window, w) < tol else 0
-                for h, (w, margin, _) in zip(held, tests)]
-        if any(h >= hold for h, (_, _, hold) in zip(held, tests)) and (not guarded or bounds[R] <= threshold):
+        held = relay_hub.relay_stop_held(held, window, tests, tol)
+        if relay_hub.relay_stop_passed(held, tests) and (not guarded or bounds[R] <= threshold):
             return R + delay
     return None
 

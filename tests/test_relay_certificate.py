@@ -43,7 +43,7 @@ def test_the_relay_bound_holds_every_round_against_the_central_solve(kwargs, mon
 
 
 def test_the_relay_guard_refuses_a_rule_that_always_says_stop(monkeypatch):
-    monkeypatch.setattr(relay_hub, "relay_estimate", lambda *a, **k: 0.0)
+    monkeypatch.setattr(relay_hub, "error_estimate", lambda *a, **k: 0.0)
     _, spec, central = make_run(topology="ring", robots=4)
     tol = spec.params["tol"]
     stops = {}
@@ -131,7 +131,7 @@ def test_a_forged_relayed_payload_neither_crashes_a_robot_nor_lets_it_stop(bad, 
     """Robot 0 of a 4-ring gets every relayed payload forged (non-finite -- a decoder would refuse
     it -- or negative) for the D + 1 rounds up to the one where the honest payloads let it stop (the
     rule patched to pass every round): the rounds run, the certificate is absent, no stop by it."""
-    monkeypatch.setattr(relay_hub, "relay_estimate", lambda *a, **k: 0.0)
+    monkeypatch.setattr(relay_hub, "error_estimate", lambda *a, **k: 0.0)
     _, spec, _ = make_run(topology="ring", robots=4)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     k = 0

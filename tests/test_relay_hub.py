@@ -75,15 +75,19 @@ def test_the_relay_design_is_one_rule_for_every_fleet():
     assert relay_hub.RELAY_HOLD_CERTIFIED < relay_hub.RELAY_HOLD
 
 
-def test_the_relay_estimate_is_mains_at_its_window():
-    """relay_estimate over windows of RATE_WINDOW is admm.error_estimate bit for bit (the guarded stop
-    and main's test of the unguarded one keep main's estimate), on a falling, a flat and a short series."""
-    rng = np.random.default_rng(3)
-    falling = list(np.exp(-0.05 * np.arange(60)) * rng.uniform(0.5, 2.0, 60))
-    for series in (falling, [1e-5] * 45, falling[:30]):
-        for n in range(len(series) + 1):
-            window = series[max(0, n - 2 * RATE_WINDOW): n]
-            assert relay_hub.relay_estimate(window, RATE_WINDOW) == error_estimate(window)
+@pytest.mark.parametrize("window", [10, RATE_WINDOW])
+def test_the_windowed_estimate_reads_only_its_two_windows(window):
+    """error_estimate(window=w) on a geometric series q^k is q^(n-w) / (1 - q) (the recent window's
+    largest residual over one minus the per-round rate), whatever precedes its last 2 w residuals;
+    infinite with fewer than 2 w or on a rising series. (The relay's fast stop test uses w = 10.)"""
+    q = 0.9
+    series = [q ** k for k in range(50)]
+    noisy_head = [1e3] * 7 + series  # residuals older than the two windows must not matter
+    expected = q ** (len(series) - window) / (1 - q)
+    assert error_estimate(series, window=window) == pytest.approx(expected, rel=1e-12)
+    assert error_estimate(noisy_head, window=window) == error_estimate(series, window=window)
+    assert error_estimate(series[: 2 * window - 1], window=window) == float("inf")
+    assert error_estimate(series[::-1], window=window) == float("inf")
 
 
 @pytest.mark.parametrize("guarded", [False, True])
@@ -95,11 +99,11 @@ def test_a_spiky_plateau_never_holds_a_relay_stop_test(guarded):
     tol = ADMMParams().tol
 
     def passes(residuals):
-        kept, held, longest = 2 * max(w for w, _, _ in tests), [0] * len(tests), 0
+        kept, held, longest = 2 * max(w for w, _, _ in tests), (0,) * len(tests), 0
         for k in range(len(residuals)):
             window = residuals[max(0, k + 1 - kept): k + 1]
-            held = [h + 1 if m * relay_hub.relay_estimate(window, w) < tol else 0 for h, (w, m, _) in zip(held, tests)]
-            if any(h >= hold for h, (_, _, hold) in zip(held, tests)):
+            held = relay_hub.relay_stop_held(held, window, tests, tol)
+            if relay_hub.relay_stop_passed(held, tests):
                 return True
             longest = max(longest, *held)
         assert 0 < longest  # the spikes do fake passes, only not for long enough
