@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from agents.admm import ADMMParams, ConsensusADMM, edge_penalty
+from agents.admm import error_estimate as admm_error_estimate
 from agents.params import check_counts, check_diameter, check_positive
 from agents.problem import MarginQP
 from agents.rounds import RobotShare, RoundCore, check_iterate, result_row
@@ -112,16 +113,12 @@ def _gap(v: np.ndarray, others: list[np.ndarray]) -> float:
 
 
 def error_estimate(residuals: list[float], window: int) -> float:
-    """Distance to the fixed point implied by the last two windows of residuals: r / (1 - rate),
-    the per-tick rate from the windows' largest residuals (robust to loss's noisy residuals).
-    Infinite until two windows exist or while the residual is not shrinking."""
-    if len(residuals) < 2 * window or not all(map(math.isfinite, residuals)):
+    """Distance to the fixed point implied by the last two windows of residuals: admm's windowed
+    r / (1 - rate) (the windows' largest residuals: robust to loss's noisy residuals); infinite while
+    a kept residual is not finite."""
+    if not all(map(math.isfinite, residuals)):
         return math.inf
-    recent, older = max(residuals[-window:]), max(residuals[:window])
-    if not older > 0:
-        return 0.0 if recent == 0 else math.inf
-    rate = (recent / older) ** (1.0 / window)
-    return math.inf if rate >= 1.0 else recent / (1.0 - rate)
+    return admm_error_estimate(residuals, window=window)
 
 
 class RelaxedADMM:
