@@ -184,56 +184,61 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     triangular solves exactly rounded sums (math.fsum over Python floats: the same products, less
     overhead than numpy for vectors this short) -- no BLAS call whose summation order varies.
 
-    The factorisation runs in a work matrix kept per size and thread (`_spd_workspace`: its views
-    made once, every ufunc writing into them), a hub step's largest cost: 3 numpy calls a column
-    and nothing allocated, the last few columns on Python floats (`_spd_factor`), the same
-    operations in the same order as a fresh matrix per call (tests/test_exact_arith.py compares
-    with that plain form)."""
+    The factorisation runs on the lower triangle alone, packed column by column in a work vector
+    kept per size and thread (`_spd_workspace`: its views and index arrays made once), a hub
+    step's largest cost: every step's operands contiguous, the last few columns on Python floats
+    (`_spd_factor`), each entry the same operations in the same order as the plain right-looking
+    form on a fresh square matrix (tests/test_exact_arith.py compares with that form)."""
     return _spd_solve(_spd_factor(H), g)
 
 
-def _spd_factor(H: np.ndarray) -> tuple[list[list[float]], list[tuple[float, ...]]]:
-    """`_solve_spd`'s Cholesky factor L of H, as its rows (their lower triangle and diagonal: what
-    the solves read) and its columns read upwards (column i: L[n-1][i], L[n-2][i], ...), as Python
-    lists: factor once, solve many times with `_spd_solve` (the same operations as `_solve_spd`,
-    the same bits). The last SPD_SCALAR_TAIL columns run on Python floats, the lower triangle only:
-    each entry gets the same subtractions of the same products in the same order as numpy's
-    rank-1 updates would give it, at less than a numpy call's cost where the trailing block is a
-    few entries (measured: 147 -> 122 us per factor on the paper preset's Anderson systems, m ~23)."""
+def _spd_factor(H: np.ndarray) -> tuple[list[tuple[float, ...]], list[list[float]]]:
+    """`_solve_spd`'s Cholesky factor L of H, as its rows (lower triangle and diagonal: what the
+    solves read) and its columns below the diagonal read upwards (column i: L[n-1][i], L[n-2][i],
+    ..., L[i+1][i]), as Python sequences: factor once, solve many times with `_spd_solve` (the
+    same operations as `_solve_spd`, the same bits).
+
+    Why packed: the square form's rank-1 update ran its three numpy calls over strided 2-D views
+    of the whole trailing block (both triangles), one inner loop per row. Here H's lower triangle
+    is packed column after column (column k = L[k:, k], then column k + 1, ...), so column k's
+    entries and the trailing triangle are contiguous slices: a step divides the column, gathers
+    the two factors of every trailing entry's product (l_ik, l_jk for i >= j; precomputed index
+    arrays), multiplies and subtracts -- each trailing entry a_ij gets a_ij - l_ik l_jk at step k,
+    as in the square form (l_ik l_jk == l_jk l_ik in IEEE arithmetic), and nothing else. The last
+    SPD_SCALAR_TAIL columns run on the packed list's Python floats: the same subtractions of the
+    same products in the same order, cheaper than a numpy call for a trailing triangle of a few
+    entries. Measured on the paper preset's Anderson systems (m ~23): 100 -> ~70 us a factor
+    (benchmarks/results/round_cost.md, branch cholblock)."""
     n = len(H)
-    A, _diag, steps = _spd_workspace(n)
-    np.copyto(A, H)
-    sqrt, divide, multiply, subtract, item = math.sqrt, np.divide, np.multiply, np.subtract, A.item
+    packed, src, steps, tail, rows_of, offs = _spd_workspace(n)
+    np.asarray(H, dtype=float).take(src, None, packed, "clip")  # (indices in range: clip only skips a buffer)
+    sqrt, divide, multiply, subtract, item = math.sqrt, np.divide, np.multiply, np.subtract, packed.item
     pivots: list[float] = []
-    cut = max(n - SPD_SCALAR_TAIL, 0)
-    for k in range(cut):  # A becomes L in its lower triangle
-        col, col_t, trail, prod = steps[k]
-        akk = item(k, k)
+    for off, col, trail, i, j, prod in steps:  # the numpy columns
+        akk = item(off)
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
         pivots.append(lkk := sqrt(akk))
         divide(col, lkk, col)
-        multiply(col_t, col, prod)  # the outer product col col^T
+        multiply(col[i], col[j], prod)  # l_ik l_jk for every trailing entry (i, j), packed like the entries
         subtract(trail, prod, trail)
-    rows = A.tolist()
-    for k in range(cut, n):  # the same steps on the lower triangle of the last few columns
-        akk = rows[k][k]
+    flat = packed.tolist()
+    for off, below, updates in tail:  # the same steps on Python floats: (entry, l_ik, l_jk) positions
+        akk = flat[off]
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
         pivots.append(lkk := sqrt(akk))
-        for i in range(k + 1, n):
-            rows[i][k] /= lkk
-        for i in range(k + 1, n):
-            ri = rows[i]
-            li = ri[k]
-            for j in range(k + 1, i + 1):
-                ri[j] -= li * rows[j][k]
-    for k, lkk in enumerate(pivots):
-        rows[k][k] = lkk
-    return rows, list(zip(*rows[::-1]))
+        for p in below:
+            flat[p] /= lkk
+        for p, a, b in updates:
+            flat[p] -= flat[a] * flat[b]
+    for off, lkk in zip(offs, pivots):
+        flat[off] = lkk
+    rows = [(flat[0],), *[row(flat) for row in rows_of]] if n else []
+    return rows, [flat[end - 1 : off : -1] for off, end in zip(offs, offs[1:])]
 
 
-def _spd_solve(factor: tuple[list[list[float]], list[tuple[float, ...]]], g: np.ndarray) -> np.ndarray:
+def _spd_solve(factor: tuple[list[tuple[float, ...]], list[list[float]]], g: np.ndarray) -> np.ndarray:
     """L L' x = g by the two triangular solves of `_solve_spd` (exactly rounded sums: math.fsum's
     result does not depend on the order of its terms, so the back substitution takes x and the
     columns from the bottom up, as they come, without slicing either)."""
@@ -244,32 +249,47 @@ def _spd_solve(factor: tuple[list[list[float]], list[tuple[float, ...]]], g: np.
     for i, row in enumerate(rows):  # map stops at len(y) == i: the products row[:i] * y[:i]
         y.append((rhs[i] - fsum(map(mul, row, y))) / row[i])
     x_up: list[float] = []  # x[n-1], x[n-2], ...
-    for i in range(len(rows) - 1, -1, -1):  # map stops at len(x_up): L[j][i] x[j] for j > i
+    for i in range(len(rows) - 1, -1, -1):  # L[j][i] x[j] for j > i
         x_up.append((y[i] - fsum(map(mul, cols_up[i], x_up))) / rows[i][i])
     x_up.reverse()
     return np.array(x_up)
 
 
-#: columns of `_spd_factor` done on Python floats (the trailing blocks of at most 4 x 4 entries)
-SPD_SCALAR_TAIL = 5
+#: columns of `_spd_factor` done on Python floats (trailing triangles of at most 15 entries)
+SPD_SCALAR_TAIL = 6
 
 _SPD_WORK = threading.local()  # fleets run in worker threads (launcher/api.py run_async)
 
+_SpdWork = tuple[np.ndarray, np.ndarray, list[tuple[Any, ...]], list[tuple[Any, ...]], list[Any], list[int]]
 
-def _spd_workspace(n: int) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, ...]]]:
-    """This thread's n x n work matrix for `_solve_spd`, a view of its diagonal and, per column k,
-    the views a step of the factorisation writes: column k below the diagonal (also as a column
-    vector, for the outer product by broadcasting), the trailing block, a contiguous buffer for
-    the outer product. Made once per size (Anderson's memory bounds the sizes)."""
+
+def _spd_workspace(n: int) -> _SpdWork:
+    """This thread's packed work vector for `_spd_factor` (H's lower triangle column after column)
+    and what its steps use, made once per size and tail (Anderson's memory bounds the sizes): the
+    positions in H of the packed entries; per numpy column k, its pivot's position, the views of
+    column k below the diagonal and of the trailing triangle, the index arrays giving every
+    trailing entry's two factors within that column, a buffer for the products; per Python column,
+    its pivot's position, the positions below it and the (entry, factor, factor) positions of its
+    updates; the getters of the rows; the columns' offsets (and the end)."""
     by_n = getattr(_SPD_WORK, "by_n", None)
     if by_n is None:
         by_n = _SPD_WORK.by_n = {}
-    ws = by_n.get(n)
+    cut = max(n - SPD_SCALAR_TAIL, 0)
+    ws = by_n.get((n, cut))
     if ws is None:
-        A, flat = np.empty((n, n)), np.empty(max(n - 1, 0) ** 2)
-        steps = [(A[k + 1 :, k], A[k + 1 :, k, None], A[k + 1 :, k + 1 :],
-                  flat[: (n - k - 1) ** 2].reshape(n - k - 1, n - k - 1)) for k in range(n)]
-        ws = by_n[n] = (A, A.reshape(-1)[:: n + 1], steps)
+        offs = [k * n - k * (k - 1) // 2 for k in range(n + 1)]  # column k: L[k:, k] at offs[k]:offs[k + 1]
+        at = [[offs[j] + i - j for j in range(i + 1)] for i in range(n)]  # at[i][j]: L[i][j]'s position
+        src = np.array([i * n + k for k in range(n) for i in range(k, n)], dtype=np.intp)
+        packed = np.empty(offs[-1])
+        steps = []
+        for k in range(cut):
+            j, i = np.triu_indices(n - k - 1)  # the trailing entries (i, j), i >= j, column after column
+            steps.append((offs[k], packed[offs[k] + 1 : offs[k + 1]], packed[offs[k + 1] :], i.astype(np.intp),
+                          j.astype(np.intp), np.empty(len(i))))
+        tail = [(offs[k], range(offs[k] + 1, offs[k + 1]),
+                 [(at[i][j], at[i][k], at[j][k]) for j in range(k + 1, n) for i in range(j, n)]) for k in range(cut, n)]
+        rows_of = [operator.itemgetter(*at[i]) for i in range(1, n)]
+        ws = by_n[(n, cut)] = (packed, src, steps, tail, rows_of, offs)
     return ws
 
 
