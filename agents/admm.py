@@ -184,42 +184,46 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     triangular solves exactly rounded sums (math.fsum over Python floats: the same products, less
     overhead than numpy for vectors this short) -- no BLAS call whose summation order varies.
 
-    The factorisation runs on the lower triangle alone, packed column by column in a work vector
-    kept per size and thread (`_spd_workspace`: its views and index arrays made once), a hub
+    The factorisation runs on the lower triangle alone, packed column after column in a work
+    vector kept per size and thread (`_spd_workspace`: its views and index arrays made once), a hub
     step's largest cost: every step's operands contiguous, the last few columns on Python floats
     (`_spd_factor`), each entry the same operations in the same order as the plain right-looking
     form on a fresh square matrix (tests/test_exact_arith.py compares with that form)."""
     return _spd_solve(_spd_factor(H), g)
 
 
-def _spd_factor(H: np.ndarray) -> tuple[list[tuple[float, ...]], list[list[float]]]:
-    """`_solve_spd`'s Cholesky factor L of H, as its rows (lower triangle and diagonal: what the
-    solves read) and its columns below the diagonal read upwards (column i: L[n-1][i], L[n-2][i],
-    ..., L[i+1][i]), as Python sequences: factor once, solve many times with `_spd_solve` (the
-    same operations as `_solve_spd`, the same bits).
+#: `_spd_factor`'s L for `_spd_solve`: its rows one after another (row i: L[i][0..i], the diagonal
+#: last), its columns below the diagonal read upwards, from the last column to the first (column
+#: i: L[n-1][i], ..., L[i+1][i]), and its diagonal
+SpdFactor = tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
+
+
+def _spd_factor(H: np.ndarray) -> SpdFactor:
+    """`_solve_spd`'s Cholesky factor L of H, laid out for the solves (`SpdFactor`) as Python
+    floats: factor once, solve many times with `_spd_solve` (the same operations as `_solve_spd`,
+    the same bits).
 
     Why packed: the square form's rank-1 update ran its three numpy calls over strided 2-D views
     of the whole trailing block (both triangles), one inner loop per row. Here H's lower triangle
     is packed column after column (column k = L[k:, k], then column k + 1, ...), so column k's
-    entries and the trailing triangle are contiguous slices: a step divides the column, gathers
-    the two factors of every trailing entry's product (l_ik, l_jk for i >= j; precomputed index
-    arrays), multiplies and subtracts -- each trailing entry a_ij gets a_ij - l_ik l_jk at step k,
-    as in the square form (l_ik l_jk == l_jk l_ik in IEEE arithmetic), and nothing else. The last
-    SPD_SCALAR_TAIL columns run on the packed list's Python floats: the same subtractions of the
-    same products in the same order, cheaper than a numpy call for a trailing triangle of a few
-    entries. Measured on the paper preset's Anderson systems (m ~23): 100 -> ~70 us a factor
-    (benchmarks/results/round_cost.md, branch cholblock)."""
-    n = len(H)
-    packed, src, steps, tail, rows_of, offs = _spd_workspace(n)
+    entries and the trailing triangle are contiguous: a step divides the column (by a 0-d view of
+    its pivot, cheaper to pass than a Python float), gathers the two factors of every trailing
+    entry's product (l_ik, l_jk for i >= j; precomputed index arrays), multiplies and subtracts --
+    each trailing entry a_ij gets a_ij - l_ik l_jk at step k, as in the square form (l_ik l_jk ==
+    l_jk l_ik in IEEE arithmetic), and nothing else touches it. The last SPD_SCALAR_TAIL columns
+    run on the packed list's Python floats: the same subtractions of the same products in the same
+    order, cheaper than numpy calls for a trailing triangle of a few entries. Measured on the paper
+    preset's Anderson systems (m ~23): 102 -> ~60 us a factor (benchmarks/results/round_cost.md,
+    branch cholblock)."""
+    packed, src, steps, tail, pick = _spd_workspace(len(H))
     np.asarray(H, dtype=float).take(src, None, packed, "clip")  # (indices in range: clip only skips a buffer)
     sqrt, divide, multiply, subtract, item = math.sqrt, np.divide, np.multiply, np.subtract, packed.item
-    pivots: list[float] = []
-    for off, col, trail, i, j, prod in steps:  # the numpy columns
+    for off, pivot, col, trail, i, j, prod in steps:  # the numpy columns
         akk = item(off)
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
-        pivots.append(lkk := sqrt(akk))
-        divide(col, lkk, col)
+        pivot[()] = sqrt(akk)  # L[k][k], in place
+        divide(col, pivot, col)
         multiply(col[i], col[j], prod)  # l_ik l_jk for every trailing entry (i, j), packed like the entries
         subtract(trail, prod, trail)
     flat = packed.tolist()
@@ -227,30 +231,32 @@ def _spd_factor(H: np.ndarray) -> tuple[list[tuple[float, ...]], list[list[float
         akk = flat[off]
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
-        pivots.append(lkk := sqrt(akk))
+        flat[off] = lkk = sqrt(akk)
         for p in below:
             flat[p] /= lkk
         for p, a, b in updates:
             flat[p] -= flat[a] * flat[b]
-    for off, lkk in zip(offs, pivots):
-        flat[off] = lkk
-    rows = [(flat[0],), *[row(flat) for row in rows_of]] if n else []
-    return rows, [flat[end - 1 : off : -1] for off, end in zip(offs, offs[1:])]
+    rows, cols_up, diagonal = pick
+    return rows(flat), cols_up(flat), diagonal(flat)
 
 
-def _spd_solve(factor: tuple[list[tuple[float, ...]], list[list[float]]], g: np.ndarray) -> np.ndarray:
+def _spd_solve(factor: SpdFactor, g: np.ndarray) -> np.ndarray:
     """L L' x = g by the two triangular solves of `_solve_spd` (exactly rounded sums: math.fsum's
-    result does not depend on the order of its terms, so the back substitution takes x and the
-    columns from the bottom up, as they come, without slicing either)."""
-    rows, cols_up = factor
+    result does not depend on the order of its terms). Each substitution walks one flat sequence:
+    map(mul, done, terms) stops when the solved values `done` run out, having taken exactly one
+    term per value -- row i's i products (the diagonal, next, divides), column i's n - 1 - i
+    products against x[n-1], ..., x[i+1] -- so nothing is sliced."""
+    rows, cols_up, diagonal = factor
     rhs = g.tolist() if isinstance(g, np.ndarray) else [float(v) for v in g]
     fsum, mul = math.fsum, operator.mul
     y: list[float] = []
-    for i, row in enumerate(rows):  # map stops at len(y) == i: the products row[:i] * y[:i]
-        y.append((rhs[i] - fsum(map(mul, row, y))) / row[i])
+    terms = iter(rows)
+    for b in rhs:
+        y.append((b - fsum(map(mul, y, terms))) / next(terms))
     x_up: list[float] = []  # x[n-1], x[n-2], ...
-    for i in range(len(rows) - 1, -1, -1):  # L[j][i] x[j] for j > i
-        x_up.append((y[i] - fsum(map(mul, cols_up[i], x_up))) / rows[i][i])
+    terms = iter(cols_up)
+    for b, d in zip(y[::-1], diagonal[::-1]):
+        x_up.append((b - fsum(map(mul, x_up, terms))) / d)
     x_up.reverse()
     return np.array(x_up)
 
@@ -260,17 +266,24 @@ SPD_SCALAR_TAIL = 6
 
 _SPD_WORK = threading.local()  # fleets run in worker threads (launcher/api.py run_async)
 
-_SpdWork = tuple[np.ndarray, np.ndarray, list[tuple[Any, ...]], list[tuple[Any, ...]], list[Any], list[int]]
+
+def _picker(positions: list[int]) -> Callable[[list[float]], tuple[float, ...]]:
+    """The entries of a list at `positions`, as a tuple, in one C call (operator.itemgetter,
+    which returns a bare item or refuses for fewer than two positions)."""
+    if len(positions) > 1:
+        return operator.itemgetter(*positions)
+    return lambda seq: tuple(seq[p] for p in positions)
 
 
-def _spd_workspace(n: int) -> _SpdWork:
+def _spd_workspace(n: int) -> tuple[np.ndarray, np.ndarray, list[tuple[Any, ...]], list[tuple[Any, ...]],
+                                    tuple[Callable[[list[float]], tuple[float, ...]], ...]]:
     """This thread's packed work vector for `_spd_factor` (H's lower triangle column after column)
     and what its steps use, made once per size and tail (Anderson's memory bounds the sizes): the
-    positions in H of the packed entries; per numpy column k, its pivot's position, the views of
-    column k below the diagonal and of the trailing triangle, the index arrays giving every
-    trailing entry's two factors within that column, a buffer for the products; per Python column,
-    its pivot's position, the positions below it and the (entry, factor, factor) positions of its
-    updates; the getters of the rows; the columns' offsets (and the end)."""
+    positions in H of the packed entries; per numpy column k, its pivot's position and a 0-d view
+    of it, the views of column k below the diagonal and of the trailing triangle, the index arrays
+    giving every trailing entry's two factors within that column, a buffer for the products; per
+    Python column, its pivot's position, the positions below it and the (entry, factor, factor)
+    positions of its updates; the pickers of `SpdFactor`'s three sequences."""
     by_n = getattr(_SPD_WORK, "by_n", None)
     if by_n is None:
         by_n = _SPD_WORK.by_n = {}
@@ -284,12 +297,14 @@ def _spd_workspace(n: int) -> _SpdWork:
         steps = []
         for k in range(cut):
             j, i = np.triu_indices(n - k - 1)  # the trailing entries (i, j), i >= j, column after column
-            steps.append((offs[k], packed[offs[k] + 1 : offs[k + 1]], packed[offs[k + 1] :], i.astype(np.intp),
-                          j.astype(np.intp), np.empty(len(i))))
+            steps.append((offs[k], packed[offs[k] : offs[k] + 1].reshape(()), packed[offs[k] + 1 : offs[k + 1]],
+                          packed[offs[k + 1] :], i.astype(np.intp), j.astype(np.intp), np.empty(len(i))))
         tail = [(offs[k], range(offs[k] + 1, offs[k + 1]),
                  [(at[i][j], at[i][k], at[j][k]) for j in range(k + 1, n) for i in range(j, n)]) for k in range(cut, n)]
-        rows_of = [operator.itemgetter(*at[i]) for i in range(1, n)]
-        ws = by_n[(n, cut)] = (packed, src, steps, tail, rows_of, offs)
+        pick = (_picker([p for row in at for p in row]),
+                _picker([at[j][i] for i in range(n - 1, -1, -1) for j in range(n - 1, i, -1)]),
+                _picker(offs[:-1]))
+        ws = by_n[(n, cut)] = (packed, src, steps, tail, pick)
     return ws
 
 
