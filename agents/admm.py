@@ -275,6 +275,33 @@ def _picker(positions: list[int]) -> Callable[[list[float]], tuple[float, ...]]:
     return lambda seq: tuple(seq[p] for p in positions)
 
 
+_TRAILING_PAIRS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+_INTS: list[int] = []
+
+
+def _shared_ints(n: int) -> list[int]:
+    """0..n-1 as one list of int objects kept across calls (a longer list made when asked for
+    more, reusing the old one's objects; a race only makes two equal lists)."""
+    global _INTS
+    ints = _INTS
+    if len(ints) < n:
+        ints = _INTS = ints + list(range(len(ints), n))
+    return ints
+
+
+def _trailing_pairs(r: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices (i, j), i >= j, of an r x r lower triangle packed column after
+    column: which entries of a step's column multiply for each trailing entry. Shared by every
+    size and thread (read-only; ~r^2 entries each: Anderson's memory may reach 100)."""
+    pairs = _TRAILING_PAIRS.get(r)
+    if pairs is None:
+        j, i = np.triu_indices(r)
+        i, j = i.astype(np.intp), j.astype(np.intp)
+        i.flags.writeable = j.flags.writeable = False
+        pairs = _TRAILING_PAIRS.setdefault(r, (i, j))
+    return pairs
+
+
 def _spd_workspace(n: int) -> tuple[np.ndarray, np.ndarray, list[tuple[Any, ...]], list[tuple[Any, ...]],
                                     tuple[Callable[[list[float]], tuple[float, ...]], ...]]:
     """This thread's packed work vector for `_spd_factor` (H's lower triangle column after column)
@@ -291,14 +318,15 @@ def _spd_workspace(n: int) -> tuple[np.ndarray, np.ndarray, list[tuple[Any, ...]
     ws = by_n.get((n, cut))
     if ws is None:
         offs = [k * n - k * (k - 1) // 2 for k in range(n + 1)]  # column k: L[k:, k] at offs[k]:offs[k + 1]
-        at = [[offs[j] + i - j for j in range(i + 1)] for i in range(n)]  # at[i][j]: L[i][j]'s position
+        ints = _shared_ints(offs[-1])  # (not fresh ints: the pickers' tuples share them across sizes)
+        at = [[ints[offs[j] + i - j] for j in range(i + 1)] for i in range(n)]  # at[i][j]: L[i][j]'s position
         src = np.array([i * n + k for k in range(n) for i in range(k, n)], dtype=np.intp)
-        packed = np.empty(offs[-1])
+        packed, products = np.empty(offs[-1]), np.empty(offs[-1] - n)  # (products: the first step's, the largest)
         steps = []
         for k in range(cut):
-            j, i = np.triu_indices(n - k - 1)  # the trailing entries (i, j), i >= j, column after column
+            i, j = _trailing_pairs(n - k - 1)
             steps.append((offs[k], packed[offs[k] : offs[k] + 1].reshape(()), packed[offs[k] + 1 : offs[k + 1]],
-                          packed[offs[k + 1] :], i.astype(np.intp), j.astype(np.intp), np.empty(len(i))))
+                          packed[offs[k + 1] :], i, j, products[: len(i)]))
         tail = [(offs[k], range(offs[k] + 1, offs[k + 1]),
                  [(at[i][j], at[i][k], at[j][k]) for j in range(k + 1, n) for i in range(j, n)]) for k in range(cut, n)]
         pick = (_picker([p for row in at for p in row]),
