@@ -2,13 +2,15 @@
 
 `_solve_spd` is checked against a straightforward reference -- a fresh matrix per call, the
 right-looking Cholesky written out, the triangular solves by math.fsum -- on random, badly
-scaled and ill-conditioned systems, and against exact rational arithmetic for how close it is;
+scaled and ill-conditioned systems (and its packed factor against the square one, entry by
+entry, for every split of numpy and Python columns), and against exact rational arithmetic for how close it is;
 `_pairwise_sum` against math.fsum. Then the paper preset is run twice in process, once with the
 reference helper swapped in: every robot's every iterate must be equal to the bit.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 import threading
@@ -40,11 +42,37 @@ def reference_solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     return np.array(x, dtype=float)
 
 
-def _systems(rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+def reference_factor(H: np.ndarray) -> np.ndarray:
+    """The plain right-looking Cholesky of `reference_solve_spd` on a fresh square matrix: L in
+    the lower triangle (the pivots on the diagonal), what `_spd_factor` must give bit for bit."""
+    A = np.array(H, dtype=float)
+    n = len(A)
+    for k in range(n):
+        if not A[k, k] > 0:
+            raise np.linalg.LinAlgError("not positive definite")
+        A[k, k] = lkk = math.sqrt(A[k, k])
+        col = A[k + 1 :, k]
+        col /= lkk
+        A[k + 1 :, k + 1 :] -= np.multiply.outer(col, col)
+    return np.tril(A)
+
+
+def factor_as_matrix(factor: admm.SpdFactor, n: int) -> np.ndarray:
+    """`_spd_factor`'s three sequences read back into L, each checked against the others."""
+    rows, cols_up, diagonal = factor
+    assert len(rows) == n * (n + 1) // 2 and len(cols_up) == n * (n - 1) // 2 and len(diagonal) == n
+    L = np.zeros((n, n))
+    L[np.tril_indices(n)] = rows  # row after row, the diagonal last in each
+    assert list(diagonal) == L.diagonal().tolist()
+    assert list(cols_up) == [L[j, i] for i in range(n - 1, -1, -1) for j in range(n - 1, i, -1)]
+    return L
+
+
+def _systems(rng: np.random.Generator, sizes: list[int] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Gram matrices like Anderson's (differences of nearby vectors, + a small ridge), of every
-    size up to 40, some badly scaled, some nearly singular."""
+    size up to 40 (or `sizes`), some badly scaled, some nearly singular."""
     out = []
-    for n in [*range(1, 41), 30, 30, 30]:
+    for n in sizes or [*range(1, 41), 30, 30, 30]:
         dim = int(rng.integers(max(n, 2), 3 * n + 8))
         a = rng.normal(size=(n, dim)) * np.exp(rng.normal(scale=3, size=(n, 1)))  # rows of wildly different size
         kind = len(out) % 3
@@ -75,6 +103,40 @@ def test_solve_spd_same_bits_wherever_the_scalar_tail_starts(monkeypatch: pytest
     rng = np.random.default_rng(77)
     for H, g in _systems(rng)[::3]:
         assert admm._solve_spd(H, g).tobytes() == reference_solve_spd(H, g).tobytes(), len(H)
+
+
+@pytest.mark.parametrize("tail", [0, 1, 2, 3, 6, 12, 100])
+def test_packed_factor_is_the_square_right_looking_factor_bit_for_bit(monkeypatch: pytest.MonkeyPatch,
+                                                                       tail: int) -> None:
+    """`_spd_factor` works on the packed lower triangle (gathered products, the last
+    SPD_SCALAR_TAIL columns on Python floats): every entry of L must be the plain square form's,
+    bit for bit, for sizes 1..60 (the relay hub's Anderson systems reach 50), Anderson-like,
+    badly scaled and nearly singular with a tiny ridge, for every split of numpy and Python
+    columns (all numpy: 0, all Python: 100)."""
+    monkeypatch.setattr(admm, "SPD_SCALAR_TAIL", tail)
+    for H, want in _factored_systems():
+        n = len(H)
+        assert factor_as_matrix(admm._spd_factor(H), n).tobytes() == want, (n, tail)
+
+
+@functools.cache
+def _factored_systems() -> list[tuple[np.ndarray, bytes]]:
+    """Systems of sizes 1..60 with their reference factors' bytes (made once for every split)."""
+    return [(H, reference_factor(H).tobytes()) for H, _g in _systems(np.random.default_rng(100), [*range(1, 61)])]
+
+
+def test_subtract_reduce_over_the_first_axis_is_a_loop_of_subtractions() -> None:
+    """`_Hub._extrapolate` relies on np.subtract.reduce(terms, axis=0) being
+    ((t0 - t1) - t2) - ... row after row (no pairwise or reordered reduction) on the numpy
+    installed: checked against the loop, to the bit, on cancelling rows of several shapes."""
+    rng = np.random.default_rng(9)
+    for shape in [(2, 1), (3, 7), (24, 64), (31, 5, 9), (7, 33)]:
+        t = rng.normal(size=shape) * np.exp(rng.normal(scale=6, size=shape))
+        t[1:] += t[:1] * (1 - 1e-12)  # cancellation: any other order of the subtractions shows
+        want = t[0].copy()
+        for row in t[1:]:
+            want = want - row
+        assert np.subtract.reduce(t, axis=0).tobytes() == want.tobytes(), shape
 
 
 def test_solve_spd_close_to_the_exact_rational_solution() -> None:
