@@ -149,21 +149,65 @@ def _pairwise_sum(q: np.ndarray) -> np.ndarray:
     a pairing that depends on n alone -- no BLAS, no reduction order chosen by numpy or by a CPU's
     SIMD width -- so identical inputs give identical bits on any host with the same packages; and
     each column's result depends on that column alone, so sums may be batched side by side.
+
+    The levels' sums run one level after another into one buffer; the TwoSum errors of all levels
+    after the first are then computed at once, each from its own sum and two terms (the same
+    operations on the same operands as level by level: ~30 numpy calls instead of ~46 for the
+    hub's 64 terms, 35 -> ~31 us; tests/test_exact_arith.py compares with the level-by-level form).
     """
     n = len(q)
     if n == 0:
         return np.zeros(q.shape[1:])
-    h = 1 << (max(n - 1, 1).bit_length() - 1)
+    h, halvings, lows, highs = _pairing(n)
+    s = np.empty((2 * h - 1,) + q.shape[1:])  # every level's sums, one level after another
     if n == 2 * h:  # a power of two: the first pairing covers every term (no copy, no zero errors)
-        s, e = _two_sum(q[:h], q[h:])
+        s[:h], e = _two_sum(q[:h], q[h:])
     else:
-        s, e = q[:h].copy(), np.zeros((h,) + q.shape[1:])
-        s[: n - h], e[: n - h] = _two_sum(s[: n - h], q[h:])
-    while h > 1:
-        h //= 2
-        s, err = _two_sum(s[:h], s[h : 2 * h])
-        e = (e[:h] + e[h : 2 * h]) + err
-    return s[0] + e[0]
+        e = np.zeros((h,) + q.shape[1:])
+        s[n - h : h] = q[n - h : h]
+        s[: n - h], e[: n - h] = _two_sum(q[: n - h], q[h:])
+    if not halvings:
+        return s[0] + e[0]
+    add, sub = np.add, np.subtract
+    for low, high, out, _e_low, _e_high, _err in halvings:  # the halves' sums, level after level
+        add(s[low], s[high], s[out])
+    # then the TwoSum errors of all those sums at once, each from its own two terms (the same
+    # operations as level by level): (a - (x - (x - a))) + (b - (x - a)), x = a + b
+    x, a, b = s[h:], s[lows], s[highs]
+    xa = x - a
+    t = x - xa
+    sub(a, t, t)
+    sub(b, xa, xa)
+    err = add(t, xa, t)
+    for _low, _high, _out, e_low, e_high, level in halvings:  # the errors' own sums, the same pairing
+        e = (e[e_low] + e[e_high]) + err[level]
+    return s[-1] + e[0]
+
+
+#: `_pairing`'s plans, per number of terms
+_PAIRINGS: dict[int, tuple[int, list[tuple[slice, ...]], np.ndarray, np.ndarray]] = {}
+
+
+def _pairing(n: int) -> tuple[int, list[tuple[slice, ...]], np.ndarray, np.ndarray]:
+    """`_pairwise_sum`'s plan for n terms, made once per n (read-only, shared by threads): h, the
+    largest power of two below n (level 0 leaves h sums, at rows 0..h of the levels' buffer);
+    per later level of w = h/2, h/4, ..., 1 sums: the buffer rows of its low and high halves and
+    of its sums, the rows of e's halves (0..w, w..2w) and of the level's errors among all the
+    errors (its sums' rows less h); the buffer rows of every later sum's two terms."""
+    plan = _PAIRINGS.get(n)
+    if plan is None:
+        h = 1 << (max(n - 1, 1).bit_length() - 1)
+        halvings, lows, highs = [], [], []
+        prev, w, at = 0, h, h
+        while w > 1:
+            w //= 2
+            halvings.append((slice(prev, prev + w), slice(prev + w, prev + 2 * w), slice(at, at + w),
+                             slice(0, w), slice(w, 2 * w), slice(at - h, at - h + w)))
+            lows += range(prev, prev + w)
+            highs += range(prev + w, prev + 2 * w)
+            prev, at = at, at + w
+        plan = _PAIRINGS.setdefault(n, (h, halvings, np.array(lows, dtype=np.intp), np.array(highs, dtype=np.intp)))
+    return plan
 
 
 def _row_sums(p: np.ndarray) -> np.ndarray:
