@@ -127,9 +127,10 @@ class _Edge:
 _max_reduce, _all_reduce = np.maximum.reduce, np.logical_and.reduce  # (np.max / .all() without their wrappers)
 
 
-def _two_sum(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """a + b rounded, and its rounding error exactly (Knuth's TwoSum, elementwise)."""
-    x = a + b
+def _two_sum(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """a + b rounded (into ``out`` if given), and its rounding error exactly (Knuth's TwoSum,
+    elementwise)."""
+    x = np.add(a, b, out)
     z = x - a
     return x, (a - (x - z)) + (b - z)
 
@@ -161,11 +162,11 @@ def _pairwise_sum(q: np.ndarray) -> np.ndarray:
     h, halvings, lows, highs = _pairing(n)
     s = np.empty((2 * h - 1,) + q.shape[1:])  # every level's sums, one level after another
     if n == 2 * h:  # a power of two: the first pairing covers every term (no copy, no zero errors)
-        s[:h], e = _two_sum(q[:h], q[h:])
+        e = _two_sum(q[:h], q[h:], s[:h])[1]
     else:
         e = np.zeros((h,) + q.shape[1:])
         s[n - h : h] = q[n - h : h]
-        s[: n - h], e[: n - h] = _two_sum(q[: n - h], q[h:])
+        e[: n - h] = _two_sum(q[: n - h], q[h:], s[: n - h])[1]
     if not halvings:
         return s[0] + e[0]
     add, sub = np.add, np.subtract
