@@ -22,26 +22,6 @@ import pytest
 import agents.admm as admm
 
 
-def reference_solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """The plain form of `_solve_spd`: a new matrix, one rank-1 update per column, fsum solves."""
-    A = np.array(H, dtype=float)
-    n = len(A)
-    for k in range(n):
-        if not A[k, k] > 0:
-            raise np.linalg.LinAlgError("not positive definite")
-        A[k, k] = lkk = math.sqrt(A[k, k])
-        col = A[k + 1 :, k]
-        col /= lkk
-        A[k + 1 :, k + 1 :] -= np.multiply.outer(col, col)
-    y = [0.0] * n
-    for i in range(n):
-        y[i] = (float(g[i]) - math.fsum(A[i, j] * y[j] for j in range(i))) / A[i, i]
-    x = [0.0] * n
-    for i in reversed(range(n)):
-        x[i] = (y[i] - math.fsum(A[j, i] * x[j] for j in range(i + 1, n))) / A[i, i]
-    return np.array(x, dtype=float)
-
-
 def reference_factor(H: np.ndarray) -> np.ndarray:
     """The plain right-looking Cholesky of `reference_solve_spd` on a fresh square matrix: L in
     the lower triangle (the pivots on the diagonal), what `_spd_factor` must give bit for bit."""
@@ -55,6 +35,20 @@ def reference_factor(H: np.ndarray) -> np.ndarray:
         col /= lkk
         A[k + 1 :, k + 1 :] -= np.multiply.outer(col, col)
     return np.tril(A)
+
+
+def reference_solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """The plain form of `_solve_spd`: a new matrix, one rank-1 update per column
+    (`reference_factor`), fsum solves."""
+    A = reference_factor(H)
+    n = len(A)
+    y = [0.0] * n
+    for i in range(n):
+        y[i] = (float(g[i]) - math.fsum(A[i, j] * y[j] for j in range(i))) / A[i, i]
+    x = [0.0] * n
+    for i in reversed(range(n)):
+        x[i] = (y[i] - math.fsum(A[j, i] * x[j] for j in range(i + 1, n))) / A[i, i]
+    return np.array(x, dtype=float)
 
 
 def factor_as_matrix(factor: admm.SpdFactor, n: int) -> np.ndarray:
