@@ -207,7 +207,10 @@ def _pairing(n: int) -> tuple[int, list[tuple[slice, ...]], np.ndarray, np.ndarr
             lows += range(prev, prev + w)
             highs += range(prev + w, prev + 2 * w)
             prev, at = at, at + w
-        plan = _PAIRINGS.setdefault(n, (h, halvings, np.array(lows, dtype=np.intp), np.array(highs, dtype=np.intp)))
+        rows = np.array(lows, dtype=np.intp), np.array(highs, dtype=np.intp)
+        for r in rows:
+            r.flags.writeable = False
+        plan = _PAIRINGS.setdefault(n, (h, halvings, *rows))
     return plan
 
 
@@ -260,8 +263,12 @@ def _spd_factor(H: np.ndarray) -> SpdFactor:
     order, cheaper than numpy calls for a trailing triangle of a few entries. Measured on the paper
     preset's Anderson systems (m ~23): 102 -> ~60 us a factor (benchmarks/results/round_cost.md,
     branch cholblock)."""
-    packed, src, steps, tail, pick = _spd_workspace(len(H))
-    np.asarray(H, dtype=float).take(src, None, packed, "clip")  # (indices in range: clip only skips a buffer)
+    H = np.asarray(H, dtype=float)
+    n = len(H)
+    if H.shape != (n, n):  # (the gather below would clip, not refuse)
+        raise ValueError(f"not a square matrix: {H.shape}")
+    packed, src, steps, tail, pick = _spd_workspace(n)
+    H.take(src, None, packed, "clip")  # (the indices are in range: "clip" only spares numpy a buffered copy)
     sqrt, divide, multiply, subtract, item = math.sqrt, np.divide, np.multiply, np.subtract, packed.item
     for off, pivot, col, trail, i, j, prod in steps:  # the numpy columns
         akk = item(off)

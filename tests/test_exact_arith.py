@@ -157,12 +157,15 @@ def test_solve_spd_close_to_the_exact_rational_solution() -> None:
 
 
 def test_solve_spd_refuses_what_is_not_positive_definite() -> None:
-    """Same refusal as before (LinAlgError), and a call after a refusal is unaffected by it."""
+    """Same refusal as before (LinAlgError; ValueError for a matrix that is not square), and a
+    call after a refusal is unaffected by it."""
     H = np.array([[1.0, 2.0], [2.0, 1.0]])
     with pytest.raises(np.linalg.LinAlgError):
         admm._solve_spd(H, np.ones(2))
     with pytest.raises(np.linalg.LinAlgError):
         admm._solve_spd(np.array([[float("nan")]]), np.ones(1))
+    with pytest.raises(ValueError):  # not square: refused (main's work matrix refused it too), not clipped
+        admm._solve_spd(np.ones((3, 4)), np.ones(3))
     ok = np.array([[4.0, 2.0], [2.0, 3.0]])
     assert admm._solve_spd(ok, np.ones(2)).tobytes() == reference_solve_spd(ok, np.ones(2)).tobytes()
 
