@@ -127,9 +127,10 @@ class _Edge:
 _max_reduce, _all_reduce = np.maximum.reduce, np.logical_and.reduce  # (np.max / .all() without their wrappers)
 
 
-def _two_sum(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """a + b rounded, and its rounding error exactly (Knuth's TwoSum, elementwise)."""
-    x = a + b
+def _two_sum(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """a + b rounded (into ``out`` if given), and its rounding error exactly (Knuth's TwoSum,
+    elementwise)."""
+    x = np.add(a, b, out)
     z = x - a
     return x, (a - (x - z)) + (b - z)
 
@@ -149,21 +150,68 @@ def _pairwise_sum(q: np.ndarray) -> np.ndarray:
     a pairing that depends on n alone -- no BLAS, no reduction order chosen by numpy or by a CPU's
     SIMD width -- so identical inputs give identical bits on any host with the same packages; and
     each column's result depends on that column alone, so sums may be batched side by side.
+
+    The levels' sums run one level after another into one buffer; the TwoSum errors of all levels
+    after the first are then computed at once, each from its own sum and two terms (the same
+    operations on the same operands as level by level: ~30 numpy calls instead of ~46 for the
+    hub's 64 terms, 35 -> ~31 us; tests/test_exact_arith.py compares with the level-by-level form).
     """
     n = len(q)
     if n == 0:
         return np.zeros(q.shape[1:])
-    h = 1 << (max(n - 1, 1).bit_length() - 1)
+    h, halvings, lows, highs = _pairing(n)
+    s = np.empty((2 * h - 1,) + q.shape[1:])  # every level's sums, one level after another
     if n == 2 * h:  # a power of two: the first pairing covers every term (no copy, no zero errors)
-        s, e = _two_sum(q[:h], q[h:])
+        e = _two_sum(q[:h], q[h:], s[:h])[1]
     else:
-        s, e = q[:h].copy(), np.zeros((h,) + q.shape[1:])
-        s[: n - h], e[: n - h] = _two_sum(s[: n - h], q[h:])
-    while h > 1:
-        h //= 2
-        s, err = _two_sum(s[:h], s[h : 2 * h])
-        e = (e[:h] + e[h : 2 * h]) + err
-    return s[0] + e[0]
+        e = np.zeros((h,) + q.shape[1:])
+        s[n - h : h] = q[n - h : h]
+        e[: n - h] = _two_sum(q[: n - h], q[h:], s[: n - h])[1]
+    if not halvings:
+        return s[0] + e[0]
+    add, sub = np.add, np.subtract
+    for low, high, out, _e_low, _e_high, _err in halvings:  # the halves' sums, level after level
+        add(s[low], s[high], s[out])
+    # then the TwoSum errors of all those sums at once, each from its own two terms (the same
+    # operations as level by level): (a - (x - (x - a))) + (b - (x - a)), x = a + b
+    x, a, b = s[h:], s[lows], s[highs]
+    xa = x - a
+    t = x - xa
+    sub(a, t, t)
+    sub(b, xa, xa)
+    err = add(t, xa, t)
+    for _low, _high, _out, e_low, e_high, level in halvings:  # the errors' own sums, the same pairing
+        e = (e[e_low] + e[e_high]) + err[level]
+    return s[-1] + e[0]
+
+
+#: `_pairing`'s plans, per number of terms
+_PAIRINGS: dict[int, tuple[int, list[tuple[slice, ...]], np.ndarray, np.ndarray]] = {}
+
+
+def _pairing(n: int) -> tuple[int, list[tuple[slice, ...]], np.ndarray, np.ndarray]:
+    """`_pairwise_sum`'s plan for n terms, made once per n (read-only, shared by threads): h, the
+    largest power of two below n (level 0 leaves h sums, at rows 0..h of the levels' buffer);
+    per later level of w = h/2, h/4, ..., 1 sums: the buffer rows of its low and high halves and
+    of its sums, the rows of e's halves (0..w, w..2w) and of the level's errors among all the
+    errors (its sums' rows less h); the buffer rows of every later sum's two terms."""
+    plan = _PAIRINGS.get(n)
+    if plan is None:
+        h = 1 << (max(n - 1, 1).bit_length() - 1)
+        halvings, lows, highs = [], [], []
+        prev, w, at = 0, h, h
+        while w > 1:
+            w //= 2
+            halvings.append((slice(prev, prev + w), slice(prev + w, prev + 2 * w), slice(at, at + w),
+                             slice(0, w), slice(w, 2 * w), slice(at - h, at - h + w)))
+            lows += range(prev, prev + w)
+            highs += range(prev + w, prev + 2 * w)
+            prev, at = at, at + w
+        rows = np.array(lows, dtype=np.intp), np.array(highs, dtype=np.intp)
+        for r in rows:
+            r.flags.writeable = False
+        plan = _PAIRINGS.setdefault(n, (h, halvings, *rows))
+    return plan
 
 
 def _row_sums(p: np.ndarray) -> np.ndarray:
@@ -184,92 +232,159 @@ def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     triangular solves exactly rounded sums (math.fsum over Python floats: the same products, less
     overhead than numpy for vectors this short) -- no BLAS call whose summation order varies.
 
-    The factorisation runs in a work matrix kept per size and thread (`_spd_workspace`: its views
-    made once, every ufunc writing into them), a hub step's largest cost: 3 numpy calls a column
-    and nothing allocated, the last few columns on Python floats (`_spd_factor`), the same
-    operations in the same order as a fresh matrix per call (tests/test_exact_arith.py compares
-    with that plain form)."""
+    The factorisation runs on the lower triangle alone, packed column after column in a work
+    vector kept per size and thread (`_spd_workspace`: its views and index arrays made once), a hub
+    step's largest cost: every step's operands contiguous, the last few columns on Python floats
+    (`_spd_factor`), each entry the same operations in the same order as the plain right-looking
+    form on a fresh square matrix (tests/test_exact_arith.py compares with that form)."""
     return _spd_solve(_spd_factor(H), g)
 
 
-def _spd_factor(H: np.ndarray) -> tuple[list[list[float]], list[tuple[float, ...]]]:
-    """`_solve_spd`'s Cholesky factor L of H, as its rows (their lower triangle and diagonal: what
-    the solves read) and its columns read upwards (column i: L[n-1][i], L[n-2][i], ...), as Python
-    lists: factor once, solve many times with `_spd_solve` (the same operations as `_solve_spd`,
-    the same bits). The last SPD_SCALAR_TAIL columns run on Python floats, the lower triangle only:
-    each entry gets the same subtractions of the same products in the same order as numpy's
-    rank-1 updates would give it, at less than a numpy call's cost where the trailing block is a
-    few entries (measured: 147 -> 122 us per factor on the paper preset's Anderson systems, m ~23)."""
+#: `_spd_factor`'s L for `_spd_solve`: its rows one after another (row i: L[i][0..i], the diagonal
+#: last), its columns below the diagonal read upwards, from the last column to the first (column
+#: i: L[n-1][i], ..., L[i+1][i]), and its diagonal
+SpdFactor = tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
+
+
+def _spd_factor(H: np.ndarray) -> SpdFactor:
+    """`_solve_spd`'s Cholesky factor L of H, laid out for the solves (`SpdFactor`) as Python
+    floats: factor once, solve many times with `_spd_solve` (the same operations as `_solve_spd`,
+    the same bits).
+
+    Why packed: the square form's rank-1 update ran its three numpy calls over strided 2-D views
+    of the whole trailing block (both triangles), one inner loop per row. Here H's lower triangle
+    is packed column after column (column k = L[k:, k], then column k + 1, ...), so column k's
+    entries and the trailing triangle are contiguous: a step divides the column (by a 0-d view of
+    its pivot, cheaper to pass than a Python float), gathers the two factors of every trailing
+    entry's product (l_ik, l_jk for i >= j; precomputed index arrays), multiplies and subtracts --
+    each trailing entry a_ij gets a_ij - l_ik l_jk at step k, as in the square form (l_ik l_jk ==
+    l_jk l_ik in IEEE arithmetic), and nothing else touches it. The last SPD_SCALAR_TAIL columns
+    run on the packed list's Python floats: the same subtractions of the same products in the same
+    order, cheaper than numpy calls for a trailing triangle of a few entries. Measured on the paper
+    preset's Anderson systems (m ~23): 102 -> ~60 us a factor (benchmarks/results/round_cost.md,
+    branch cholblock)."""
+    H = np.asarray(H, dtype=float)
     n = len(H)
-    A, _diag, steps = _spd_workspace(n)
-    np.copyto(A, H)
-    sqrt, divide, multiply, subtract, item = math.sqrt, np.divide, np.multiply, np.subtract, A.item
-    pivots: list[float] = []
-    cut = max(n - SPD_SCALAR_TAIL, 0)
-    for k in range(cut):  # A becomes L in its lower triangle
-        col, col_t, trail, prod = steps[k]
-        akk = item(k, k)
+    if H.shape != (n, n):  # (the gather below would clip, not refuse)
+        raise ValueError(f"not a square matrix: {H.shape}")
+    packed, src, steps, tail, pick = _spd_workspace(n)
+    H.take(src, None, packed, "clip")  # (the indices are in range: "clip" only spares numpy a buffered copy)
+    sqrt, divide, multiply, subtract, item = math.sqrt, np.divide, np.multiply, np.subtract, packed.item
+    for off, pivot, col, trail, i, j, prod in steps:  # the numpy columns
+        akk = item(off)
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
-        pivots.append(lkk := sqrt(akk))
-        divide(col, lkk, col)
-        multiply(col_t, col, prod)  # the outer product col col^T
+        pivot[()] = sqrt(akk)  # L[k][k], in place
+        divide(col, pivot, col)
+        multiply(col[i], col[j], prod)  # l_ik l_jk for every trailing entry (i, j), packed like the entries
         subtract(trail, prod, trail)
-    rows = A.tolist()
-    for k in range(cut, n):  # the same steps on the lower triangle of the last few columns
-        akk = rows[k][k]
+    flat = packed.tolist()
+    for off, below, updates in tail:  # the same steps on Python floats: (entry, l_ik, l_jk) positions
+        akk = flat[off]
         if not akk > 0:
             raise np.linalg.LinAlgError("not positive definite")
-        pivots.append(lkk := sqrt(akk))
-        for i in range(k + 1, n):
-            rows[i][k] /= lkk
-        for i in range(k + 1, n):
-            ri = rows[i]
-            li = ri[k]
-            for j in range(k + 1, i + 1):
-                ri[j] -= li * rows[j][k]
-    for k, lkk in enumerate(pivots):
-        rows[k][k] = lkk
-    return rows, list(zip(*rows[::-1]))
+        flat[off] = lkk = sqrt(akk)
+        for p in below:
+            flat[p] /= lkk
+        for p, a, b in updates:
+            flat[p] -= flat[a] * flat[b]
+    rows, cols_up, diagonal = pick
+    return rows(flat), cols_up(flat), diagonal(flat)
 
 
-def _spd_solve(factor: tuple[list[list[float]], list[tuple[float, ...]]], g: np.ndarray) -> np.ndarray:
+def _spd_solve(factor: SpdFactor, g: np.ndarray) -> np.ndarray:
     """L L' x = g by the two triangular solves of `_solve_spd` (exactly rounded sums: math.fsum's
-    result does not depend on the order of its terms, so the back substitution takes x and the
-    columns from the bottom up, as they come, without slicing either)."""
-    rows, cols_up = factor
+    result does not depend on the order of its terms). Each substitution walks one flat sequence:
+    map(mul, done, terms) stops when the solved values `done` run out, having taken exactly one
+    term per value -- row i's i products (the diagonal, next, divides), column i's n - 1 - i
+    products against x[n-1], ..., x[i+1] -- so nothing is sliced."""
+    rows, cols_up, diagonal = factor
     rhs = g.tolist() if isinstance(g, np.ndarray) else [float(v) for v in g]
     fsum, mul = math.fsum, operator.mul
     y: list[float] = []
-    for i, row in enumerate(rows):  # map stops at len(y) == i: the products row[:i] * y[:i]
-        y.append((rhs[i] - fsum(map(mul, row, y))) / row[i])
+    terms = iter(rows)
+    for b in rhs:
+        y.append((b - fsum(map(mul, y, terms))) / next(terms))
     x_up: list[float] = []  # x[n-1], x[n-2], ...
-    for i in range(len(rows) - 1, -1, -1):  # map stops at len(x_up): L[j][i] x[j] for j > i
-        x_up.append((y[i] - fsum(map(mul, cols_up[i], x_up))) / rows[i][i])
+    terms = iter(cols_up)
+    for b, d in zip(y[::-1], diagonal[::-1]):
+        x_up.append((b - fsum(map(mul, x_up, terms))) / d)
     x_up.reverse()
     return np.array(x_up)
 
 
-#: columns of `_spd_factor` done on Python floats (the trailing blocks of at most 4 x 4 entries)
-SPD_SCALAR_TAIL = 5
+#: columns of `_spd_factor` done on Python floats (trailing triangles of at most 15 entries)
+SPD_SCALAR_TAIL = 6
 
 _SPD_WORK = threading.local()  # fleets run in worker threads (launcher/api.py run_async)
 
 
-def _spd_workspace(n: int) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, ...]]]:
-    """This thread's n x n work matrix for `_solve_spd`, a view of its diagonal and, per column k,
-    the views a step of the factorisation writes: column k below the diagonal (also as a column
-    vector, for the outer product by broadcasting), the trailing block, a contiguous buffer for
-    the outer product. Made once per size (Anderson's memory bounds the sizes)."""
+def _picker(positions: list[int]) -> Callable[[list[float]], tuple[float, ...]]:
+    """The entries of a list at `positions`, as a tuple, in one C call (operator.itemgetter,
+    which returns a bare item or refuses for fewer than two positions)."""
+    if len(positions) > 1:
+        return operator.itemgetter(*positions)
+    return lambda seq: tuple(seq[p] for p in positions)
+
+
+_TRAILING_PAIRS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+_INTS: list[int] = []
+
+
+def _shared_ints(n: int) -> list[int]:
+    """0..n-1 as one list of int objects kept across calls (a longer list made when asked for
+    more, reusing the old one's objects; a race only makes two equal lists)."""
+    global _INTS
+    ints = _INTS
+    if len(ints) < n:
+        ints = _INTS = ints + list(range(len(ints), n))
+    return ints
+
+
+def _trailing_pairs(r: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices (i, j), i >= j, of an r x r lower triangle packed column after
+    column: which entries of a step's column multiply for each trailing entry. Shared by every
+    size and thread (read-only; ~r^2 entries each: Anderson's memory may reach 100)."""
+    pairs = _TRAILING_PAIRS.get(r)
+    if pairs is None:
+        j, i = np.triu_indices(r)
+        i, j = i.astype(np.intp), j.astype(np.intp)
+        i.flags.writeable = j.flags.writeable = False
+        pairs = _TRAILING_PAIRS.setdefault(r, (i, j))
+    return pairs
+
+
+def _spd_workspace(n: int) -> tuple[np.ndarray, np.ndarray, list[tuple[Any, ...]], list[tuple[Any, ...]],
+                                    tuple[Callable[[list[float]], tuple[float, ...]], ...]]:
+    """This thread's packed work vector for `_spd_factor` (H's lower triangle column after column)
+    and what its steps use, made once per size and tail (Anderson's memory bounds the sizes): the
+    positions in H of the packed entries; per numpy column k, its pivot's position and a 0-d view
+    of it, the views of column k below the diagonal and of the trailing triangle, the index arrays
+    giving every trailing entry's two factors within that column, a buffer for the products; per
+    Python column, its pivot's position, the positions below it and the (entry, factor, factor)
+    positions of its updates; the pickers of `SpdFactor`'s three sequences."""
     by_n = getattr(_SPD_WORK, "by_n", None)
     if by_n is None:
         by_n = _SPD_WORK.by_n = {}
-    ws = by_n.get(n)
+    cut = max(n - SPD_SCALAR_TAIL, 0)
+    ws = by_n.get((n, cut))
     if ws is None:
-        A, flat = np.empty((n, n)), np.empty(max(n - 1, 0) ** 2)
-        steps = [(A[k + 1 :, k], A[k + 1 :, k, None], A[k + 1 :, k + 1 :],
-                  flat[: (n - k - 1) ** 2].reshape(n - k - 1, n - k - 1)) for k in range(n)]
-        ws = by_n[n] = (A, A.reshape(-1)[:: n + 1], steps)
+        offs = [k * n - k * (k - 1) // 2 for k in range(n + 1)]  # column k: L[k:, k] at offs[k]:offs[k + 1]
+        ints = _shared_ints(offs[-1])  # (not fresh ints: the pickers' tuples share them across sizes)
+        at = [[ints[offs[j] + i - j] for j in range(i + 1)] for i in range(n)]  # at[i][j]: L[i][j]'s position
+        src = np.array([i * n + k for k in range(n) for i in range(k, n)], dtype=np.intp)
+        packed, products = np.empty(offs[-1]), np.empty(offs[-1] - n)  # (products: the first step's, the largest)
+        steps = []
+        for k in range(cut):
+            i, j = _trailing_pairs(n - k - 1)
+            steps.append((offs[k], packed[offs[k] : offs[k] + 1].reshape(()), packed[offs[k] + 1 : offs[k + 1]],
+                          packed[offs[k + 1] :], i, j, products[: len(i)]))
+        tail = [(offs[k], range(offs[k] + 1, offs[k + 1]),
+                 [(at[i][j], at[i][k], at[j][k]) for j in range(k + 1, n) for i in range(j, n)]) for k in range(cut, n)]
+        pick = (_picker([p for row in at for p in row]),
+                _picker([at[j][i] for i in range(n - 1, -1, -1) for j in range(n - 1, i, -1)]),
+                _picker(offs[:-1]))
+        ws = by_n[(n, cut)] = (packed, src, steps, tail, pick)
     return ws
 
 
