@@ -89,6 +89,8 @@ class FrameAuth:
         self._in = {j: _edge_hasher(k, j, self.me) for j, k in self.keys.items()}
         # (receiver id as u32 LE, hasher) by receiver id: the envelope's tag entries in order
         self._out_entries = [(struct.pack("<I", j), self._out[j]) for j in sorted(self._out)]
+        # the key behind each outgoing tag (a copy: what the hashers above were keyed with)
+        self.tag_keys: Mapping[int, bytes] = dict(self.keys)
 
     @classmethod
     def from_secret(cls, secret: bytes, me: int, neighbours: Iterable[int]) -> FrameAuth:

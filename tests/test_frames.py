@@ -184,6 +184,51 @@ def test_no_receiver_can_alter_the_values_another_receiver_gets():
         first.prev_values.flags.writeable = True
 
 
+
+def test_a_frame_tagged_here_skips_the_hash_only_for_a_receiver_with_the_same_edge_key(monkeypatch):
+    """A primed envelope carries the key of each of its tags (branch sendpath): a receiver of the
+    process whose key for that edge is the same accepts it without hashing the body again (the
+    tag is the keyed hash it would compute); a receiver holding another key for the edge still
+    hashes and rejects it, and the same bytes in a process that did not tag them are hashed."""
+    from protocol import frames
+
+    hashed = []
+    real = frames._compare_digest
+    monkeypatch.setattr(frames, "_compare_digest", lambda a, b: hashed.append(1) or real(a, b))
+    frames._MEMO._items.clear(), frames._MEMO._order.clear()
+    frames._MEMO._bytes = 0
+    data = encode_state(StateUpdate(1, 31, X, 1, PREV), fleet=FLEET, seq=78, config_tag=TAG, auth=auth(1),
+                        prime=auth_decoder(1))
+    got = auth_decoder(0).decode(data, expected_sender=1)
+    assert isinstance(got, Decoded) and got.update == StateUpdate(1, 31, X, 1, PREV) and hashed == []
+    keys = dict(auth(0).keys)
+    keys[1] = bytes(32)  # robot 0 holding another key for the edge {0, 1} than robot 1 tagged with
+    other = FrameDecoder(FLEET, KNOWN, DIM, TAG, auth=FrameAuth(0, keys)).decode(data, expected_sender=1)
+    assert isinstance(other, Rejected) and other.reason == "auth" and hashed == [1]
+    frames._MEMO._items.clear(), frames._MEMO._order.clear()  # another process: nothing tagged here
+    frames._MEMO._bytes = 0
+    assert isinstance(auth_decoder(0).decode(data, expected_sender=1), Decoded)  # (parsed, hashed)
+    hashed.clear()
+    assert isinstance(auth_decoder(2).decode(data, expected_sender=1), Decoded) and hashed == [1]
+
+
+def test_the_kept_packer_and_vector_bytes_give_msgpack_and_numpy_bytes():
+    """encode_state packs with a Packer kept per thread and takes a float64 vector's own bytes
+    (branch sendpath): the bytes of msgpack.packb and of np.asarray(v, "<f8").tobytes(), also
+    right after a pack that failed, and for strided, float32, int and big-endian vectors."""
+    from protocol.frames import _pack, _vector_bytes
+
+    objs = [valid_map(), valid_map(need=[0, 2]), [1, pack(valid_map()), b"t" * 40], {"a": [1.5, None, True]}]
+    for obj in objs:
+        assert _pack(obj) == pack(obj)
+        with pytest.raises(TypeError):
+            _pack({"x": object()})
+        assert _pack(obj) == pack(obj)
+    base = np.arange(12, dtype=float) * 0.37 - 2.0
+    for v in (base, base[::3], base[::-1], base.astype(np.float32), np.arange(5), base.astype(">f8"),
+              np.array(base, order="F")):
+        assert _vector_bytes("values", v) == np.asarray(v, "<f8").tobytes()
+
 def test_encode_accepts_lists_and_float32_and_big_endian():
     for values in ([1, 2, 3, 4], np.float32([1, 2, 3, 4]), np.array([1, 2, 3, 4], ">f8")):
         update = StateUpdate(sender=0, round=0, values=values, flags=0, prev_values=None)
