@@ -15,6 +15,7 @@ constraint here is a lower bound with h_u = +inf.
 from __future__ import annotations
 
 import threading
+from itertools import compress
 from dataclasses import dataclass
 
 import numpy as np
@@ -270,14 +271,14 @@ class _WarmKKT:
         self.d = d
         self.rows_d = rows / d  # A D^-1
         self.hessian = dual_hessian(rows, d)
-        # the last answer and its margins A v: the next round's guess is that answer (identity),
-        # so its margins need not be computed again (the same product, the same bits)
-        self._last: tuple[np.ndarray, np.ndarray] | None = None
-        self._lam: tuple[np.ndarray, np.ndarray] = (np.zeros(0, dtype=int), np.zeros(0))  # (W, lam_W)
-        # per active set W (its indices' bytes): A_W D^-1 and H_WW, the same rows `take` gives every
-        # time, and whether W's solve ran once without a NaN (W rarely changes between rounds; at
-        # most WARM_SUBSETS kept, the oldest dropped)
-        self._subs: dict[bytes, tuple[np.ndarray, np.ndarray, bool]] = {}
+        # the last answer and its margins A v (as Python floats): the next round's guess is that
+        # answer (identity), so its margins need not be computed again (the same product, the same bits)
+        self._last: tuple[np.ndarray, list[float]] | None = None
+        self._lam: tuple[list[int], np.ndarray] = ([], np.zeros(0))  # (W, lam_W)
+        # per active set W (its indices): A_W D^-1 and H_WW, the same rows `take` gives every time,
+        # and whether W's solve ran once without a NaN (W rarely changes between rounds; at most
+        # WARM_SUBSETS kept, the oldest dropped)
+        self._subs: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, bool]] = {}
 
     def multipliers(self) -> np.ndarray:
         """The last certified solve's multipliers, one per row (zero off its set W)."""
@@ -286,13 +287,20 @@ class _WarmKKT:
         return lam
 
     def solve(self, q: np.ndarray, guess: np.ndarray) -> np.ndarray | None:
+        # The tests on the margins and multipliers run on Python floats (`tolist`, then comparisons in
+        # C through `map`): the same IEEE comparisons as numpy's (a NaN compares False in both), no
+        # arithmetic, so the same decisions; measured in a fleet round each small numpy call here
+        # (a compare, nonzero, a min/max reduce, a take) costs 3-6 us of thread CPU, cold between the
+        # hub's steps, against ~1 us in a tight loop. The products and the LU solve are numpy's, as before.
         rows = self.rows
         last = self._last
-        margins = last[1] if last is not None and last[0] is guess else rows @ guess
-        free = (margins <= 1.0 + WARM_ACTIVE).nonzero()[0]
+        margins = last[1] if last is not None and last[0] is guess else (rows @ guess).tolist()
+        # W: the rows within WARM_ACTIVE of tight, ascending (as `(margins <= 1 + WARM_ACTIVE).nonzero()`)
+        free = list(compress(range(len(margins)), map((1.0 + WARM_ACTIVE).__ge__, margins)))
         q_d = q / self.d  # (D^-1 q: the same bits wherever the loop below needs it)
+        held, tight = 1.0 - KKT_TOL, 1.0 + KKT_TOL
         for _ in range(WARM_TRIES + 1):
-            if len(free):
+            if free:
                 a_wd, h_ww, clean = self._sub(free)
                 b_w = a_wd @ q
                 b_w += 1.0
@@ -306,33 +314,38 @@ class _WarmKKT:
                 else:
                     with np.errstate(all="ignore"):
                         lam_f = _gesv(h_ww, b_w, signature="dd->d")
-                low = float(_min(lam_f))
-                if not clean and low == low:
-                    self._subs[free.tobytes()] = (a_wd, h_ww, True)
-                if not low >= 0.0:  # a multiplier of the wrong sign leaves (NaN: singular, give up)
-                    if low != low:
+                if not all(map((0.0).__le__, lam_f.tolist())):  # a multiplier < 0 or NaN (the rare path)
+                    low = float(_min(lam_f))
+                    if low != low:  # NaN: singular, give up
                         return None
-                    free = np.delete(free, int(lam_f.argmin()))
+                    if not clean:
+                        self._subs[tuple(free)] = (a_wd, h_ww, True)
+                    del free[int(lam_f.argmin())]  # the most negative multiplier leaves
                     continue
+                if not clean:  # every multiplier >= 0: no NaN
+                    self._subs[tuple(free)] = (a_wd, h_ww, True)
                 v = a_wd.T @ lam_f  # D^-1 (A_W' lam - q)
                 v -= q_d
             else:
                 v = -q_d
             g = rows @ v
-            if float(_min(g)) >= 1.0 - KKT_TOL:  # every margin held; W's tight (else: ill-conditioned)
+            margins = g.tolist()
+            if all(map(held.__le__, margins)):  # every margin held; W's tight (else: ill-conditioned)
                 # (W's margins are among those just held: only their upper side is left to check)
-                if len(free) and not float(_max(g.take(free))) <= 1.0 + KKT_TOL:
+                if free and not all([margins[i] <= tight for i in free]):
                     return None
-                self._last = (v, g)
-                self._lam = (free, lam_f) if len(free) else (free, np.zeros(0))
+                self._last = (v, margins)
+                self._lam = (free, lam_f) if free else (free, np.zeros(0))
                 return v
-            free = np.union1d(free, [int(g.argmin())])
+            worst = int(g.argmin())  # the most violated margin joins (ascending, as np.union1d)
+            if worst not in free:
+                free = sorted([*free, worst])
         return None
 
-    def _sub(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    def _sub(self, free: list[int]) -> tuple[np.ndarray, np.ndarray, bool]:
         """(A_W D^-1, H_WW, solved once without a NaN) for the active set ``free``, kept per set:
         copies of the same rows."""
-        key = free.tobytes()
+        key = tuple(free)
         sub = self._subs.get(key)
         if sub is None:
             if len(self._subs) >= WARM_SUBSETS:
