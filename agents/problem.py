@@ -276,9 +276,9 @@ class _WarmKKT:
         self._last: tuple[np.ndarray, list[float]] | None = None
         self._lam: tuple[list[int], np.ndarray] = ([], np.zeros(0))  # (W, lam_W)
         # per active set W (its indices): A_W D^-1 and H_WW, the same rows `take` gives every time,
-        # and whether W's solve ran once without a NaN (W rarely changes between rounds; at most
+        # |W| ones, and whether W's solve ran once without a NaN (W rarely changes between rounds; at most
         # WARM_SUBSETS kept, the oldest dropped)
-        self._subs: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, bool]] = {}
+        self._subs: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, bool]] = {}
 
     def multipliers(self) -> np.ndarray:
         """The last certified solve's multipliers, one per row (zero off its set W)."""
@@ -301,9 +301,10 @@ class _WarmKKT:
         held, tight = 1.0 - KKT_TOL, 1.0 + KKT_TOL
         for _ in range(WARM_TRIES + 1):
             if free:
-                a_wd, h_ww, clean = self._sub(free)
+                key = tuple(free)
+                a_wd, h_ww, ones, clean = self._subs.get(key) or self._sub(free, key)
                 b_w = a_wd @ q
-                b_w += 1.0
+                b_w += ones  # (+ 1.0 elementwise: an array operand skips the scalar's conversion, ~0.3 us)
                 # numpy's LU (not scipy's dposv: importing scipy.linalg costs a robot ~0.15 s), the gufunc
                 # of np.linalg.solve without its wrapper; a singular H_WW (W's rows dependent) gives NaN.
                 # Its floating-point flags are silenced (as np.linalg.solve does) until this W has been
@@ -319,11 +320,11 @@ class _WarmKKT:
                     if low != low:  # NaN: singular, give up
                         return None
                     if not clean:
-                        self._subs[tuple(free)] = (a_wd, h_ww, True)
+                        self._subs[key] = (a_wd, h_ww, ones, True)
                     del free[int(lam_f.argmin())]  # the most negative multiplier leaves
                     continue
                 if not clean:  # every multiplier >= 0: no NaN
-                    self._subs[tuple(free)] = (a_wd, h_ww, True)
+                    self._subs[key] = (a_wd, h_ww, ones, True)
                 v = a_wd.T @ lam_f  # D^-1 (A_W' lam - q)
                 v -= q_d
             else:
@@ -342,15 +343,14 @@ class _WarmKKT:
                 free = sorted([*free, worst])
         return None
 
-    def _sub(self, free: list[int]) -> tuple[np.ndarray, np.ndarray, bool]:
-        """(A_W D^-1, H_WW, solved once without a NaN) for the active set ``free``, kept per set:
-        copies of the same rows."""
-        key = tuple(free)
-        sub = self._subs.get(key)
-        if sub is None:
-            if len(self._subs) >= WARM_SUBSETS:
-                del self._subs[next(iter(self._subs))]
-            sub = self._subs[key] = (self.rows_d.take(free, 0), self.hessian.take(free, 0).take(free, 1), False)
+    def _sub(self, free: list[int], key: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """(A_W D^-1, H_WW, ones, solved once without a NaN) for a new active set ``free`` (``key``:
+        its tuple), kept per set: copies of the same rows (`solve` looks a kept set up itself)."""
+        if len(self._subs) >= WARM_SUBSETS:
+            del self._subs[next(iter(self._subs))]
+        sub = self._subs[key] = (
+            self.rows_d.take(free, 0), self.hessian.take(free, 0).take(free, 1), np.ones(len(free)), False,
+        )
         return sub
 
 
