@@ -15,7 +15,6 @@ constraint here is a lower bound with h_u = +inf.
 from __future__ import annotations
 
 import threading
-from itertools import compress
 from dataclasses import dataclass
 
 import numpy as np
@@ -239,7 +238,8 @@ WARM_TRIES = 3
 #: active sets whose sub-systems a `_WarmKKT` keeps (a robot's W moves among a few sets near the end)
 WARM_SUBSETS = 16
 
-_min, _max = np.minimum.reduce, np.maximum.reduce  # (np.min / np.max without their Python wrappers)
+_min = np.minimum.reduce  # (np.min without its Python wrapper)
+_nonnegative = (0.0).__le__  # x >= 0.0 (False for a NaN)
 #: the LAPACK gesv gufunc np.linalg.solve calls for a vector right-hand side (its wrapper's type
 #: checks and error-state set-up cost ~2 us more than the solve on the <= 16 rows here; the same
 #: routine, the same bits: tests/test_problem.py compares the two)
@@ -296,7 +296,8 @@ class _WarmKKT:
         last = self._last
         margins = last[1] if last is not None and last[0] is guess else (rows @ guess).tolist()
         # W: the rows within WARM_ACTIVE of tight, ascending (as `(margins <= 1 + WARM_ACTIVE).nonzero()`)
-        free = list(compress(range(len(margins)), map((1.0 + WARM_ACTIVE).__ge__, margins)))
+        limit = 1.0 + WARM_ACTIVE
+        free = [i for i, m in enumerate(margins) if m <= limit]
         q_d = q / self.d  # (D^-1 q: the same bits wherever the loop below needs it)
         held, tight = 1.0 - KKT_TOL, 1.0 + KKT_TOL
         for _ in range(WARM_TRIES + 1):
@@ -315,7 +316,7 @@ class _WarmKKT:
                 else:
                     with np.errstate(all="ignore"):
                         lam_f = _gesv(h_ww, b_w, signature="dd->d")
-                if not all(map((0.0).__le__, lam_f.tolist())):  # a multiplier < 0 or NaN (the rare path)
+                if not all(map(_nonnegative, lam_f.tolist())):  # a multiplier < 0 or NaN (the rare path)
                     low = float(_min(lam_f))
                     if low != low:  # NaN: singular, give up
                         return None
@@ -333,7 +334,7 @@ class _WarmKKT:
             margins = g.tolist()
             if all(map(held.__le__, margins)):  # every margin held; W's tight (else: ill-conditioned)
                 # (W's margins are among those just held: only their upper side is left to check)
-                if free and not all([margins[i] <= tight for i in free]):
+                if free and not all(map(tight.__ge__, map(margins.__getitem__, free))):
                     return None
                 self._last = (v, margins)
                 self._lam = (free, lam_f) if free else (free, np.zeros(0))
