@@ -287,11 +287,12 @@ class _WarmKKT:
         return lam
 
     def solve(self, q: np.ndarray, guess: np.ndarray) -> np.ndarray | None:
-        # The tests on the margins and multipliers run on Python floats (`tolist`, then comparisons in
-        # C through `map`): the same IEEE comparisons as numpy's (a NaN compares False in both), no
-        # arithmetic, so the same decisions; measured in a fleet round each small numpy call here
-        # (a compare, nonzero, a min/max reduce, a take) costs 3-6 us of thread CPU, cold between the
-        # hub's steps, against ~1 us in a tight loop. The products and the LU solve are numpy's, as before.
+        # The tests on the margins and multipliers run on Python floats (`tolist`, then comparisons):
+        # the same IEEE comparisons as numpy's (a NaN compares False in both), no arithmetic, so the
+        # same decisions (tests/test_qp_dual.py::test_warm_solve_decides_as_numpys_reductions_did) with
+        # 6 small numpy calls fewer a solve (compare, nonzero, 2 reduces, take, the scalar add's
+        # conversion: ~1 us each, more when cold between the hub's steps). The products and the LU
+        # solve are numpy's, as before.
         rows = self.rows
         last = self._last
         margins = last[1] if last is not None and last[0] is guess else (rows @ guess).tolist()
