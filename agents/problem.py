@@ -290,9 +290,9 @@ class _WarmKKT:
         # The tests on the margins and multipliers run on Python floats (`tolist`, then comparisons):
         # the same IEEE comparisons as numpy's (a NaN compares False in both), no arithmetic, so the
         # same decisions (tests/test_qp_dual.py::test_warm_solve_decides_as_numpys_reductions_did) with
-        # 6 small numpy calls fewer a solve (compare, nonzero, 2 reduces, take, the scalar add's
-        # conversion: ~1 us each, more when cold between the hub's steps). The products and the LU
-        # solve are numpy's, as before.
+        # 6 small numpy calls fewer a solve (compare, nonzero, 3 reduces, take: ~1 us each, more when
+        # cold between the hub's steps) for 2 `tolist`s (0.1-0.3 us). The products and the LU solve
+        # are numpy's, as before.
         rows = self.rows
         last = self._last
         margins = last[1] if last is not None and last[0] is guess else (rows @ guess).tolist()
