@@ -238,7 +238,8 @@ WARM_TRIES = 3
 #: active sets whose sub-systems a `_WarmKKT` keeps (a robot's W moves among a few sets near the end)
 WARM_SUBSETS = 16
 
-_min, _max = np.minimum.reduce, np.maximum.reduce  # (np.min / np.max without their Python wrappers)
+_min = np.minimum.reduce  # (np.min without its Python wrapper)
+_nonnegative = (0.0).__le__  # x >= 0.0 (False for a NaN)
 #: the LAPACK gesv gufunc np.linalg.solve calls for a vector right-hand side (its wrapper's type
 #: checks and error-state set-up cost ~2 us more than the solve on the <= 16 rows here; the same
 #: routine, the same bits: tests/test_problem.py compares the two)
@@ -270,14 +271,14 @@ class _WarmKKT:
         self.d = d
         self.rows_d = rows / d  # A D^-1
         self.hessian = dual_hessian(rows, d)
-        # the last answer and its margins A v: the next round's guess is that answer (identity),
-        # so its margins need not be computed again (the same product, the same bits)
-        self._last: tuple[np.ndarray, np.ndarray] | None = None
-        self._lam: tuple[np.ndarray, np.ndarray] = (np.zeros(0, dtype=int), np.zeros(0))  # (W, lam_W)
-        # per active set W (its indices' bytes): A_W D^-1 and H_WW, the same rows `take` gives every
-        # time, and whether W's solve ran once without a NaN (W rarely changes between rounds; at
-        # most WARM_SUBSETS kept, the oldest dropped)
-        self._subs: dict[bytes, tuple[np.ndarray, np.ndarray, bool]] = {}
+        # the last answer and its margins A v (as Python floats): the next round's guess is that
+        # answer (identity), so its margins need not be computed again (the same product, the same bits)
+        self._last: tuple[np.ndarray, list[float]] | None = None
+        self._lam: tuple[list[int], np.ndarray] = ([], np.zeros(0))  # (W, lam_W)
+        # per active set W (its indices): A_W D^-1 and H_WW, the same rows `take` gives every time,
+        # |W| ones, and whether W's solve ran once without a NaN (W rarely changes between rounds; at most
+        # WARM_SUBSETS kept, the oldest dropped)
+        self._subs: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray, bool]] = {}
 
     def multipliers(self) -> np.ndarray:
         """The last certified solve's multipliers, one per row (zero off its set W)."""
@@ -286,16 +287,26 @@ class _WarmKKT:
         return lam
 
     def solve(self, q: np.ndarray, guess: np.ndarray) -> np.ndarray | None:
+        # The tests on the margins and multipliers run on Python floats (`tolist`, then comparisons):
+        # the same IEEE comparisons as numpy's (a NaN compares False in both), no arithmetic, so the
+        # same decisions (tests/test_qp_dual.py::test_warm_solve_decides_as_numpys_reductions_did) with
+        # 6 small numpy calls fewer a solve (compare, nonzero, 3 reduces, take: ~1 us each, more when
+        # cold between the hub's steps) for 2 `tolist`s (0.1-0.3 us). The products and the LU solve
+        # are numpy's, as before.
         rows = self.rows
         last = self._last
-        margins = last[1] if last is not None and last[0] is guess else rows @ guess
-        free = (margins <= 1.0 + WARM_ACTIVE).nonzero()[0]
+        margins = last[1] if last is not None and last[0] is guess else (rows @ guess).tolist()
+        # W: the rows within WARM_ACTIVE of tight, ascending (as `(margins <= 1 + WARM_ACTIVE).nonzero()`)
+        limit = 1.0 + WARM_ACTIVE
+        free = [i for i, m in enumerate(margins) if m <= limit]
         q_d = q / self.d  # (D^-1 q: the same bits wherever the loop below needs it)
+        held, tight = 1.0 - KKT_TOL, 1.0 + KKT_TOL
         for _ in range(WARM_TRIES + 1):
-            if len(free):
-                a_wd, h_ww, clean = self._sub(free)
+            if free:
+                key = tuple(free)
+                a_wd, h_ww, ones, clean = self._subs.get(key) or self._sub(free, key)
                 b_w = a_wd @ q
-                b_w += 1.0
+                b_w += ones  # (+ 1.0 elementwise: an array operand skips the scalar's conversion, ~0.3 us)
                 # numpy's LU (not scipy's dposv: importing scipy.linalg costs a robot ~0.15 s), the gufunc
                 # of np.linalg.solve without its wrapper; a singular H_WW (W's rows dependent) gives NaN.
                 # Its floating-point flags are silenced (as np.linalg.solve does) until this W has been
@@ -306,38 +317,42 @@ class _WarmKKT:
                 else:
                     with np.errstate(all="ignore"):
                         lam_f = _gesv(h_ww, b_w, signature="dd->d")
-                low = float(_min(lam_f))
-                if not clean and low == low:
-                    self._subs[free.tobytes()] = (a_wd, h_ww, True)
-                if not low >= 0.0:  # a multiplier of the wrong sign leaves (NaN: singular, give up)
-                    if low != low:
+                if not all(map(_nonnegative, lam_f.tolist())):  # a multiplier < 0 or NaN (the rare path)
+                    low = float(_min(lam_f))
+                    if low != low:  # NaN: singular, give up
                         return None
-                    free = np.delete(free, int(lam_f.argmin()))
+                    if not clean:
+                        self._subs[key] = (a_wd, h_ww, ones, True)
+                    del free[int(lam_f.argmin())]  # the most negative multiplier leaves
                     continue
+                if not clean:  # every multiplier >= 0: no NaN
+                    self._subs[key] = (a_wd, h_ww, ones, True)
                 v = a_wd.T @ lam_f  # D^-1 (A_W' lam - q)
                 v -= q_d
             else:
                 v = -q_d
             g = rows @ v
-            if float(_min(g)) >= 1.0 - KKT_TOL:  # every margin held; W's tight (else: ill-conditioned)
+            margins = g.tolist()
+            if all(map(held.__le__, margins)):  # every margin held; W's tight (else: ill-conditioned)
                 # (W's margins are among those just held: only their upper side is left to check)
-                if len(free) and not float(_max(g.take(free))) <= 1.0 + KKT_TOL:
+                if free and not all(map(tight.__ge__, map(margins.__getitem__, free))):
                     return None
-                self._last = (v, g)
-                self._lam = (free, lam_f) if len(free) else (free, np.zeros(0))
+                self._last = (v, margins)
+                self._lam = (free, lam_f) if free else (free, np.zeros(0))
                 return v
-            free = np.union1d(free, [int(g.argmin())])
+            worst = int(g.argmin())  # the most violated margin joins (ascending, as np.union1d)
+            if worst not in free:
+                free = sorted([*free, worst])
         return None
 
-    def _sub(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-        """(A_W D^-1, H_WW, solved once without a NaN) for the active set ``free``, kept per set:
-        copies of the same rows."""
-        key = free.tobytes()
-        sub = self._subs.get(key)
-        if sub is None:
-            if len(self._subs) >= WARM_SUBSETS:
-                del self._subs[next(iter(self._subs))]
-            sub = self._subs[key] = (self.rows_d.take(free, 0), self.hessian.take(free, 0).take(free, 1), False)
+    def _sub(self, free: list[int], key: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """(A_W D^-1, H_WW, ones, solved once without a NaN) for a new active set ``free`` (``key``:
+        its tuple), kept per set: copies of the same rows (`solve` looks a kept set up itself)."""
+        if len(self._subs) >= WARM_SUBSETS:
+            del self._subs[next(iter(self._subs))]
+        sub = self._subs[key] = (
+            self.rows_d.take(free, 0), self.hessian.take(free, 0).take(free, 1), np.ones(len(free)), False,
+        )
         return sub
 
 

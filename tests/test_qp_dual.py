@@ -254,3 +254,83 @@ def test_warm_solve_keeps_a_bounded_set_of_subsystems():
         b = fresh._warm.solve(q, g.copy())
         assert (a is None and b is None) or a.tobytes() == b.tobytes()
     assert 0 < len(qp._warm._subs) <= problem.WARM_SUBSETS
+
+
+def _numpy_warm_solve(rows: np.ndarray, d: np.ndarray, q: np.ndarray, guess: np.ndarray):
+    """`_WarmKKT.solve` as it was with numpy's reductions for every test (main 9061995, no cache):
+    the reference for the Python-float comparisons that replaced them. (v, W, lam_W) or None."""
+    rows_d, hessian = rows / d, dual_hessian(rows, d)
+    free = (rows @ guess <= 1.0 + problem.WARM_ACTIVE).nonzero()[0]
+    q_d = q / d
+    with np.errstate(all="ignore"):
+        for _ in range(problem.WARM_TRIES + 1):
+            if len(free):
+                a_wd = rows_d.take(free, 0)
+                b_w = a_wd @ q
+                b_w += 1.0
+                lam_f = problem._gesv(hessian.take(free, 0).take(free, 1), b_w, signature="dd->d")
+                low = float(np.minimum.reduce(lam_f))
+                if not low >= 0.0:
+                    if low != low:
+                        return None
+                    free = np.delete(free, int(lam_f.argmin()))
+                    continue
+                v = a_wd.T @ lam_f
+                v -= q_d
+            else:
+                v, lam_f = -q_d, np.zeros(0)
+            g = rows @ v
+            if float(np.minimum.reduce(g)) >= 1.0 - problem.KKT_TOL:
+                if len(free) and not float(np.maximum.reduce(g.take(free))) <= 1.0 + problem.KKT_TOL:
+                    return None
+                return v, free, lam_f
+            free = np.union1d(free, [int(g.argmin())])
+    return None
+
+
+def test_warm_solve_decides_as_numpys_reductions_did():
+    """Every answer (None or v's bits, W, lam_W) of the warm solve -- W and its tests on Python floats --
+    equals the numpy-reduction form's, along chains of steps (the cached margins), from far, bad and
+    NaN / inf guesses and q (the multi-try, dropped-multiplier, added-row and give-up paths)."""
+    paths = {"none": 0, "answer": 0}
+    for seed in range(12):
+        qp, q, guess = _warm_case(seed)
+        warm, rng = qp._warm, np.random.default_rng(seed)
+        rows, d = warm.rows, warm.d
+        prev = guess
+        for k in range(30):
+            if k % 6 == 5:  # a guess from elsewhere: far, scaled, a NaN / inf entry, all rows active
+                pick = rng.integers(4)
+                g = [np.full(len(guess), 1e3), guess * rng.uniform(-2, 3), np.where(rng.random(len(guess)) < 0.2, np.nan, guess),
+                     np.linalg.lstsq(rows, np.ones(len(rows)), rcond=None)[0]][pick]
+                step_q = q if pick != 2 else np.where(rng.random(len(q)) < 0.1, np.inf, q)
+            else:  # the next step from the last answer (identity: the cached margins)
+                g, step_q = prev, q * (1.0 + 0.05 * rng.normal()) + 0.02 * rng.normal(size=q.shape)
+            ref = _numpy_warm_solve(rows, d, step_q, g if g is not prev else g.copy())
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # (an inf q's products: the same warnings or none in both)
+                out = warm.solve(step_q, g)
+            assert (out is None) == (ref is None)
+            if out is not None:
+                assert out.tobytes() == ref[0].tobytes()
+                assert warm._lam[0] == ref[1].tolist() and warm._lam[1].tobytes() == ref[2].tobytes()
+                assert warm.multipliers()[ref[1]].tobytes() == ref[2].tobytes()
+                prev = out
+            paths["none" if out is None else "answer"] += 1
+    assert paths["none"] >= 5 and paths["answer"] >= 200  # both outcomes exercised
+
+
+def test_warm_solve_boundaries_are_numpys(monkeypatch):
+    """On the exact boundaries -- a multiplier exactly 0.0, a margin exactly at the held and tight
+    limits (KKT_TOL 0) -- the Python-float tests accept as numpy's `min >= 0` / `max <= limit` did."""
+    monkeypatch.setattr(problem, "KKT_TOL", 0.0)
+    rows, d = np.array([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]), np.ones(3)
+    q, guess = np.array([-1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])  # W = {0}: lam_0 = (a_0 q + 1) / 1 = 0.0
+    warm = problem._WarmKKT(rows, d)
+    out, ref = warm.solve(q, guess), _numpy_warm_solve(rows, d, q, guess)
+    assert out is not None and ref is not None and out.tobytes() == ref[0].tobytes()
+    assert (rows @ out).tolist() == [1.0, 2.0]  # row 0 exactly at the limits
+    assert warm._lam[0] == ref[1].tolist() == [0] and warm._lam[1].tolist() == [0.0]
+    monkeypatch.setattr(problem, "WARM_ACTIVE", 1.0)  # row 1's margin 2.0 exactly at the active limit:
+    fresh = problem._WarmKKT(rows, d)  # W = {0, 1}, dependent rows: nothing, as numpy's `<=` gave
+    assert fresh.solve(q, guess) is None and _numpy_warm_solve(rows, d, q, guess) is None
