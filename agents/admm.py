@@ -1228,8 +1228,11 @@ class ConsensusADMM(RoundCore):
         # every robot's frame in id order as one (robots x frame) array: one concatenation instead
         # of slicing v and w out of each frame and joining each half (the rows hold the same numbers)
         pol = self._polish
-        own = mine if not self._hub_frames else np.concatenate([mine, self._w, *self._extras(prev=False)])
-        rows = np.concatenate([own if i == me else theirs[i] for i in hub.ids]).reshape(len(hub.ids), -1)
+        # (this robot's own frame as its parts, [v; w; payload]: one concatenation in all, not
+        # its own first -- the same numbers in the same places)
+        own = (mine,) if not self._hub_frames else (mine, self._w, *self._extras(prev=False))
+        rows = np.concatenate([x for i in hub.ids for x in (own if i == me else (theirs[i],))]).reshape(
+            len(hub.ids), -1)
         frames, certs = rows, None
         if pol is not None:  # the hub steps on [v; w] alone, the polish on the rest (views: the
             frames, payloads = rows[:, : 2 * self.dim], rows[:, 2 * self.dim :]  # arithmetic is elementwise)
