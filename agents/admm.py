@@ -762,8 +762,11 @@ def plain_stop_held(residuals: list[float], held: int, tol: float) -> int:
 
 def _median(xs: list[float]) -> float:
     """np.median's value (the two middle values' mean, (a + b) / 2, for an even count) without
-    its ~50 us of overhead per call; NaN as np.median gives it."""
-    if not all(map(operator.eq, xs, xs)):  # a NaN (x != x; operator.eq has no identity shortcut)
+    its ~50 us of overhead per call; NaN as np.median gives it. (Every robot runs it twice a
+    round: a NaN anywhere makes the plain sum NaN, so a sum that is not NaN -- 0.15 us for the
+    20 residuals, against 1.5 for the 20 comparisons -- clears them; a NaN sum, also of an inf
+    and a -inf, is looked at entry by entry.)"""
+    if math.isnan(sum(xs)) and not all(map(operator.eq, xs, xs)):  # a NaN (x != x; operator.eq has no identity shortcut)
         return float("nan")
     s, h = sorted(xs), len(xs) // 2
     return s[h] if len(xs) % 2 else (s[h - 1] + s[h]) / 2
