@@ -388,6 +388,13 @@ def _spd_workspace(n: int) -> tuple[np.ndarray, np.ndarray, list[tuple[Any, ...]
     return ws
 
 
+def _read_only_scalar(x: float) -> np.ndarray:
+    """``x`` as a read-only 0-d float64 array (a factor numpy multiplies without converting it)."""
+    a = np.array(x, dtype=np.float64)
+    a.flags.writeable = False
+    return a
+
+
 class _Hub:
     """Global-consensus ADMM with Anderson acceleration, held identically by every robot.
 
@@ -432,6 +439,20 @@ class _Hub:
         self.token = _digest(repr((ids, dim, self.relax, self.memory, self.safeguard, STALL, ANDERSON_REG,
                                    STALL_WINDOW, STALL_DROP)).encode(), penalty)
 
+    @property
+    def relax(self) -> float:
+        """The over-relaxation (a benchmark may change it between rounds: set, not patched)."""
+        return self._relax
+
+    @relax.setter
+    def relax(self, value: float) -> None:
+        # relax and 1 - relax also as read-only 0-d arrays: an array times a Python float converts
+        # the float every call (~0.2 us more than a 0-d array's multiply: `message`, every
+        # robot-round); the products are the same IEEE multiplications of the same float64 values
+        self._relax = value
+        self._relax_a = _read_only_scalar(value)
+        self._keep_a = _read_only_scalar(1.0 - value)
+
     def center(self, me: int) -> np.ndarray:
         """Robot `me`'s proximal centre z - u_me."""
         assert self.s is not None
@@ -453,7 +474,7 @@ class _Hub:
         the plain map, sent beside v so that every copy builds the map from the same numbers."""
         assert self.s is not None
         d, k = self.dim, self.ids.index(me)
-        h = self.relax * v + (1.0 - self.relax) * self.s[:d]
+        h = self._relax_a * v + self._keep_a * self.s[:d]
         return h + self.s[(k + 1) * d : (k + 2) * d]
 
     def _map(self, ws: list[np.ndarray]) -> np.ndarray:
@@ -475,7 +496,7 @@ class _Hub:
         (`message` for every robot at once: the same elementwise operations.)"""
         assert self.s is not None
         d = self.dim
-        h = self.relax * np.asarray(values) + (1.0 - self.relax) * self.s[:d]  # (elementwise: any layout)
+        h = self._relax_a * np.asarray(values) + self._keep_a * self.s[:d]  # (elementwise: any layout)
         h += self.s[d:].reshape(h.shape)
         w = np.asarray(ws)
         return h.shape == w.shape and bool(_all_reduce(h == w, axis=None))  # np.array_equal, without its wrappers
