@@ -67,3 +67,32 @@ def test_a_restored_copy_computes_its_own_steps_and_agrees(counted_steps, restor
     assert counted_steps["steps"] == alone_steps + (rounds - max(restore_at, 1))  # round 0 -> 1 starts the hub
     assert hubs == plain_hubs and hubs[0] == hubs[1] == hubs[2]
     assert restored[1] == plain[1][restore_at:] and restored[0] == plain[0]
+
+
+def test_messages_and_sync_test_are_the_python_float_products():
+    """`_Hub.message` and `synced` multiply by relax and 1 - relax held as 0-d arrays: the same
+    IEEE products as by the Python floats, bit for bit, also after the relax is set anew (a
+    benchmark does so between rounds) -- random states, signed zeros, subnormals, huge values."""
+    import numpy as np
+
+    rng = np.random.default_rng(3)
+    d, ids = 7, (0, 2, 5)
+    hub = admm._Hub(ids, d, np.ones(d), admm.ADMMParams())
+    for relax in (1.95, 1.0, 0.3, 1.999999, 1.95):
+        hub.relax = relax
+        for _ in range(40):
+            hub.s = rng.normal(scale=10.0 ** rng.integers(-300, 300), size=d * (len(ids) + 1))
+            vs = rng.normal(scale=10.0 ** rng.integers(-300, 300), size=(len(ids), d))
+            vs[0, :2] = (-0.0, 5e-324)
+            ws = []
+            for k, (i, v) in enumerate(zip(ids, vs)):
+                with np.errstate(all="ignore"):
+                    want = (relax * v + (1.0 - relax) * hub.s[:d]) + hub.s[(k + 1) * d : (k + 2) * d]
+                    got = hub.message(i, v)
+                assert got.tobytes() == want.tobytes()
+                ws.append(want)
+            with np.errstate(all="ignore"):
+                assert hub.synced(vs, np.array(ws))
+                ws[1] = ws[1].copy()
+                ws[1][3] = np.nextafter(ws[1][3], np.inf)
+                assert not hub.synced(vs, np.array(ws))
