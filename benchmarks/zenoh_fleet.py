@@ -528,7 +528,7 @@ def main(argv: list[str] | None = None) -> int:
         "Default scenario (L-block, 20 points/robot, 5x3 grid, paper preset); one loopback Zenoh router; "
         "robots as processes chosen by `--robots-per-process auto` (one per robot up to 2 per core, else one "
         "process per core, robots of a process sharing one Zenoh session; *procs*), asyncio shell, express "
-        "publisher, checkpoint every round (one pwrite), retransmit 20 ms. *ms/round*: each robot's "
+        "publisher, checkpoint every round (one pwrite) where a process hosts part of the fleet, every 16 rounds where it hosts all of it, retransmit 20 ms. *ms/round*: each robot's "
         "advance-to-advance interval (median over the run, then median over robots; *mean*: mean of the "
         "robots' means). *x bare*: ratio to the bare Zenoh exchange among 3 processes measured in the same run "
         f"({'n/a' if bare is None else f'{bare:.3f} ms p50'}, benchmarks/zenoh_exchange.py). *CPU ms/round*: "
