@@ -103,7 +103,7 @@ def test_the_relay_guard_is_off_where_the_payload_does_not_fit():
 
 def test_certify_zero_sends_mains_relay_frames():
     """certify 0: main's relay layout (N vectors of M + 1, no payload) and the rule alone's stop (356 rounds, the
-    4-ring of rounds.md, the unguarded rule of `relay_stop_rule`; 370 with main's before branch relaystop). (Bit equality of the iterates with the guard on: the
+    4-ring of rounds.md, the unguarded tests of `relay_stop_tests`; 370 with main's before branch relaystop). (Bit equality of the iterates with the guard on: the
     test above; a pinned hash of piqp's bits would tie the suite to this machine's CPU.)"""
     _, spec, _ = make_run(topology="ring", robots=4, certify=0.0)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
