@@ -80,7 +80,7 @@ def stop_check_fleets() -> dict[str, dict[str, Any]]:
 
 #: the relay module's constants a variant may replace
 _DEFAULTS = {key: getattr(relay_hub, key) for key in ("RELAY_REG", "RELAY_SAFEGUARD", "RELAY_RELAX", "RELAY_HOLD",
-                                                      "RELAY_HOLD_CERTIFIED", "RELAY_WARM_QP")}
+                                                      "RELAY_HOLD_CERTIFIED", "RELAY_FAST_HOLD", "RELAY_WARM_QP")}
 
 
 def configure(variant: dict[str, Any]) -> None:
@@ -254,7 +254,7 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
     trace = variant.get("trace")
     rules = current_rules()
     if trace:  # never stop; the guard's bound every round (the path is the same: admm.CERTIFY_EVERY_ROUND)
-        relay_hub.RELAY_HOLD = relay_hub.RELAY_HOLD_CERTIFIED = 10**9
+        relay_hub.RELAY_HOLD = relay_hub.RELAY_HOLD_CERTIFIED = relay_hub.RELAY_FAST_HOLD = 10**9  # every test
         admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = True, math.inf
     restarts = [0]
     forget = relay_hub.RelayHubADMM._forget
