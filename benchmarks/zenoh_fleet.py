@@ -190,8 +190,9 @@ def result_digest(res: dict) -> str:
     return h.hexdigest()[:16]
 
 
-def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -> str:
-    """The whole `launch --preset paper` command, the trees alternating run by run (same minutes)."""
+def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int, bare: float | None = None) -> str:
+    """The whole `launch --preset paper` command, the trees alternating run by run (same minutes);
+    with ``bare`` (ms) each median ms/round also as a ratio to the bare Zenoh exchange."""
     lines = ["| tree | wall s (each run) | median | CPU s, all processes (each run) | median | ms/round (each run) "
              "| median | load | rounds, error, digest |",
              "|---|---|---:|---|---:|---|---:|---|---|"]
@@ -204,7 +205,8 @@ def cli_launch_table(trees: list[tuple[str, Path, dict[str, str]]], runs: int) -
         outcomes = ", ".join(sorted({f"{r['rounds']} rounds, {r['error']:.6e}, `{r['digest']}`" for r in runs_}))
         lines.append(f"| {label} | {', '.join(f'{w:.2f}' for w in walls)} | **{statistics.median(walls):.2f}** "
                      f"| {', '.join(f'{c:.2f}' for c in cpus)} | {statistics.median(cpus):.2f} "
-                     f"| {', '.join(f'{m:.3f}' for m in ms)} | {statistics.median(ms):.3f} "
+                     f"| {', '.join(f'{m:.3f}' for m in ms)} | {statistics.median(ms):.3f}"
+                     f"{'' if bare is None else f' ({statistics.median(ms) / bare:.2f} x bare)'} "
                      f"| {min(r['load'] for r in runs_):.1f}-{max(r['load'] for r in runs_):.1f} "
                      f"| {outcomes} |")
     return "\n".join(lines)
@@ -504,15 +506,8 @@ def main(argv: list[str] | None = None) -> int:
         print(table(rows[-1:], bare).splitlines()[-1], flush=True)
     # issue 14's 3-robot figure as a user meets it: the whole `launch --preset paper` command, several
     # runs (one run's median swings by several percent; the rows above also carry the profiling marks)
-    paper = [cli_launch(ROOT) for _ in range(3 if args.quick else 6)]
-    paper_ms = statistics.median(r["round_ms"] for r in paper)
-    each_ms = ", ".join(f"{r['round_ms']:.3f}" for r in paper)
-    each_wall = ", ".join(f"{r['wall_s']:.2f}" for r in paper)
-    outcomes = ", ".join(sorted({f"{r['rounds']} rounds, error {r['error']:.3e}, digest `{r['digest']}`" for r in paper}))
-    ratio = "" if bare is None else f" ({paper_ms / bare:.2f} x bare)"
-    paper_line = (f"3 robots, `shapefleet launch --preset paper` ({len(paper)} runs, no profiling marks): ms/round "
-                  f"{each_ms}, median **{paper_ms:.3f}**{ratio}; wall s {each_wall}, median "
-                  f"**{statistics.median(r['wall_s'] for r in paper):.2f}**; {outcomes}")
+    paper_line = ("3 robots, the whole `shapefleet launch --preset paper` command (no profiling marks):\n\n"
+                  + cli_launch_table([("this tree", ROOT, {})], 3 if args.quick else 6, bare))
     print(paper_line, flush=True)
     load1 = os.getloadavg()
 
