@@ -14,6 +14,7 @@ constraint here is a lower bound with h_u = +inf.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
@@ -317,16 +318,14 @@ class _WarmKKT:
                 else:
                     with np.errstate(all="ignore"):
                         lam_f = _gesv(h_ww, b_w, signature="dd->d")
-                if not all(map(_nonnegative, lam_f.tolist())):  # a multiplier < 0 or NaN (the rare path)
-                    low = float(_min(lam_f))
-                    if low != low:  # NaN: singular, give up
-                        return None
-                    if not clean:
-                        self._subs[key] = (a_wd, h_ww, ones, True)
+                negative = not all(map(_nonnegative, lam_f.tolist()))  # a multiplier < 0 or NaN (rare)
+                if negative and math.isnan(_min(lam_f)):  # a NaN (minimum propagates it): singular, give up
+                    return None
+                if not clean:  # W solved without a NaN
+                    self._subs[key] = (a_wd, h_ww, ones, True)
+                if negative:
                     del free[int(lam_f.argmin())]  # the most negative multiplier leaves
                     continue
-                if not clean:  # every multiplier >= 0: no NaN
-                    self._subs[key] = (a_wd, h_ww, ones, True)
                 v = a_wd.T @ lam_f  # D^-1 (A_W' lam - q)
                 v -= q_d
             else:
