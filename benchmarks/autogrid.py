@@ -31,10 +31,14 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+# agents first: its __init__ pins one BLAS thread before numpy loads OpenBLAS, as in `simulate` and
+# every robot; numpy loaded first ran the fleet here with a thread per core, and its bits (on an
+# ill-conditioned outline, its outcome) differed from simulate's (benchmarks/results/autogrid.md, held-out 4)
+import agents  # noqa: E402, F401, I001
+import numpy as np  # noqa: E402
 
 from sklearn.model_selection import StratifiedKFold, cross_val_score  # noqa: E402
 from sklearn.svm import SVC  # noqa: E402

@@ -5,6 +5,7 @@ OpenBLAS, which a late import would silently miss."""
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -30,5 +31,18 @@ def test_a_robot_process_and_the_cli_start_with_one_blas_thread(module):
             "print(sorted({p['num_threads'] for p in threadpoolctl.threadpool_info() "
             "if p.get('internal_api') == 'openblas'}))")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[1]"
+
+
+def test_the_autogrid_benchmark_runs_its_fleet_with_one_blas_thread():
+    """benchmarks/autogrid.py runs the fleet in process: with numpy loaded before agents it had a
+    thread per core, and its bits differed from simulate's (held-out 4's pliers: another outcome)."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    root = Path(__file__).resolve().parents[1]
+    code = ("import sys; sys.path.insert(0, 'benchmarks'); import autogrid, threadpoolctl; "
+            "print(sorted({p['num_threads'] for p in threadpoolctl.threadpool_info() "
+            "if p.get('internal_api') == 'openblas'}))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[1]"
