@@ -46,3 +46,26 @@ def test_the_autogrid_benchmark_runs_its_fleet_with_one_blas_thread():
     out = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[1]"
+
+
+@pytest.mark.parametrize("module", ["agents", "launcher.cli"])
+def test_a_script_that_loaded_numpy_first_still_gets_one_blas_thread(module):
+    """numpy first starts OpenBLAS with a thread per core, which the variable no longer changes: the
+    package then limits the running pool (without it: [2] or more on a multi-core host)."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    code = (f"import numpy, threadpoolctl, {module}; "
+            "print(sorted({p['num_threads'] for p in threadpoolctl.threadpool_info() "
+            "if p.get('internal_api') == 'openblas'}))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[1]"
+
+
+def test_a_thread_count_the_user_exported_wins_even_when_numpy_loaded_first():
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2"}
+    code = ("import numpy, threadpoolctl, agents; "
+            "print(sorted({p['num_threads'] for p in threadpoolctl.threadpool_info() "
+            "if p.get('internal_api') == 'openblas'}))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[2]"
