@@ -1,24 +1,36 @@
-"""A certified bound on the hub form's function error, from the duality gap (pure: no I/O, no clock).
+"""A certified bound on the hub form's function error, from the KKT residual (pure: no I/O, no clock).
 
 Why: the hub's stop rule (r / (1 - rate), agents/admm.py) is a heuristic that Anderson plateaus fool
 (docs/algorithm.md, "A certified stop"); this bound is *proven* >= the function error of any point
 against the exact optimum, and every copy of the hub computes it from its frames alike, so it can
 guard the rule's stop (ADMMParams.certify).
 
-Hard margin, rows a_i = y_i [phi_i; 1], v = (x, gamma), x = K^{1/2} c (the rkhs norm is |x|):
+Hard margin, rows a_i = y_i [phi_i; 1], v = (x, gamma), x = K^{1/2} c (the rkhs norm is |x|),
+f(v) = |x|^2 / 2, slack_i(v) = a_i' v - 1; the optimum v* has multipliers lam* >= 0 with
+(x*, 0) = A' lam* and lam*' slack(v*) = 0.
 
-* Primal. At the fleet's mean x_bar, m+ = min of phi_i' x_bar over the positive rows, m- = max over
-  the negative rows (each robot sends its own two: a min/max over robots). If m+ > m-, the point
-  s (x_bar, g), g = -(m+ + m-)/2, s = 2/(m+ - m-), holds every margin: P = s^2 |x_bar|^2 / 2 >= P*.
-* Dual ("hub dual"). Robot l's multipliers lam_l >= 0 of its own step QP satisfy A_l' lam_l = grad_l
-  + r_l (grad_l = P_l v_l + q_l, r_l the solver's residual, robot-local); with S+, S- the fleet's
-  per-side sums of lam, t = S_small / S_big and W the x part of sum_l grad_l (every hub copy computes
-  it from the frames' v_l and its own centres), the balanced, optimally scaled multipliers give
-  D = (2 S_small)^2 / (2 B^2) <= P*, B = |W| + sum_l |r_l| + (1 - t) S_big phi_max.
-* Gap. 1/2 |x|^2 is 1-strongly convex: e0 = sqrt(2 (P - D)) >= |s x_bar - x*|, and |x*| >= sqrt(2 D);
-  gamma* lies within e0 phi_max of s g (both classes have a tight row at the optimum). So any point
-  (x, gamma) has function error at most
-      (|x - s x_bar| + e0) / sqrt(2 D)  +  (|gamma - s g| + e0 phi_max) / max(1, |s g| - e0 phi_max).
+* Primal point. At a point x_bar every copy holds, m+ = min of phi_i' x_bar over the positive rows,
+  m- = max over the negative rows (each robot sends its own two: a min/max over robots). If m+ > m-,
+  v0 = s (x_bar, g), g = -(m+ + m-)/2, s = 2/(m+ - m-), holds every margin, with a tight row on each side.
+* Multipliers. Robot l's multipliers lam_l >= 0 of its own step QP satisfy A_l' lam_l = grad_l + r_l
+  (grad_l = P_l v_l + q_l, r_l the solver's residual, robot-local): the fleet's u = A' lam has x part
+  W + r (W the x part of sum_l grad_l, which every hub copy computes from the frames; |r| <= sum_l |r_l|)
+  and gamma part dS = S+ - S- exactly (the per-side sums of lam; the gamma column of a row is y).
+* Monotonicity (branch certtight). With g = grad f(v0) - u = (x0 - W - r, -dS) and
+  c = lam' slack(v0) = u' v0 - S (S = S+ + S-):
+      <g, v0 - v*> = |x0 - x*|^2 + lam*' slack(v0) + lam' slack(v*) - c,
+  and both middle terms are >= 0 (v0 and v* feasible, lam and lam* >= 0), so with delta = |x0 - x*|
+      delta^2 <= |g_x| delta + dS |g0 - gamma*| + c.
+  A tight positive row a and a tight negative row b at v0 hold at v* too: gamma* - g0 lies in
+  [-phi_a' (x* - x0), -phi_b' (x* - x0)], so |g0 - gamma*| <= phi_max delta. Hence
+      delta <= e = (beta + sqrt(beta^2 + 4 c)) / 2,  beta = |x0 - W| + sum_l |r_l| + phi_max |dS|,
+  c <= W' x0 + dS g0 - S + sum_l |r_l| |x0| (plus a rounding allowance), and |x*| >= |x0| - e.
+  Any point (x, gamma) then has function error at most
+      (|x - x0| + e) / (|x0| - e)  +  (|gamma - g0| + e phi_max) / max(1, |g0| - e phi_max).
+  Before (branch guard) the radius was sqrt(2 (P - D)) from strong convexity and a balanced "hub dual"
+  D <= P*: the gap's first-order part counted twice and the balancing term (1 - S_small/S_big) S_big
+  phi_max dominated the dual's loss; e is ~1.6-2x smaller at the same point (the 8-ring: 1.6e-2 against
+  2.8e-2 at round 596; docs/algorithm.md).
 
 Every reduction over robots is exactly rounded (math.fsum) or a min/max, in robot-id order, so
 every copy gets the same bits from the same frames. A robot sends PAYLOAD floats beside [v; w]:
@@ -98,15 +110,20 @@ def norm(v: np.ndarray) -> float:
         return math.inf
 
 
+#: relative allowance for the rounding of c's sum (its terms are exactly rounded products and sums: a
+#: few units of 2^-53 each; far below any bound the guard could use)
+ROUNDING = 1e-13
+
+
 @dataclass(frozen=True)
 class Certificate:
-    """The fleet's certificate of one round: the rescaled mean s (x_bar, g), e0 and the two
-    denominators; `bound` turns it into a proven bound on any point's function error."""
+    """The fleet's certificate of one round: the feasible point v0 = s (x_bar, g), e0 >= |x0 - x*|
+    and the two denominators; `bound` turns it into a proven bound on any point's function error."""
 
-    center: np.ndarray  # s (x_bar, g)
-    e0: float  # >= |s x_bar - x*|
-    den_x: float  # sqrt(2 D) <= |x*|
-    den_g: float  # max(1, |s g| - e0 phi_max) <= max(1, |gamma*|)
+    center: np.ndarray  # v0 = s (x_bar, g)
+    e0: float  # >= |x0 - x*| (the module's e)
+    den_x: float  # |x0| - e0 <= |x*|
+    den_g: float  # max(1, |g0| - e0 phi_max) <= max(1, |gamma*|)
     phi_max: float
 
     def bound(self, v: np.ndarray) -> float:
@@ -132,9 +149,9 @@ class Certificate:
 
 
 def fleet_certificate(payloads: np.ndarray, x_bar: np.ndarray, w_x: np.ndarray) -> Certificate | None:
-    """The fleet's certificate from every robot's payload (a row per robot, id order), the mean
-    x_bar at which the margins were taken and w_x, the x part of sum_l grad_l; None where none
-    exists (no balanced dual, the mean not separating, a bad payload). Finite but huge numbers (a
+    """The fleet's certificate from every robot's payload (a row per robot, id order), the
+    point x_bar at which the margins were taken and w_x, the x part of sum_l grad_l; None where none
+    exists (x_bar not separating, the radius e0 not below |x0|, a bad payload). Finite but huge numbers (a
     forged or garbled frame, an exploding iterate) overflow to no certificate, never to an error."""
     try:
         with np.errstate(over="ignore", invalid="ignore"):
@@ -155,19 +172,29 @@ def _fleet_certificate(payloads: np.ndarray, x_bar: np.ndarray, w_x: np.ndarray)
         return None
     s_pos, s_neg = math.fsum(cols[2]), math.fsum(cols[3])
     resid, phi = math.fsum(cols[4]), max(cols[5])
-    small, big = min(s_pos, s_neg), max(s_pos, s_neg)
-    if not small > 0:
-        return None
-    b = norm(w_x) + resid + (1.0 - small / big) * big * phi
-    dual = (2.0 * small) ** 2 / (2.0 * b * b) if b > 0 else math.inf
+    total, imbalance = math.fsum([s_pos, s_neg]), math.fsum([s_pos, -s_neg])  # S and dS, exactly rounded
     s = 2.0 / (m_pos - m_neg)
-    g = -(m_pos + m_neg) / 2.0
-    primal = s * s * math.fsum((x_bar * x_bar).tolist()) / 2.0
-    if not (0 < dual < math.inf and math.isfinite(primal)):
+    x0, g0 = s * x_bar, s * (-(m_pos + m_neg) / 2.0)
+    x0_norm = norm(x0)
+    # c >= lam' slack(v0) = u' v0 - S, u = (W + r, dS): the exactly rounded sum of its terms, |r| |x0| for
+    # the unknown residual and an allowance for the rounding of the products
+    terms = (w_x * x0).tolist() + [imbalance * g0, -total]
+    c = math.fsum(terms) + resid * x0_norm + ROUNDING * (math.fsum(map(abs, terms)) + total * abs(g0))
+    # the multipliers scaled by alpha >= 0 are multipliers too (c and u scale with alpha): alpha = 1, and
+    # the alpha that brings alpha W nearest x0 (it helps where the multipliers are far off)
+    ww = math.fsum((w_x * w_x).tolist())
+    alphas = (1.0,) if not ww > 0 else (1.0, max(math.fsum(terms[:-2]) / ww, 0.0))
+    e0 = min(_radius(norm(x0 - a * w_x) + a * (resid + phi * abs(imbalance)), a * c) for a in alphas)
+    if not (x0_norm - e0 > 0 and math.isfinite(e0)):
         return None
-    e0 = math.sqrt(2.0 * max(primal - dual, 0.0))
-    cert = Certificate(np.append(s * x_bar, s * g), e0, math.sqrt(2.0 * dual), max(1.0, abs(s * g) - e0 * phi), phi)
+    cert = Certificate(np.append(x0, g0), e0, x0_norm - e0, max(1.0, abs(g0) - e0 * phi), phi)
     return cert if all(map(math.isfinite, cert.as_list())) else None
+
+
+def _radius(beta: float, c: float) -> float:
+    """The largest delta >= 0 with delta^2 <= beta delta + c (the module's e), rounded up a little."""
+    beta = beta * (1.0 + ROUNDING)
+    return (beta + math.sqrt(beta * beta + 4.0 * max(c, 0.0))) / 2.0 * (1.0 + ROUNDING)
 
 
 def reported_bound(certificate: Certificate | None, values: np.ndarray) -> float | None:
