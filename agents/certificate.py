@@ -20,17 +20,19 @@ f(v) = |x|^2 / 2, slack_i(v) = a_i' v - 1; the optimum v* has multipliers lam* >
   c = lam' slack(v0) = u' v0 - S (S = S+ + S-):
       <g, v0 - v*> = |x0 - x*|^2 + lam*' slack(v0) + lam' slack(v*) - c,
   and both middle terms are >= 0 (v0 and v* feasible, lam and lam* >= 0), so with delta = |x0 - x*|
-      delta^2 <= |g_x| delta + dS |g0 - gamma*| + c.
+      delta^2 <= |g_x| delta + |dS| |g0 - gamma*| + c.
   A tight positive row a and a tight negative row b at v0 hold at v* too: gamma* - g0 lies in
   [-phi_a' (x* - x0), -phi_b' (x* - x0)], so |g0 - gamma*| <= phi_max delta. Hence
       delta <= e = (beta + sqrt(beta^2 + 4 c)) / 2,  beta = |x0 - W| + sum_l |r_l| + phi_max |dS|,
-  c <= W' x0 + dS g0 - S + sum_l |r_l| |x0| (plus a rounding allowance), and |x*| >= |x0| - e.
+  c <= W' x0 + dS g0 - S + sum_l |r_l| |x0| (plus a rounding allowance), and |x*| >= |x0| - e. The
+  multipliers scaled by any alpha >= 0 are multipliers too (c and u scale with alpha): e is the smaller
+  of alpha = 1 and alpha = W' x0 / |W|^2.
   Any point (x, gamma) then has function error at most
       (|x - x0| + e) / (|x0| - e)  +  (|gamma - g0| + e phi_max) / max(1, |g0| - e phi_max).
   Before (branch guard) the radius was sqrt(2 (P - D)) from strong convexity and a balanced "hub dual"
   D <= P*: the gap's first-order part counted twice and the balancing term (1 - S_small/S_big) S_big
-  phi_max dominated the dual's loss; e is ~1.6-2x smaller at the same point (the 8-ring: 1.6e-2 against
-  2.8e-2 at round 596; docs/algorithm.md).
+  phi_max dominated the dual's loss; e is ~1.6-2x smaller at the same point (the 8-ring at round 596:
+  radius 0.096 against 0.17, bound 1.6e-2 against 2.8e-2; docs/algorithm.md).
 
 Every reduction over robots is exactly rounded (math.fsum) or a min/max, in robot-id order, so
 every copy gets the same bits from the same frames. A robot sends PAYLOAD floats beside [v; w]:
