@@ -120,7 +120,7 @@ RELAY_FAST_HOLD = 24
 #: the known plateaus by itself (bound 0.16 on the one at 1.1e-3; even hold 1 kept every guarded stop
 #: safe, branch relayaa2), so the rule only proposes: 5 since branch relaystop (20 before, 40 before
 #: relayaa). The bound, not the hold, gates these stops: the 8-ring's first fell below 1e-2 at round
-#: 616 (stop 620); with branch certtight's bound at round 602 (stop 606)
+#: 616 (stop 620); with branch certtight's bound at round 598 (stop 602)
 RELAY_HOLD_CERTIFIED = 5
 #: the exact warm-started local QP (admm.WARM_QP's KKT solve), only where the certified guard decides
 #: (`_cert_on`, as the hub's WARM_QP + cert_active; piqp elsewhere): stays off. Measured with the relayaa
@@ -243,7 +243,6 @@ class RelayHubADMM(RoundCore):
         self._fleet_bound = math.inf
         if self._cert_on:
             self._sides = cert_math.sides(self._qp._rows)
-            self._phi_max = cert_math.phi_max(self._qp._rows)
         self._broken: str | None = None
         # the shared fleet state by round (rounds k - D .. k), the relayed a's by robot and round
         self._S: dict[int, np.ndarray] = {}
@@ -353,7 +352,7 @@ class RelayHubADMM(RoundCore):
         # grad = P x + q of my step (P: 1/N + rho on x; q = -P_prox t), at x = (a + t) / 2 exactly as
         # every copy rebuilds it (`_certify`): my residual then covers the copies' gradient bit for bit
         grad = self._pdiag * (0.5 * (a + t)) - self._P * t
-        return np.concatenate([a, cert_math.robot_payload(self._qp._rows, self._sides, lam, grad, mean, self._phi_max)])
+        return np.concatenate([a, cert_math.robot_payload(self._qp._rows, self._sides, lam, grad, mean)])
 
     def _certify(self, S: np.ndarray, A: np.ndarray, payloads: np.ndarray, mean: np.ndarray) -> None:
         """The fleet's certificate of round j (agents/certificate.py): every robot's payload of its

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.certificate import fleet_certificate, phi_max, robot_payload, sides
+from agents.certificate import fleet_certificate, robot_payload, sides
 from agents.problem import MarginQP, certify_hard_margin, margin_rows
 
 
@@ -64,7 +64,7 @@ def _fleet(rng, rows, opt, lam_opt, eps: float, robots: int = 3, inactive: float
         r_l = (eps if r_size is None else r_size) * rng.normal(size=rows.shape[1]) * (rng.random() < residual)
         grad = lam_l @ mine + r_l
         grads.append(grad)
-        payloads.append(robot_payload(mine, sides(mine), lam_l, grad, np.append(x_bar, 0.0), phi_max(mine)))
+        payloads.append(robot_payload(mine, sides(mine), lam_l, grad, np.append(x_bar, 0.0)))
     w_x = np.sum(grads, axis=0)[:-1]
     return fleet_certificate(np.array(payloads), x_bar, w_x)
 
@@ -85,7 +85,7 @@ def test_the_bound_covers_the_error_near_the_optimum_of_random_problems(seed):
             x0, g0 = cert.center[:-1], cert.center[-1]
             delta = float(np.linalg.norm(x0 - opt[:-1]))
             assert cert.e0 >= delta  # the radius
-            assert abs(g0 - opt[-1]) <= cert.e0 * cert.phi_max  # the gamma interval
+            assert abs(g0 - opt[-1]) <= cert.g_half  # the gamma interval
             assert cert.den_x <= np.linalg.norm(opt[:-1]) and cert.den_g <= max(1.0, abs(opt[-1]))
             for v in (opt, cert.center, opt + eps * rng.normal(size=len(opt)),
                       cert.center + 10 * eps * rng.normal(size=len(opt))):
@@ -122,7 +122,7 @@ def test_every_term_of_the_radius_is_needed_where_the_multipliers_are_complement
                 continue
             delta = float(np.linalg.norm(cert.center[:-1] - opt[:-1]))
             assert cert.e0 >= delta
-            assert abs(cert.center[-1] - opt[-1]) <= cert.e0 * cert.phi_max
+            assert abs(cert.center[-1] - opt[-1]) <= cert.g_half
             for v in (opt, cert.center, opt + eps * rng.normal(size=len(opt))):
                 assert cert.bound(v) >= _error(v, opt)
             checked += 1
