@@ -1164,7 +1164,6 @@ class ConsensusADMM(RoundCore):
         self._certificate: Certificate | None = None  # the last round's fleet certificate
         self._fleet_bound = math.inf  # its bound over the robots' values of that round
         if self._cert_slot:
-            self._phi_max = cert_math.phi_max(self._qp._rows)
             self._sides = cert_math.sides(self._qp._rows)
             self._pdiag = cert_math.step_diagonal(self._hub.penalty, n_robots)
         self._w: np.ndarray = self._values.copy()  # round 0: w = v (the start is z = mean v)
@@ -1301,7 +1300,7 @@ class ConsensusADMM(RoundCore):
         if not self.cert_active or hub is None or hub.s is None or mean is None or lam is None:
             return np.zeros(cert_math.PAYLOAD)
         grad = self._pdiag * v + (-hub.penalty * hub.center(self.robot_id))  # (the step's q, as solved)
-        return cert_math.robot_payload(qp._rows, self._sides, lam, grad, mean, self._phi_max)
+        return cert_math.robot_payload(qp._rows, self._sides, lam, grad, mean)
 
     def _shared_step(self, frames: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """The part of a hub round every copy computes alike -- the hub's step on the robots' v and

@@ -53,11 +53,12 @@ memory 45 / 50 / 55: 1170 / 1070 / 1411 rounds), so they were chosen on sums ove
 
 Certified guard (admm's `certify`, hard margins, where N (M + 1 + 6) floats fit the frame budget):
 robot l's 6 certificate floats (agents/certificate.py) ride in its slot beside a_l -- the
-multipliers of its step at t_l and the margins at the fleet mean of the round its copy just stepped
-(j - D for the a_l of round j) -- and every copy computes the fleet certificate of round j from
-them, grad_l = (P + 1/N on x) x_l - P t_l, x_l = (a_l + t_l) / 2; the stop also needs its bound over
-the x_l of round j <= admm.certify_threshold. Weak duality: any reported primal point and any
-dual-feasible multipliers bound the error, so the older mean is sound (docs/algorithm.md).
+multipliers of its step at t_l and the margins at the mean centre of S^j (the mean of the t_l it
+has just stepped from, for the a_l of round j; since branch certtight, the mean x of round j - D
+before) -- and every copy computes the fleet certificate of round j from them, grad_l = (P + 1/N
+on x) x_l - P t_l, x_l = (a_l + t_l) / 2; the stop also needs its bound over the x_l of round j <=
+admm.certify_threshold. Any feasible point whose margins every robot reported and any multipliers
+>= 0 bound the error (docs/algorithm.md), so any point every copy holds will do.
 
 A robot that dies for good cannot be dropped consistently (its relays are gone and the delays of
 every path through it change): the relay robots then stop, not converged, with that reason; the
@@ -118,8 +119,8 @@ RELAY_FAST_HOLD = 24
 #: 11 on the paper grid): the stop then also needs the proven bound <= certify_threshold, which refuses
 #: the known plateaus by itself (bound 0.16 on the one at 1.1e-3; even hold 1 kept every guarded stop
 #: safe, branch relayaa2), so the rule only proposes: 5 since branch relaystop (20 before, 40 before
-#: relayaa). The bound, not the hold, gates these stops: the 8-ring's first falls below 1e-2 at round
-#: 616, so it stops at 620 at the earliest
+#: relayaa). The bound, not the hold, gates these stops: the 8-ring's first fell below 1e-2 at round
+#: 616 (stop 620); with branch certtight's bound at round 598 (stop 602)
 RELAY_HOLD_CERTIFIED = 5
 #: the exact warm-started local QP (admm.WARM_QP's KKT solve), only where the certified guard decides
 #: (`_cert_on`, as the hub's WARM_QP + cert_active; piqp elsewhere): stays off. Measured with the relayaa
@@ -238,12 +239,10 @@ class RelayHubADMM(RoundCore):
         self._w = np.tile(np.sqrt(self._P), n)  # Anderson's residual weights (the P-norm)
         self._memory = relay_memory(params, n, share.dim, self.delay)
         self._qp = MarginQP(share.features, share.labels, x_weight=1.0 / n, prox_weight=self._P, C=share.C)
-        self._means: dict[int, np.ndarray] = {}  # the fleet's mean x of round j (the guard's margins)
         self._certificate: Certificate | None = None  # the last fleet certificate computed
         self._fleet_bound = math.inf
         if self._cert_on:
             self._sides = cert_math.sides(self._qp._rows)
-            self._phi_max = cert_math.phi_max(self._qp._rows)
         self._broken: str | None = None
         # the shared fleet state by round (rounds k - D .. k), the relayed a's by robot and round
         self._S: dict[int, np.ndarray] = {}
@@ -305,12 +304,11 @@ class RelayHubADMM(RoundCore):
             A = np.ascontiguousarray(held[:, : self.dim])
             S = self._state(j)
             below = self._shared_step(S, A)
-            self._means[j] = self._prev_mean
             if self._cert_on:  # the guard: the rule's stop also needs the certified bound
                 self._fleet_bound = math.inf
                 last = k + 1 >= self._round_cap  # (a capped run reports a bound too)
-                if (below or last or admm.CERTIFY_EVERY_ROUND) and j - D in self._means:
-                    self._certify(S, A, np.ascontiguousarray(held[:, self.dim :]), self._means[j - D])
+                if (below or last or admm.CERTIFY_EVERY_ROUND) and j >= D:  # (S^j: the payloads' centres)
+                    self._certify(S, A, np.ascontiguousarray(held[:, self.dim :]), self._centre_mean(S))
                 below = below and self._fleet_bound <= certify_threshold(self.params)
             t = self._S[k + 1][self._blocks[self.robot_id]]
         else:  # the first round's values are still on their way: t stays t^0 = the own solution
@@ -319,7 +317,8 @@ class RelayHubADMM(RoundCore):
         self._qp.keep_multipliers = armed
         x = self._solve(t, mine if RELAY_WARM_QP and self._cert_on else None)
         a = 2.0 * x - t
-        self._a[self.robot_id][k + 1] = self._with_payload(a, t, self._means.get(j) if armed else None)
+        mean = self._centre_mean(self._S[k + 1]) if armed and j >= 0 else None
+        self._a[self.robot_id][k + 1] = self._with_payload(a, t, mean)
         self._prune(k + 1 - D)
         return x, below
 
@@ -334,9 +333,17 @@ class RelayHubADMM(RoundCore):
         near = any(h + D >= hold for h, (_, _, hold) in zip(self._held, self._tests))
         return admm.CERTIFY_ARM == math.inf or near or k + D + 1 >= self._round_cap
 
+    def _centre_mean(self, S: np.ndarray) -> np.ndarray:
+        """The guard's primal point for the a's of round j: the mean of the centres t_l of S^j, which
+        robot l holds when it steps to a_l of round j and every copy holds when it certifies round j
+        (D rounds fresher than the mean x of round j - D used before branch certtight: at the fixed
+        point sum_l t_l = N z, so it tends to the optimum alike). Row after row in id order."""
+        return np.add.reduce(S.reshape(self.n, self.dim), axis=0) / self.n
+
     def _with_payload(self, a: np.ndarray, t: np.ndarray | None, mean: np.ndarray | None = None) -> np.ndarray:
         """My slot of the frames: a, and with the guard's slot my certificate payload of this step
-        (margins at the fleet mean `mean`, which every copy holds; zeros where there is none)."""
+        (margins at `mean`, the mean centre of this step's S, which every copy holds; zeros where
+        there is none)."""
         if not self._cert_slot:
             return a
         lam = self._qp.multipliers
@@ -345,14 +352,14 @@ class RelayHubADMM(RoundCore):
         # grad = P x + q of my step (P: 1/N + rho on x; q = -P_prox t), at x = (a + t) / 2 exactly as
         # every copy rebuilds it (`_certify`): my residual then covers the copies' gradient bit for bit
         grad = self._pdiag * (0.5 * (a + t)) - self._P * t
-        return np.concatenate([a, cert_math.robot_payload(self._qp._rows, self._sides, lam, grad, mean, self._phi_max)])
+        return np.concatenate([a, cert_math.robot_payload(self._qp._rows, self._sides, lam, grad, mean)])
 
     def _certify(self, S: np.ndarray, A: np.ndarray, payloads: np.ndarray, mean: np.ndarray) -> None:
         """The fleet's certificate of round j (agents/certificate.py): every robot's payload of its
-        step at S^j (multipliers; margins at the mean of round j - D), the x part of sum_l grad_l with
-        x_l = (a_l + t_l) / 2 and t_l from S^j; its bound over those x_l. Weak duality makes any
-        reported primal point and any dual-feasible multipliers a valid pair, so the older mean is
-        sound. The same bits on every copy; computed once per process (`_SHARED_CERTS`)."""
+        step at S^j (multipliers; margins at `mean`, the mean centre of S^j), the x part of sum_l
+        grad_l with x_l = (a_l + t_l) / 2 and t_l from S^j; its bound over those x_l. Any feasible
+        point whose margins every robot reported and any multipliers >= 0 give a valid bound. The
+        same bits on every copy; computed once per process (`_SHARED_CERTS`)."""
         d, n = self.dim, self.n
 
         def compute() -> tuple[Certificate | None, float]:
@@ -502,8 +509,6 @@ class RelayHubADMM(RoundCore):
                     del held[r]
         for r in [r for r in self._S if r < oldest and r != 0]:
             del self._S[r]
-        for r in [r for r in self._means if r < oldest - self.delay + 1]:  # the guard reads round j - D
-            del self._means[r]
 
     def _forget_edge(self, j: int) -> None:
         """A neighbour died for good: the relay cannot continue exactly (see the module)."""
@@ -535,7 +540,6 @@ class RelayHubADMM(RoundCore):
             "prev_frame": to_bytes(self._prev_frame),
             "broken": self._broken,
             "token": self._token,
-            "means": [[r, to_bytes(m)] for r, m in sorted(self._means.items())],
             "certificate": None if self._certificate is None else self._certificate.as_list(),
             "fleet_bound": self._fleet_bound,
         }
@@ -560,7 +564,6 @@ class RelayHubADMM(RoundCore):
         self._prev_frame = from_bytes(state["prev_frame"])
         self._broken = state["broken"]
         self._token = bytes(state["token"])
-        self._means = {int(r): from_bytes(m) for r, m in state.get("means", [])}
         cert = state.get("certificate")
         self._certificate = None if cert is None else Certificate.from_list([float(c) for c in cert])
         self._fleet_bound = float(state.get("fleet_bound", math.inf))

@@ -13,6 +13,8 @@ is judged by its rounds and errors (no A/B needed), its CPU beside them (noisy: 
 --warm-qp sets RELAY_WARM_QP (the exact warm-started local QP where the guard decides), --seeds runs
 every chosen fleet at each seed (the hold's safety check), --no-frame-budget lets the guard's payload
 ride wherever a frame's MAX_DIM allows (a what-if for the 16-robot fleets, beyond the frame budget).
+--check computes the certificate every round (the same path and stops) and counts the robot-rounds whose
+certified bound (`error_bound`) is below the robot's true error (never, if the proof holds).
 --memory is a Python expression in n (robots), dim (M + 1), D (the graph's diameter) and a (the
 fleet's ADMMParams.anderson); the other flags replace the module's constants for the run.
 
@@ -253,6 +255,8 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
     configure(variant)
     trace = variant.get("trace")
     rules = current_rules()
+    if variant.get("check"):  # the payload and the certificate every round (the same path and stops)
+        admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = True, math.inf
     if trace:  # never stop; the guard's bound every round (the path is the same: admm.CERTIFY_EVERY_ROUND)
         relay_hub.RELAY_HOLD = relay_hub.RELAY_HOLD_CERTIFIED = relay_hub.RELAY_FAST_HOLD = 10**9  # every test
         admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = True, math.inf
@@ -287,15 +291,25 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
                 "memory": cores[0]._memory, "D": cores[0].delay, "cpu": time.process_time() - started,
                 "ms_round": 0.0}
     first = None
+    checked = unsafe = 0
     while not all(c.finished for c in cores):
         lockstep_round(cores)
         if first is None and error() < 1e-3:
             first = cores[0].round
+        if variant.get("check"):  # every robot's certified bound against its true error (never below)
+            for c in cores:
+                bound = c.error_bound()
+                if bound is not None:
+                    checked += 1
+                    unsafe += bound < b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c,
+                                                       central.gamma)
     cpu = time.process_time() - started
     rounds = cores[0].round
+    bounds = [c.error_bound() for c in cores]
     return {"fleet": label, "first": first, "stop": rounds, "error": error(),
             "converged": all(c.converged for c in cores), "restarts": restarts[0],
-            "memory": cores[0]._memory, "D": cores[0].delay, "cpu": cpu, "ms_round": 1e3 * cpu / max(rounds, 1)}
+            "memory": cores[0]._memory, "D": cores[0].delay, "cpu": cpu, "ms_round": 1e3 * cpu / max(rounds, 1),
+            "bound": None if None in bounds else max(bounds), "checked": checked, "unsafe": unsafe}
 
 
 def main() -> None:
@@ -327,6 +341,9 @@ def main() -> None:
     ap.add_argument("--label", default="", help="a prefix of the fleets' labels (trace file names)")
     ap.add_argument("--certify", type=float, default=None,
                     help="the fleets' certify (0: no guard anywhere, the unguarded stop rule on every fleet)")
+    ap.add_argument("--check", action="store_true",
+                    help="the certificate every round and every robot's certified bound against its true error "
+                         "(columns: bound at the stop, robot-rounds with the bound below the error of those checked)")
     ap.add_argument("--max-rounds", type=int, default=5000)
     ap.add_argument("--jobs", type=int, default=1)
     args = ap.parse_args()
@@ -338,25 +355,29 @@ def main() -> None:
                "RELAY_HOLD_CERTIFIED": args.hold_certified,
                "RELAY_WARM_QP": None if args.warm_qp is None else args.warm_qp == "on",
                "no_frame_budget": args.no_frame_budget, "trace": args.trace, "trace_tols": args.trace_tols,
-               "certify": args.certify}
+               "certify": args.certify, "check": args.check}
     tol = ADMMParams().tol
     print(f"variant: {variant}", flush=True)
     print("| fleet | D | memory | rounds to 1e-3 | rounds at stop | converged | error at stop | restarts | "
-          "CPU s | CPU ms per round |", flush=True)
+          "CPU s | CPU ms per round | bound at stop | bound < error |", flush=True)
     fleets = stop_check_fleets() if args.stop_check else {f: RELAY_FLEETS[f] for f in args.fleets}
     if args.seeds is not None:
         fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
     tasks = [(args.label + f, kw, variant, args.max_rounds) for f, kw in fleets.items()]
-    total, worst = 0, 0.0
+    total, worst, checked, unsafe = 0, 0.0, 0, 0
     with multiprocessing.Pool(args.jobs) as pool:
         for r in pool.imap(run, tasks):
             total += r["stop"]
             worst = max(worst, r["error"] if r["converged"] else 0.0)
             flag = "" if r["error"] <= tol or not r["converged"] else " ABOVE TOL"
+            checked, unsafe = checked + r.get("checked", 0), unsafe + r.get("unsafe", 0)
+            bound = "-" if r.get("bound") is None else f"{r['bound']:.1e}"
+            check = f"{r['unsafe']} of {r['checked']}" if args.check else "-"
             print(f"| {r['fleet']} | {r['D']} | {r['memory']} | {r['first']} | {r['stop']} | "
                   f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e}{flag} | {r['restarts']} | "
-                  f"{r['cpu']:.1f} | {r['ms_round']:.1f} |", flush=True)
-    print(f"total rounds at stop {total}; largest error at a stop {worst:.1e} (tol {tol:g})", flush=True)
+                  f"{r['cpu']:.1f} | {r['ms_round']:.1f} | {bound} | {check} |", flush=True)
+    print(f"total rounds at stop {total}; largest error at a stop {worst:.1e} (tol {tol:g})"
+          + (f"; bound below the true error on {unsafe} of {checked} robot-rounds" if args.check else ""), flush=True)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """The certified stop guard of the hub form (agents/certificate.py, ADMMParams.certify), measured in process.
 
 The hub's stop rule (r / (1 - rate)) is a heuristic that Anderson plateaus fool; since branch guard every
-hub copy also computes a duality-gap bound on the fleet's function error against the exact optimum
+hub copy also computes a proven bound (a duality gap; since branch certtight, a KKT-residual radius) on the fleet's function error against the exact optimum
 (agents/certificate.py: the mathematics) and a stop needs the rule AND bound <= certify x tol; since
 branch relayguard the relay hub's copies too (agents/relay_hub.py, where the payload fits). This
 script runs each fleet exactly as `simulate` does (the cores in lock step, `benchmarks.rounds.fleet_probe`)
