@@ -147,12 +147,38 @@ def rank(out_dir):
         print(r, {k: round(float(v), 3) for k, v in s.items()})
 
 
+SETS = ("default", "sparse", "six", "out")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The command line: `collect SETS OUT` or `rank OUT`; bad use exits 2 with one message (argparse)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="{collect,rank}")
+    c = sub.add_parser("collect", help="exact central solves per data set and candidate; one pickle per data set in OUT")
+    c.add_argument("sets", help=f"comma-separated data sets, of {','.join(SETS)}")
+    c.add_argument("out", help="an existing directory for the pickles")
+    r = sub.add_parser("rank", help="every rule of the grid on the pickles in OUT")
+    r.add_argument("out", help="the directory `collect` wrote")
+    args = ap.parse_args(argv)
+    if not Path(args.out).is_dir():
+        ap.error(f"{args.out}: not a directory")
+    if args.command == "rank":
+        if not glob.glob(f"{args.out}/*.pkl"):
+            ap.error(f"{args.out}: no .pkl files (run collect first)")
+        rank(args.out)
+        return
+    wanted = [w for w in args.sets.split(",") if w]
+    unknown = [w for w in wanted if w not in SETS]
+    if unknown or not wanted:
+        ap.error(f"unknown data set(s) {','.join(unknown) or repr(args.sets)}: choose from {','.join(SETS)}")
+    for name, kw, pkw in datasets(wanted):
+        t = time.time()
+        row = one(name, kw, pkw)
+        pickle.dump(row, open(f"{args.out}/{name}.pkl", "wb"))
+        print(name, f"{time.time()-t:.0f}s", flush=True)
+
+
 if __name__ == "__main__":
-    if sys.argv[1] == "collect":
-        for name, kw, pkw in datasets(sys.argv[2].split(",")):
-            t = time.time()
-            row = one(name, kw, pkw)
-            pickle.dump(row, open(f"{sys.argv[3]}/{name}.pkl", "wb"))
-            print(name, f"{time.time()-t:.0f}s", flush=True)
-    else:
-        rank(sys.argv[2])
+    main()
