@@ -921,7 +921,8 @@ def test_width_test_is_one_stacked_pass_agreed_by_every_robot_and_resumes_bit_fo
             assert np.array_equal(a.function()[1], b.function()[1]), key
 
 
-@pytest.mark.parametrize("argv", [[], ["frob"], ["collect"], ["collect", "bogus", "."], ["rank", "/nonexistent"]])
+@pytest.mark.parametrize("argv", [[], ["frob"], ["collect"], ["collect", "bogus", "."], ["rank", "/nonexistent"],
+                                  ["multiscale", ".", "--jobs", "0"]])
 def test_rules_emulation_cli_exits_2_with_one_message_on_bad_use(argv, capsys):
     """benchmarks/autogrid_rules_emulation.py once raised an IndexError traceback without arguments."""
     from benchmarks import autogrid_rules_emulation as emulation
