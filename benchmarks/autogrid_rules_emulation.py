@@ -9,6 +9,15 @@ sorted by the outlines' mean. Never run it on the held-out-2 outlines.
 
     .venv/bin/python benchmarks/autogrid_rules_emulation.py collect default,sparse,six,out OUT
     .venv/bin/python benchmarks/autogrid_rules_emulation.py rank OUT
+
+`multiscale` (issue 15, the multiscale step): models beyond one width against SVC-CV and the oracle on the 24
+development outlines (the original 12, held-out 2 and 3), the six benchmark shapes and the default run, each
+with the data `simulate` gives (5 x 40; six shapes 6 x 40; default 3 x 20). Kernels on the data (SVC,
+precomputed, C = 1e6: what a model can do without a grid) and on grids (the exact central QP, hard margin,
+soft C = 1e3 if infeasible, one lattice per width, block-diagonal K_G); today's default emulated as in step 6.
+One pickle per data set in OUT (kept: a second call only prints the table).
+
+    .venv/bin/python benchmarks/autogrid_rules_emulation.py multiscale OUT [--jobs 2]
 """
 import dataclasses, glob, itertools, pickle, sys, time
 from pathlib import Path
@@ -147,12 +156,235 @@ def rank(out_dir):
         print(r, {k: round(float(v), 3) for k, v in s.items()})
 
 
+# --- issue 15, multiscale: models beyond one width (benchmarks/results/autogrid.md, "multiscale") ---
+
+MS_KS = (2, 3, 4, 6, 8, 12, 16, 24, 32)  # SVC's single widths diag/k (CV and the oracle choose among them)
+MS_POWERS = (0, 1, 2, 3, 4, 6)  # sum-kernel weights (k / k_min)^p: p > 0 makes the narrow components cheaper
+
+
+def ms_datasets() -> list[tuple[str, dict]]:
+    """The default run, the six benchmark shapes (6 x 40) and the 24 development outlines (5 x 40)."""
+    out = [("default", {})] + [("six_" + n.split()[0], dict(robots=6, points=40, **kw)) for n, kw in B.SHAPES]
+    sets = {"dev": ("letter_e", "digit_3", "wrench_mm", "gear_mm", "fork_mm", "letter_k", "letter_m", "digit_2",
+                    "key_mm", "comb_mm", "tslot_mm", "clamp_mm"),
+            "ho2": ("letter_f", "letter_h", "digit_7", "hook_mm", "saw_mm", "slotted_mm"),
+            "ho3": ("heldout3/letter_s", "heldout3/digit_4", "heldout3/digit_5", "heldout3/caliper_mm",
+                    "heldout3/tuning_fork_mm", "heldout3/bolt_mm")}
+    for tag, names in sets.items():
+        out += [(f"{tag}_{Path(n).name}", dict(robots=5, points=40, shape_file=str(ROOT / f"benchmarks/outlines/{n}.csv")))
+                for n in names]
+    return out
+
+
+def _sum_kernel(d2: np.ndarray, diag: float, weights: dict[float, float]) -> np.ndarray:
+    """sum_k w_k exp(-|x - y|^2 / (2 (diag/k)^2)) from squared distances: one RKHS, each width's norm / w_k."""
+    return sum(w * np.exp(-d2 * k * k / (2 * diag * diag)) for k, w in weights.items())
+
+
+def _gibbs(d2: np.ndarray, la: np.ndarray, lb: np.ndarray) -> np.ndarray:
+    """Gibbs' kernel with a width per point (positive definite for any widths; 2-D prefactor)."""
+    s2 = la[:, None] ** 2 + lb[None, :] ** 2
+    return 2 * la[:, None] * lb[None, :] / s2 * np.exp(-d2 / s2)
+
+
+class SumBasis:
+    """A weighted sum of widths on a grid (block s: its lattice at width s, kernel w_s k_s; K_G block-diagonal),
+    with the features solve_central needs. GridBasis has widths but no weights, hence this emulation-only class."""
+
+    def __init__(self, blocks: list[tuple[np.ndarray, float, float]]) -> None:
+        from scipy.linalg import block_diag
+
+        from agents.kernel import RCOND, gaussian_kernel
+        self.blocks, self.grid = blocks, np.vstack([g for g, _, _ in blocks])
+        lam, u = np.linalg.eigh(block_diag(*[w * gaussian_kernel(g, g, s) for g, s, w in blocks]))
+        keep = lam > RCOND * lam[-1]
+        self.rank, self.inv_sqrt = int(keep.sum()), (u[:, keep] / np.sqrt(lam[keep])) @ u[:, keep].T
+
+    @property
+    def size(self) -> int:
+        return len(self.grid)
+
+    def _k(self, pts: np.ndarray) -> np.ndarray:
+        from agents.kernel import gaussian_kernel
+        return np.hstack([w * gaussian_kernel(pts, g, s) for g, s, w in self.blocks])
+
+    def features(self, pts: np.ndarray) -> np.ndarray:
+        return self._k(pts) @ self.inv_sqrt
+
+    def c_from_x(self, x: np.ndarray) -> np.ndarray:
+        return self.inv_sqrt @ x
+
+    def decision(self, pts: np.ndarray, c: np.ndarray, gamma: float) -> np.ndarray:
+        return self._k(pts) @ c + gamma
+
+
+def _sum_grid(points: np.ndarray, bounds, diag: float, weights: dict[float, float], spacing_ratio: float) -> SumBasis:
+    """One lattice per width diag/k (spacing spacing_ratio x width, the fleet's level 0), its nodes near data."""
+    import math
+
+    from agents.autogrid_rules import coarse_lattice, near_data_marks
+    blocks = []
+    for k, w in sorted(weights.items()):
+        s = diag / k
+        _, h0, g = coarse_lattice(bounds, s, spacing_ratio, 10**6)
+        blocks.append((g[near_data_marks(points, g, s + h0 / math.sqrt(2)) > 0], s, w))
+    return SumBasis(blocks)
+
+
+def ms_one(item: tuple[str, dict]) -> dict:
+    """Every model's IoU (and 5-fold CV accuracy where a choice needs it) on one data set."""
+    import shapely
+    from scipy.spatial import cKDTree
+    from sklearn.model_selection import StratifiedKFold
+    from sklearn.svm import SVC
+
+    from agents.kernel import _squared_distances as sqd  # the kernels' own distances (cdist moves IoU by 2e-4)
+    name, kw = item
+    world, spec = build_world(Options(fleet_id="bench", **kw))
+    p, y = world.points, world.labels
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    bounds, diag = (lo[0], hi[0], lo[1], hi[1]), float(np.hypot(*(hi - lo)))
+    q = scenario.make_grid(200, 200, B.padded_bounds(world.shape))  # the raster of scenario.iou_on_raster
+    truth = shapely.contains_xy(world.shape, q[:, 0], q[:, 1])
+    iou = lambda inside: float(np.count_nonzero(truth & inside) / max(1, np.count_nonzero(truth | inside)))  # noqa: E731
+    dp, dq = sqd(p, p), sqd(q, p)
+    folds = list(StratifiedKFold(5, shuffle=True, random_state=0).split(p, y))
+
+    def svc(kp, kq, C=1e6):
+        return iou(SVC(kernel="precomputed", C=C).fit(kp, y).decision_function(kq) < 0)
+
+    def cv(kp, C=1e6):
+        return float(np.mean([np.mean(np.sign(SVC(kernel="precomputed", C=C).fit(kp[np.ix_(a, a)], y[a])
+                                                  .decision_function(kp[np.ix_(b, a)])) == y[b]) for a, b in folds]))
+
+    row = {"name": name, "n": len(y), "iou": {}, "cv": {}, "grid": {}}
+    for k in MS_KS:
+        w = {k: 1.0}
+        row["iou"][f"s{k}"], row["cv"][f"s{k}"] = svc(_sum_kernel(dp, diag, w), _sum_kernel(dq, diag, w)), cv(_sum_kernel(dp, diag, w))
+    for ks in ((4, 8, 16, 32), (4, 8, 16, 32, 48)):
+        for pw in MS_POWERS:
+            w = {k: (k / ks[0]) ** pw for k in ks}
+            key = f"sum{ks[-1]}_p{pw}"
+            row["iou"][key], row["cv"][key] = svc(_sum_kernel(dp, diag, w), _sum_kernel(dq, diag, w)), cv(_sum_kernel(dp, diag, w))
+    w = {k: 1.0 for k in (4, 8, 16, 32)}
+    for C in (1.0, 10.0, 100.0):
+        key = f"sum32_p0_C{C:g}"
+        row["iou"][key], row["cv"][key] = svc(_sum_kernel(dp, diag, w), _sum_kernel(dq, diag, w), C), cv(_sum_kernel(dp, diag, w), C)
+    # data-adaptive local widths: a * the distance to the 3rd nearest opposite-label point, within [diag/32, diag/8]
+    opp = np.empty(len(y))
+    for c in (-1, 1):
+        opp[y == c] = cKDTree(p[y != c]).query(p[y == c], k=3)[0][:, -1]
+    near = cKDTree(p).query(q)[1]  # a raster point takes its nearest data point's width
+    for a in (0.5, 1.0, 2.0):
+        lw = np.clip(a * opp, diag / 32, diag / 8)
+        row["iou"][f"local{a:g}"] = svc(_gibbs(dp, lw, lw), _gibbs(dq, lw[near], lw))
+    # today's default, emulated (its sweep on exact solves, then its final model), and sums anchored at its sigma
+    params = spec.autogrid_params
+    if name.startswith("six"):
+        params = dataclasses.replace(params, tol=1e-3, max_points=200)  # the benchmark's budget for the six shapes
+    sigma = B._central_sweep_choice(spec, params, bounds, diag)
+    basis, sol = B.central_final_model(p, y, params, bounds, sigma)
+    row["today_k"], k0 = diag / sigma, diag / sigma
+    row["iou"]["today"], row["grid"]["today"] = iou(basis.decision(q, sol.c, sol.gamma) < 0), basis.size
+    models = {"anch_p2": {k0: 1.0, 2 * k0: 4.0, 4 * k0: 16.0}, "anch_p3": {k0: 1.0, 2 * k0: 8.0, 4 * k0: 64.0}}
+    for key, w in models.items():
+        row["iou"][key] = svc(_sum_kernel(dp, diag, w), _sum_kernel(dq, diag, w))
+    models.update({"sum32_p0": {k: 1.0 for k in (4, 8, 16, 32)}, "sum32_p3": {k: (k / 4) ** 3 for k in (4, 8, 16, 32)},
+                   "sum48_p3": {k: (k / 4) ** 3 for k in (4, 8, 16, 32, 48)}})
+    for key, w in models.items():  # the same models on grids, exact central QP
+        gb = _sum_grid(p, bounds, diag, w, params.spacing_ratio)
+        s = solve_central(gb, p, y, None)
+        s = s if s.solved else solve_central(gb, p, y, params.soft_C)
+        row["iou"]["grid_" + key], row["grid"]["grid_" + key] = iou(gb.decision(q, s.c, s.gamma) < 0), gb.size
+    return row
+
+
+def ms_table(rows: list[dict]) -> list[str]:
+    """Per data set and the means: SVC-CV, oracle, today, and the models beyond one width."""
+    def cv_pick(r, keys):  # the best 5-fold CV accuracy, ties -> the first (the larger sigma / the smaller p)
+        best = max(r["cv"][k] for k in keys)
+        return next(k for k in keys if r["cv"][k] == best)
+    cols = [("SVC-CV", lambda r: r["iou"][cv_pick(r, [f"s{k}" for k in MS_KS])]),
+            ("oracle", lambda r: max(r["iou"][f"s{k}"] for k in MS_KS)),
+            ("today", lambda r: r["iou"]["today"])]
+    cols += [(k, (lambda k: lambda r: r["iou"][k])(k)) for k in
+             ("sum32_p0", "sum32_p3", "sum48_p3", "anch_p2", "anch_p3", "local0.5", "local1", "local2")]
+    cols += [("sum48, p by CV", lambda r: r["iou"][cv_pick(r, [f"sum48_p{pw}" for pw in MS_POWERS])]),
+             ("sum32_p0, C by CV", lambda r: r["iou"][cv_pick(r, ["sum32_p0_C1", "sum32_p0_C10", "sum32_p0_C100", "sum32_p0"])])]
+    cols += [(k, (lambda k: lambda r: r["iou"][k])(k)) for k in
+             ("grid_sum32_p0", "grid_sum32_p3", "grid_sum48_p3", "grid_anch_p3")]
+    lines = ["| data set | n | today's sigma | " + " | ".join(c for c, _ in cols) + " | grid points (today; sum32; sum48; anch) |",
+             "|---|---:|---|" + "---:|" * len(cols) + "---|"]
+    for r in rows:
+        g = r["grid"]
+        lines.append(f"| {r['name']} | {r['n']} | /{r['today_k']:.3g} | " + " | ".join(f"{f(r):.3f}" for _, f in cols)
+                     + f" | {g['today']}; {g['grid_sum32_p0']}; {g['grid_sum48_p3']}; {g['grid_anch_p3']} |")
+    groups = {"24 development outlines": ("dev_", "ho2_", "ho3_"), "original 12": ("dev_",), "held-out 2": ("ho2_",),
+              "held-out 3": ("ho3_",), "six shapes": ("six_",), "default run": ("default",)}
+    lines += ["", "| mean (>= SVC-CV: count) | " + " | ".join(c for c, _ in cols) + " |", "|---|" + "---|" * len(cols)]
+    for g, pref in groups.items():
+        rs = [r for r in rows if r["name"].startswith(pref)]
+        if not rs:
+            continue
+        cvs = [cols[0][1](r) for r in rs]
+        cells = [f"{np.mean([f(r) for r in rs]):.3f} ({sum(f(r) >= c - 1e-9 for r, c in zip(rs, cvs))}/{len(rs)})"
+                 for _, f in cols]
+        lines.append(f"| {g} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def multiscale(out_dir: str, jobs: int) -> None:
+    """Collect the pickles OUT lacks (in `jobs` processes), then print the tables."""
+    from concurrent.futures import ProcessPoolExecutor
+    todo = [it for it in ms_datasets() if not Path(f"{out_dir}/ms_{it[0]}.pkl").exists()]
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for row in pool.map(ms_one, todo):
+            pickle.dump(row, open(f"{out_dir}/ms_{row['name']}.pkl", "wb"))
+            print(row["name"], "done", flush=True)
+    rows = [pickle.load(open(f"{out_dir}/ms_{n}.pkl", "rb")) for n, _ in ms_datasets()]
+    print("\n".join(ms_table(rows)))
+
+
+SETS = ("default", "sparse", "six", "out")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The command line: `collect SETS OUT`, `rank OUT` or `multiscale OUT`; bad use exits 2 with one message (argparse)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="{collect,rank,multiscale}")
+    c = sub.add_parser("collect", help="exact central solves per data set and candidate; one pickle per data set in OUT")
+    c.add_argument("sets", help=f"comma-separated data sets, of {','.join(SETS)}")
+    c.add_argument("out", help="an existing directory for the pickles")
+    r = sub.add_parser("rank", help="every rule of the grid on the pickles in OUT")
+    r.add_argument("out", help="the directory `collect` wrote")
+    m = sub.add_parser("multiscale", help="issue 15: models beyond one width vs SVC-CV and the oracle")
+    m.add_argument("out", help="an existing directory for the pickles (kept between calls)")
+    m.add_argument("--jobs", type=int, default=2, help="data sets in parallel (processes)")
+    args = ap.parse_args(argv)
+    if not Path(args.out).is_dir():
+        ap.error(f"{args.out}: not a directory")
+    if args.command == "multiscale":
+        if args.jobs < 1:
+            ap.error(f"--jobs must be >= 1, got {args.jobs}")
+        multiscale(args.out, args.jobs)
+        return
+    if args.command == "rank":
+        if not glob.glob(f"{args.out}/*.pkl"):
+            ap.error(f"{args.out}: no .pkl files (run collect first)")
+        rank(args.out)
+        return
+    wanted = [w for w in args.sets.split(",") if w]
+    unknown = [w for w in wanted if w not in SETS]
+    if unknown or not wanted:
+        ap.error(f"unknown data set(s) {','.join(unknown) or repr(args.sets)}: choose from {','.join(SETS)}")
+    for name, kw, pkw in datasets(wanted):
+        t = time.time()
+        row = one(name, kw, pkw)
+        pickle.dump(row, open(f"{args.out}/{name}.pkl", "wb"))
+        print(name, f"{time.time()-t:.0f}s", flush=True)
+
+
 if __name__ == "__main__":
-    if sys.argv[1] == "collect":
-        for name, kw, pkw in datasets(sys.argv[2].split(",")):
-            t = time.time()
-            row = one(name, kw, pkw)
-            pickle.dump(row, open(f"{sys.argv[3]}/{name}.pkl", "wb"))
-            print(name, f"{time.time()-t:.0f}s", flush=True)
-    else:
-        rank(sys.argv[2])
+    main()

@@ -919,3 +919,16 @@ def test_width_test_is_one_stacked_pass_agreed_by_every_robot_and_resumes_bit_fo
         for a, b in zip(ref, resumed):
             assert a.round == b.round and a.grid_history == b.grid_history and a.width_validation == b.width_validation
             assert np.array_equal(a.function()[1], b.function()[1]), key
+
+
+@pytest.mark.parametrize("argv", [[], ["frob"], ["collect"], ["collect", "bogus", "."], ["rank", "/nonexistent"],
+                                  ["multiscale", ".", "--jobs", "0"]])
+def test_rules_emulation_cli_exits_2_with_one_message_on_bad_use(argv, capsys):
+    """benchmarks/autogrid_rules_emulation.py once raised an IndexError traceback without arguments."""
+    from benchmarks import autogrid_rules_emulation as emulation
+
+    with pytest.raises(SystemExit) as exit_info:
+        emulation.main(argv)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "Traceback" not in err
