@@ -42,7 +42,9 @@ the mean's move) and the stop tests of `relay_stop_tests` on it -- margin x r / 
 windows below tol for a hold of rounds in a row (a delayed Anderson can sit on a plateau a short hold
 would stop on, see docs/algorithm.md): without the certified guard, main's test (2 x over windows of 20,
 held 40) or a faster one (3 x over windows of 10, held 24), whichever holds first; where the guard
-decides, main's test held 5 rounds and its bound -- then the stop flags flood as in every round-based core.
+decides, main's test held 5 rounds and its bound. Every copy computes that test from the same bits in
+the same round, so it is the fleet's verdict: the robots stop in the round it passes, without the D flag
+rounds of the other round-based cores (`RoundCore.fleet_wide_verdict`).
 
 Anderson's design (memory RELAY_MEMORY, relaxation RELAY_RELAX, regularisation RELAY_REG): with
 delay D the D newest iterates are in flight when S^(k+1) is formed, so a window of m secant pairs
@@ -120,7 +122,7 @@ RELAY_FAST_HOLD = 24
 #: the known plateaus by itself (bound 0.16 on the one at 1.1e-3; even hold 1 kept every guarded stop
 #: safe, branch relayaa2), so the rule only proposes: 5 since branch relaystop (20 before, 40 before
 #: relayaa). The bound, not the hold, gates these stops: the 8-ring's first fell below 1e-2 at round
-#: 616 (stop 620); with branch certtight's bound at round 598 (stop 602)
+#: 616 (stop 620); with branch certtight's bound at round 598 (stop 602; 598 without the flag rounds)
 RELAY_HOLD_CERTIFIED = 5
 #: the exact warm-started local QP (admm.WARM_QP's KKT solve), only where the certified guard decides
 #: (`_cert_on`, as the hub's WARM_QP + cert_active; piqp elsewhere): stays off. Measured with the relayaa
@@ -201,6 +203,11 @@ class RelayHubADMM(RoundCore):
     """One robot of the relay hub (see the module); the round protocol's interface."""
 
     algorithm = "admm"
+    #: every copy's stop test (the estimate on the fleet residual of round k - D, the guard's bound) is the
+    #: same bits in the same round, so the fleet stops in the round it passes, without D flag rounds
+    #: (a copy that differed would be a broken relay: robots left running then wait for frames that no
+    #: longer come and end not converged, never a false success)
+    fleet_wide_verdict = True
 
     def __init__(self, share: RobotShare, params: ADMMParams, *, graph: Mapping[int, Sequence[int]],
                  keep_trace: bool = True) -> None:

@@ -9,7 +9,8 @@ and k+1 only.
 Stopping: each round carries D+1 flag bits. Bit 0 says "my own stopping test passed"; bit t of
 round k+1 is the AND of bit t-1 of round k over the robot and its neighbours. Bit D (D >= graph
 diameter) is thus the AND over *all* robots of bit 0 from D rounds earlier: every robot sees the
-same value in the same round, so all stop together.
+same value in the same round, so all stop together. A core whose test is itself the fleet's verdict,
+the same bits on every robot (`fleet_wide_verdict`: the relay hub), stops in the round it passes.
 
 Subclasses implement the mathematics in `_step` (one round) and say what else a checkpoint holds;
 they never see frames, inboxes or flags.
@@ -185,6 +186,11 @@ class RoundCore:
     solve_errors: tuple[type[BaseException], ...] = (
         SolverError, InfeasibleError, FloatingPointError, np.linalg.LinAlgError,
     )
+    #: True where `_step`'s stop test is already the fleet's verdict -- computed by every robot from the
+    #: same bits in the same round (the relay hub's identical copies of the whole fleet state) -- so
+    #: flooding it for D more rounds would only repeat what every robot already knows: a robot whose test
+    #: passes sets every flag bit and stops in that round, and so does every other robot
+    fleet_wide_verdict = False
 
     def __init__(
         self,
@@ -274,7 +280,8 @@ class RoundCore:
         for f in their_flags.values():
             combined &= f
         mask = (1 << (self._diameter + 1)) - 1
-        self._flags, self._prev_flags = ((combined << 1) | int(below)) & mask, self._flags
+        flags = mask if below and self.fleet_wide_verdict else ((combined << 1) | int(below)) & mask
+        self._flags, self._prev_flags = flags, self._flags
         self._prev_values = mine
         self._values = new_values
         self.round += 1

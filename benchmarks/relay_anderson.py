@@ -107,9 +107,10 @@ def rule_stop(residuals: list[float | None], bounds: list[float], *, tol: float,
               threshold: float, tests: tuple[tuple[int, float, int], ...]) -> int | None:
     """A relay stop rule replayed on a trace (row R: the residual of the step that formed round R and
     the guard's bound of that step): any test (window, margin, hold) with margin x error_estimate(window)
-    below tol for `hold` rounds in a row, and where the guard decides the bound <= threshold, then D
-    rounds of flags (the core's arithmetic: a replay gives the core's stop round for round). Returns the
-    round the fleet stops at, or None."""
+    below tol for `hold` rounds in a row, and where the guard decides the bound <= threshold; the fleet
+    stops in that round (`RelayHubADMM.fleet_wide_verdict`; D rounds of flags later before: pass `delay`
+    to replay that) -- the core's arithmetic: a replay gives the core's stop round for round. Returns
+    the round the fleet stops at, or None."""
     kept = 2 * max(w for w, _, _ in tests)
     window: list[float] = []
     held: tuple[int, ...] = (0,) * len(tests)
@@ -124,14 +125,14 @@ def rule_stop(residuals: list[float | None], bounds: list[float], *, tol: float,
 
 
 def trace_stops(doc: dict[str, Any], tol: float, rules: Rules,
-                guarded: bool | None = None) -> int | None:
+                guarded: bool | None = None, flag_rounds: bool = False) -> int | None:
     """The stop of `rules` (by guarded) on a trace document at tol; guarded=False replays the unguarded
     rule on a guarded run (its safety on every trace, the guard ignored)."""
     rows = doc["rows"]
     on = doc["guarded"] if guarded is None else guarded
     res = [row.get("residual") for row in rows]
     bounds = [math.inf if row.get("bound") is None else row["bound"] for row in rows]
-    return rule_stop(res, bounds, tol=tol, guarded=on, delay=doc["D"],
+    return rule_stop(res, bounds, tol=tol, guarded=on, delay=doc["D"] if flag_rounds else 0,
                      threshold=doc["certify"] * max(tol, admm.CERTIFY_TOL_FLOOR), tests=rules[on])
 
 
@@ -181,7 +182,7 @@ def trace_run(label: str, cores: list[Any], error: Any, max_rounds: int, tols: l
             for tol in tols:
                 for k, rs in enumerate((MAIN_RULES, rules)):
                     if stops.get((tol, k)) is None:
-                        stops[tol, k] = trace_stops(doc, tol, rs)
+                        stops[tol, k] = trace_stops(doc, tol, rs, flag_rounds=k == 0)
             if all(s is not None and R >= s + TRACE_EXTRA for s in stops.values()):
                 break
     relay_hub.RelayHubADMM._fleet_step = step  # type: ignore[method-assign]
@@ -214,7 +215,7 @@ def replay(paths: list[Path], tols: list[float], as_unguarded: bool = False) -> 
             first = next((R for R, e in enumerate(errors) if e < tol), None)
             cells, stops = [], []
             for key, rs in (("main", MAIN_RULES), ("rule", rules)):
-                stop = trace_stops(doc, tol, rs, guarded)
+                stop = trace_stops(doc, tol, rs, guarded, flag_rounds=key == "main")
                 if stop is not None and stop >= len(errors):
                     stop = None  # (past the trace's end: not seen)
                 stops.append(stop)

@@ -170,3 +170,27 @@ def test_launch_equals_simulate_bit_for_bit_with_a_crash_and_restart(tmp_path):
         assert [(c.robot, c.planned_round) for c in out.crashes] == [(2, 35)]
         _assert_same_iterates(out.robots, want, restarted=(2,))
         assert all(r["algorithm"] == "admm" and r["neighbours_dropped"] == [] for r in out.robots)
+
+
+def test_the_relay_fleet_stops_in_the_round_its_test_passes_without_flag_rounds(monkeypatch):
+    """Every copy's stop test is the fleet's verdict (the same bits in the same round:
+    `fleet_wide_verdict`), so a 3-line (diameter 2) stops in the round the test first passes on every
+    copy, not D flag rounds later -- and the other cores, whose test is each robot's own, still flood."""
+    passed: dict[int, int] = {}
+    shared = RelayHubADMM._shared_step
+
+    def recorded(self, S, A):
+        below = shared(self, S, A)
+        if below:
+            passed.setdefault(self.robot_id, self.round + 1)  # the round this advance produces
+        return below
+
+    monkeypatch.setattr(RelayHubADMM, "_shared_step", recorded)
+    _, spec, central, cores = _fleet(robots=3, topology="line", certify=0.0)
+    assert cores[0].delay == 2
+    run_to_end(cores)
+    assert all(c.converged for c in cores)
+    assert sorted(passed) == list(spec.robot_ids) and len(set(passed.values())) == 1
+    assert {c.round for c in cores} == set(passed.values())  # no flag rounds after the verdict
+    assert max_function_error(spec, central, [c.result() for c in cores]) <= spec.params["tol"]
+    assert not RelayHubADMM.__mro__[1].fleet_wide_verdict  # (RoundCore: the others flood their own tests)
