@@ -52,7 +52,7 @@ class AutoGridParams:
     rho: float = 15.0
     relax: float = 1.95
     tol: float = 1e-3
-    hard_rounds: int = 3000  # no convergence within this many rounds: hard margin infeasible
+    hard_rounds: int = 3000  # no convergence within this many rounds: treated as infeasible (noted hard-not-converged)
     soft_rounds: int = 3000
     soft_C: float = 1e3
     C: float | None = None  # a number: soft margin from the start (no hard attempt)

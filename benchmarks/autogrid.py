@@ -165,7 +165,7 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None
         "reason": core.sigma_reason,
         "large_div": None if by_large is None else by_large["divisor"],
         "svc_large": None if by_large is None else svc_iou(world, bounds, by_large["sigma"]),
-        "sizes": "→".join(str(h["size"]) for h in core.grid_history if "norm2" in h or h["status"] == "hard-infeasible"),
+        "sizes": "→".join(str(h["size"]) for h in core.grid_history if "norm2" in h or h["status"] in ("hard-infeasible", "hard-not-converged")),
         "rank_ok": basis.rank == len(grid),
         "converged": all(k.converged for k in cores),
         "gap": max(k.disagreement for k in cores) if all(k.disagreement is not None for k in cores) else float("nan"),

@@ -158,7 +158,8 @@ def test_fig5_coarse_shifted_start_grid_ends_separating_all_data():
     cores = run_fleet(make_cores(robots_of(spec), params, start_grid=start))
     core = cores[0]
     history = core.result()["grid_history"]
-    assert history[0]["size"] == 8 and history[0]["status"] == "hard-infeasible"
+    # (infeasible centrally; the fleet can only see that its hard ADMM did not converge in hard_rounds)
+    assert history[0]["size"] == 8 and history[0]["status"] == "hard-not-converged"
     assert core.margin == "hard" and core.message == ""
     assert np.array_equal(core.grid[:8], start)  # the start grid is kept, points are added
     margins = world.labels * core.decision(world.points)
@@ -179,8 +180,9 @@ def test_inseparable_data_falls_back_to_a_soft_margin_and_says_so():
     cores = run_fleet(make_cores(robots, params))
     for core in cores:
         assert core.finished and core.margin == "soft"
-        assert "soft margin" in core.message
-        assert any(h["status"] == "hard-infeasible" for h in core.grid_history)
+        assert "soft margin" in core.message and "not converged within 300 rounds" in core.message
+        assert "hard margin stayed infeasible" not in core.message  # (it may be feasible and slow: not claimed)
+        assert any(h["status"] == "hard-not-converged" for h in core.grid_history)
     assert np.array_equal(cores[0].function()[1], cores[1].function()[1])
 
 
