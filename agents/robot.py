@@ -108,7 +108,9 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
     return zenoh.handlers.Callback(fn, indirect=False)
 
 
-CHECKPOINT_VERSION = 1
+#: 2 since branch certtight: the certified guard's payload and a checkpointed certificate changed meaning
+#: (|u+_l| and g_half where max|phi_i| stood), so a checkpoint of version 1 is refused, never read as today's
+CHECKPOINT_VERSION = 2
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

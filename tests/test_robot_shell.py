@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from agents.robot import alive_key, read_checkpoint, run_robot  # noqa: E402
+from agents.robot import CHECKPOINT_VERSION, alive_key, read_checkpoint, run_robot  # noqa: E402
 from agents.rounds import RoundCore, check_iterate  # noqa: E402
 from protocol.frames import StateUpdate, config_tag, encode_state  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
@@ -197,7 +197,7 @@ def test_checkpoint_survives_a_crash_at_any_step(tmp_path):
     assert not checkpoint_exists(path)
     with pytest.raises(ValueError, match="no complete"):
         read_checkpoint(path)
-    env = lambda n: {"v": 1, "n": n, "core": {"round": n}}  # noqa: E731
+    env = lambda n: {"v": CHECKPOINT_VERSION, "n": n, "core": {"round": n}}  # noqa: E731
     write_checkpoint(path, env(1))
     assert read_checkpoint(path)["n"] == 1 and not (tmp_path / "ck.tmp").exists()
     # crash while writing the tmp file: truncated tmp, old checkpoint intact
@@ -218,7 +218,7 @@ def test_checkpoint_writer_slots_survive_a_crash_at_any_step(tmp_path):
     from agents.robot import CheckpointWriter, _load_envelope, read_checkpoint
 
     path = tmp_path / "ck"
-    env = lambda n: {"v": 1, "n": n, "core": {"round": n, "pad": bytes([n]) * (40 - n)}}  # noqa: E731
+    env = lambda n: {"v": CHECKPOINT_VERSION, "n": n, "core": {"round": n, "pad": bytes([n]) * (40 - n)}}  # noqa: E731
     w = CheckpointWriter(path)
     for n in (1, 2, 3):
         w.write(env(n))
@@ -253,7 +253,7 @@ def test_checkpoint_of_another_robot_is_refused(tmp_path):
 
     spec = FakeSpec("shell-ck", LINE3, rounds=3)
     path = tmp_path / "ck"
-    write_checkpoint(path, {"v": 1, "n": 1, "fleet": spec.fleet, "robot": 2, "cfg": spec.config_tag,
+    write_checkpoint(path, {"v": CHECKPOINT_VERSION, "n": 1, "fleet": spec.fleet, "robot": 2, "cfg": spec.config_tag,
                             "core": AveragingCore(spec, 2).checkpoint()})
     with pytest.raises(ValueError, match="belongs to fleet 'shell-ck' robot 2"):
         RobotShell(spec, 1, connect=["tcp/127.0.0.1:7447"], checkpoint_path=path, result_path=None,
@@ -900,7 +900,7 @@ def test_a_whole_fleet_process_resumes_every_robot_from_one_common_round(tmp_pat
     included), and the writer keeps that slot while it writes the other one first."""
     from agents.robot import CheckpointWriter, _core_round, _load_envelope, fleet_resume_round, read_checkpoint
 
-    env = lambda n, rnd: {"v": 1, "n": n, "core": {"round": rnd, "pad": bytes(64)}}  # noqa: E731
+    env = lambda n, rnd: {"v": CHECKPOINT_VERSION, "n": n, "core": {"round": rnd, "pad": bytes(64)}}  # noqa: E731
     paths = [tmp_path / f"robot-{i}.ckpt" for i in range(3)]
     assert fleet_resume_round(paths) is None  # nothing written: start fresh
     writers = [CheckpointWriter(p) for p in paths]
@@ -964,3 +964,15 @@ async def test_a_whole_fleet_process_killed_mid_run_resumes_on_the_same_iterates
                                status_stream=None, shared_session=True)
         _assert_same_as_reference(out, ref)
         assert all(r["restarts"] == 1 for r in out.values())
+
+
+def test_a_checkpoint_of_an_older_format_is_refused_not_read_as_todays(tmp_path):
+    """Version 1 checkpoints carry the guard's payload and certificate of before branch certtight (max|phi_i|
+    where |u+_l| and g_half stand now): read as today's they would unseat a proven bound, so they are refused."""
+    from agents.robot import checkpoint_exists, write_checkpoint
+
+    path = tmp_path / "ck"
+    write_checkpoint(path, {"v": CHECKPOINT_VERSION - 1, "n": 1, "core": {"round": 1}})
+    assert CHECKPOINT_VERSION == 2 and checkpoint_exists(path)  # (present, but not a usable checkpoint)
+    with pytest.raises(ValueError, match=f"no complete shapefleet robot checkpoint.*version {CHECKPOINT_VERSION}"):
+        read_checkpoint(path)
