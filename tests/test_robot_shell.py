@@ -973,6 +973,6 @@ def test_a_checkpoint_of_an_older_format_is_refused_not_read_as_todays(tmp_path)
 
     path = tmp_path / "ck"
     write_checkpoint(path, {"v": CHECKPOINT_VERSION - 1, "n": 1, "core": {"round": 1}})
-    assert CHECKPOINT_VERSION == 2 and checkpoint_exists(path)  # (present, but not a usable checkpoint)
+    assert checkpoint_exists(path)  # (present, but not a usable checkpoint)
     with pytest.raises(ValueError, match=f"no complete shapefleet robot checkpoint.*version {CHECKPOINT_VERSION}"):
         read_checkpoint(path)
