@@ -62,8 +62,9 @@ outside through a mouth, so rays can reach them:
 
 The fifth held-out set (issue 15, branch heldout5, in heldout5/; committed before any fleet, rule, SVC or
 emulation ran on it, for the lead's one evaluation at the end of the 2026-11-24 session; nothing may be tuned on
-these). Kinds none of the 30 above has: an acute-wedge letter, an asymmetric letter with a descender hook, a
-wound spiral, thin parallel fins, a serpentine strip and barbed flukes. One ring each, no closed holes:
+these). New kinds next to the 30 above: two opposite acute wedges (digit_7 has one), a lopsided V over a
+descender hook, a wound spiral, fins below two offsets (comb_mm's teeth are 20 mm), slots interleaved from both
+sides of a thin strip, barbs. One ring each, no closed holes:
 
 - letter_z.csv    (m)  a Z: bars 3.0 x 0.6 at top and bottom, a 0.56-wide diagonal (ends (2.7, 3.7), (0.3, 0.3));
                        two acute wedge notches 2.8 high at the mouth, 2.15 deep, open left under the top bar and
