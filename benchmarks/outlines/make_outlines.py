@@ -60,6 +60,29 @@ outside through a mouth, so rays can reach them:
 - circlip_mm.csv         (mm) an external circlip: a 96 mm ring, band 9 to 13 mm, two lugs 18 mm wide beside an
                               18 mm mouth into the ring's 74 mm cavity
 
+The fifth held-out set (issue 15, branch heldout5, in heldout5/; committed before any fleet, rule, SVC or
+emulation ran on it, for the lead's one evaluation at the end of the 2026-11-24 session; nothing may be tuned on
+these). New kinds next to the 30 above: two opposite acute wedges (digit_7 has one), a lopsided V over a
+descender hook, a wound spiral, fins below two offsets (comb_mm's teeth are 20 mm), slots interleaved from both
+sides of a thin strip, barbs. One ring each, no closed holes:
+
+- letter_z.csv    (m)  a Z: bars 3.0 x 0.6 at top and bottom, a 0.56-wide diagonal (ends (2.7, 3.7), (0.3, 0.3));
+                       two acute wedge notches 2.8 high at the mouth, 2.15 deep, open left under the top bar and
+                       right over the bottom bar (a 0.17 ledge where the diagonal leaves each bar)
+- letter_y.csv    (m)  a lowercase y: a 0.6-wide short arm from (0.3, 4.3) into a 0.6-wide long arm from (3.0, 4.3)
+                       whose descender hooks left and up (round joins), cut to y <= 4: a V notch 1.9 deep from
+                       above (apex at (1.83, 2.12)), a concavity open left between the short arm and the hook
+- spiral.csv      (m)  an Archimedean spiral stroke 0.5 wide, 1.75 turns, radius 0.35 to 2.1 (1.0 apart a turn), so
+                       a 0.5-wide channel (less than two 0.3 offsets) runs 0.75 turns between the turns
+- heatsink_mm.csv (mm) an extruded heat sink: a 100 x 12 base, nine fins 4 mm thick (thinner than two 6 mm
+                       offsets), 70 mm tall, 8 mm gaps 58 mm deep
+- spring_mm.csv   (mm) a flat serpentine spring: an 8 mm strip (thinner than two offsets), seven legs 60 mm long
+                       at a 14 mm pitch, round outer bends: six 6 mm slots 60 mm deep, alternately open below and
+                       above
+- anchor_mm.csv   (mm) a ship's anchor: a 12 mm shank, a 56 x 10 stock, an 18 mm eye (solid), a 10 mm arc of
+                       radius 42 (200 to 340 degrees) whose ends carry 18 mm-wide barbed flukes 28 mm long: acute
+                       notches under each barb
+
     .venv/bin/python benchmarks/outlines/make_outlines.py
 """
 
@@ -299,6 +322,55 @@ def circlip_mm() -> Polygon:
     return shapely.union_all([ring, *lugs]).difference(shapely.box(30.0, -9.0, 62.1, 9.0))
 
 
+def letter_z() -> Polygon:
+    bars = [shapely.box(0.0, 0.0, 3.0, 0.6), shapely.box(0.0, 3.4, 3.0, 4.0)]
+    stroke = LineString([(2.7, 3.7), (0.3, 0.3)]).buffer(0.28, cap_style="flat")
+    return shapely.union_all([*bars, stroke]).intersection(shapely.box(0.0, 0.0, 3.0, 4.0))
+
+
+def letter_y() -> Polygon:
+    short = LineString([(0.3, 4.3), (1.85, 1.45)]).buffer(0.3, cap_style="flat")
+    long = LineString([(3.0, 4.3), (1.6, 0.7), (1.1, -0.15), (0.6, -0.45), (0.2, -0.25)]).buffer(
+        0.3, quad_segs=4, cap_style="round", join_style="round")
+    return shapely.union_all([short, long]).intersection(shapely.box(0.0, -1.0, 3.4, 4.0))
+
+
+def spiral() -> Polygon:
+    t = np.linspace(0.0, 3.5 * math.pi, 90)
+    radius = 0.35 + t / (2.0 * math.pi)  # 1.0 apart per turn: a 0.5 stroke, a 0.5 gap
+    return LineString(np.column_stack([radius * np.cos(t), radius * np.sin(t)])).buffer(0.25, quad_segs=4)
+
+
+def heatsink_mm() -> Polygon:
+    base = shapely.box(0.0, 0.0, 100.0, 12.0)
+    fins = [shapely.box(12.0 * k, 11.0, 12.0 * k + 4.0, 70.0) for k in range(9)]
+    return shapely.union_all([base, *fins])
+
+
+def spring_mm() -> Polygon:
+    path = []
+    for k in range(7):
+        x = 14.0 * k
+        path += [(x, 0.0), (x, 60.0)] if k % 2 == 0 else [(x, 60.0), (x, 0.0)]
+    return LineString(path).buffer(4.0, quad_segs=6, cap_style="flat", join_style="round")
+
+
+def anchor_mm() -> Polygon:
+    shank = shapely.box(-6.0, 18.0, 6.0, 98.0)
+    stock = shapely.box(-28.0, 82.0, 28.0, 92.0)
+    eye = Point(0.0, 104.0).buffer(9.0, quad_segs=12)
+    t = np.linspace(math.radians(200), math.radians(340), 30)
+    arms = LineString(np.column_stack([42.0 * np.cos(t), 60.0 + 42.0 * np.sin(t)])).buffer(5.0, quad_segs=4)
+    flukes = []
+    for angle in (200.0, 340.0):
+        a = math.radians(angle)
+        end = np.array([42.0 * math.cos(a), 60.0 + 42.0 * math.sin(a)])
+        u = np.array([math.sin(a), -math.cos(a)]) * (1.0 if angle < 270.0 else -1.0)  # along the arm, outward
+        n = np.array([-u[1], u[0]])
+        flukes.append(Polygon([end - 6.0 * u + 9.0 * n, end + 22.0 * u, end - 6.0 * u - 9.0 * n]))
+    return shapely.union_all([shank, stock, eye, arms, *flukes])
+
+
 def write(name: str, polygon: Polygon, digits: int, folder: Path = HERE) -> None:
     polygon = shapely.set_precision(polygon.simplify(10.0 ** -digits), 10.0 ** -digits)
     assert polygon.geom_type == "Polygon" and polygon.is_valid and not polygon.interiors, name
@@ -318,6 +390,8 @@ OUTLINES = ((letter_e, 4), (digit_3, 4), (wrench_mm, 2), (gear_mm, 2), (fork_mm,
 HELDOUT3 = ((letter_s, 4), (digit_4, 4), (digit_5, 4), (caliper_mm, 2), (tuning_fork_mm, 2), (bolt_mm, 2))
 #: the fourth held-out set, in heldout4/ (pliers_mm: the robot facing its 9 mm jaw tips keeps 34 of 40 points)
 HELDOUT4 = ((letter_w, 4), (letter_x, 4), (digit_6, 4), (pliers_mm, 2), (castellated_nut_mm, 2), (circlip_mm, 2))
+#: the fifth held-out set, in heldout5/ (points kept: benchmarks/results/autogrid.md, "Held-out 5")
+HELDOUT5 = ((letter_z, 4), (letter_y, 4), (spiral, 4), (heatsink_mm, 2), (spring_mm, 2), (anchor_mm, 2))
 
 if __name__ == "__main__":
     for make, digits in OUTLINES:
@@ -326,3 +400,5 @@ if __name__ == "__main__":
         write(f"{make.__name__}.csv", make(), digits, HERE / "heldout3")
     for make, digits in HELDOUT4:
         write(f"{make.__name__}.csv", make(), digits, HERE / "heldout4")
+    for make, digits in HELDOUT5:
+        write(f"{make.__name__}.csv", make(), digits, HERE / "heldout5")
