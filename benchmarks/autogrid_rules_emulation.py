@@ -407,8 +407,9 @@ def _cells(pts: np.ndarray, box, r: int) -> np.ndarray:
 def _judge(decide, box, r: int, hp: np.ndarray, hl: np.ndarray) -> dict:
     """One trained model seen as the fleet would see it: held-out errors of {f < 0} raw and filled (a held-out
     point in a filled hole counts as inside), the solid check strict / islands only, one piece after the fill,
-    and that piece bounded (`solid_fb`: no inside cell on the box's rim -- the box holds every outside point, so a
-    real object never reaches it; f < 0 there means gamma < 0, the far field inside)."""
+    and that piece bounded (`solid_fb`: no inside cell on the box's rim -- where the outside points surround the
+    object a real object never reaches the box's rim, and f < 0 there means gamma < 0, the far field inside; on
+    sparse data they need not surround it)."""
     inside = (decide(_on_raster(box, r)) < 0).reshape(r, r)
     filled = _filled(inside)
     f = decide(hp) if len(hp) else np.zeros(0)
@@ -446,7 +447,8 @@ def fill_one(item: tuple[str, dict, dict]) -> dict:
     truth = shapely.contains_xy(world.shape, q[:, 0], q[:, 1])
 
     def scores(inside_flat: np.ndarray) -> dict:
-        """IoU raw, filled (4- and 8-connected outside), pieces after the fill, inside cells on the raster's rim."""
+        """IoU raw, filled (4- and 8-connected outside), pieces after the fill, whether f < 0 reaches the raster's
+        rim (there the raster cuts the region and the fill can only under-fill), areas, the truth covered."""
         ins = inside_flat.reshape(res, res)
         f4, f8 = _filled(ins, FILL_4), _filled(ins, FILL_8)
         iou = lambda a: float(np.count_nonzero(truth & a.ravel()) / max(1, np.count_nonzero(truth | a.ravel())))  # noqa: E731
