@@ -18,6 +18,15 @@ soft C = 1e3 if infeasible, one lattice per width, block-diagonal K_G); today's 
 One pickle per data set in OUT (kept: a second call only prints the table).
 
     .venv/bin/python benchmarks/autogrid_rules_emulation.py multiscale OUT [--jobs 2]
+
+`fill` (issue 15, "what a LiDAR cannot see is inside"): the same data sets and the sparse five-shape test's data;
+the estimate {f < 0} with its enclosed holes filled (scipy.ndimage.binary_fill_holes, 4-connected outside), for SVC
+at diag/{2..32} and for the fleet's final model at each candidate diag/{4..32}; rules decided from the data (the
+fleet's held-out folds on exact central soft solves, or SVC's 5-fold CV) with the solid check on the filled region
+(islands only) against SVC-CV and the oracle, raw and filled. One pickle per data set in OUT (kept). Never run on
+benchmarks/outlines/heldout4/ or a heldout5/ folder.
+
+    .venv/bin/python benchmarks/autogrid_rules_emulation.py fill OUT [--jobs 2]
 """
 import dataclasses, glob, itertools, pickle, sys, time
 from pathlib import Path
@@ -26,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import autogrid as B
-from agents.autogrid_rules import AutoGridParams, coarse_lattice, solid_on_raster
+from agents.autogrid_rules import AutoGridParams, coarse_lattice, is_solid, solid_on_raster
 from agents.kernel import GridBasis
 from agents.problem import solve_central
 from launcher import scenario
@@ -52,6 +61,15 @@ def datasets(which):
             out.append(("out_" + n, dict(robots=5, points=40, shape_file=str(ROOT / f"benchmarks/outlines/{n}.csv")), None))
     return out
 
+def sweep_solves(folds, bounds, sigma: float, params: AutoGridParams, slot: int):
+    """One sweep candidate emulated: its coarse lattice (coarsened to `slot` points, as the fleet's frame block)
+    and, per fold (training points, labels, held-out points, labels), the exact central soft solve (C = soft_C).
+    Returns (lattice box, basis, [(solution, held-out points, held-out labels)])."""
+    lbox, _, grid = coarse_lattice(bounds, sigma, params.spacing_ratio, slot)
+    basis = GridBasis(grid, sigma)
+    return lbox, basis, [(solve_central(basis, tp, tl, params.soft_C), hp, hl) for tp, tl, hp, hl in folds]
+
+
 def one(name, kw, pkw):
     world, spec = build_world(Options(fleet_id="bench", **kw))
     params = spec.autogrid_params
@@ -67,11 +85,9 @@ def one(name, kw, pkw):
     row = {"name": name, "n": len(world.labels), "cand": {}}
     for d in DIVS:
         sigma = diag / d
-        lbox, _, grid = coarse_lattice(bounds, sigma, params.spacing_ratio, params.sweep_slot(d))
-        basis = GridBasis(grid, sigma)
+        lbox, basis, sols = sweep_solves(folds, bounds, sigma, params, params.sweep_slot(d))
         fl = []
-        for tp, tl, hp, hl in folds:
-            sol = solve_central(basis, tp, tl, params.soft_C)
+        for sol, hp, hl in sols:
             yf = hl * basis.decision(hp, sol.c, sol.gamma)
             fl.append({"err": int(np.sum(yf <= 0)), "hinge": float(np.sum(np.maximum(0, 1 - yf))), "held": len(hl),
                        "solid": solid_on_raster(basis, sol.c, sol.gamma, lbox, params.solid_raster, False),
@@ -333,27 +349,263 @@ def ms_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+def collect_rows(out_dir: str, jobs: int, prefix: str, items: list[tuple], work) -> list[dict]:
+    """`work(item)` for every data set whose pickle OUT/prefix_NAME.pkl is missing (in `jobs` processes; the
+    pickles are kept, so a second call only reads them), then every data set's row in the order of `items`."""
+    from concurrent.futures import ProcessPoolExecutor
+    todo = [it for it in items if not Path(f"{out_dir}/{prefix}_{it[0]}.pkl").exists()]
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for row in pool.map(work, todo):
+            pickle.dump(row, open(f"{out_dir}/{prefix}_{row['name']}.pkl", "wb"))
+            print(row["name"], "done", flush=True)
+    return [pickle.load(open(f"{out_dir}/{prefix}_{it[0]}.pkl", "rb")) for it in items]
+
+
 def multiscale(out_dir: str, jobs: int) -> None:
     """Collect the pickles OUT lacks (in `jobs` processes), then print the tables."""
-    from concurrent.futures import ProcessPoolExecutor
-    todo = [it for it in ms_datasets() if not Path(f"{out_dir}/ms_{it[0]}.pkl").exists()]
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        for row in pool.map(ms_one, todo):
-            pickle.dump(row, open(f"{out_dir}/ms_{row['name']}.pkl", "wb"))
-            print(row["name"], "done", flush=True)
-    rows = [pickle.load(open(f"{out_dir}/ms_{n}.pkl", "rb")) for n, _ in ms_datasets()]
-    print("\n".join(ms_table(rows)))
+    print("\n".join(ms_table(collect_rows(out_dir, jobs, "ms", ms_datasets(), ms_one))))
+
+
+# --- issue 15, fill: "what a LiDAR cannot see is inside" (benchmarks/results/autogrid.md, "Issue 15, fill") ---
+
+FILL_KS = (4, 6, 8, 12, 16, 24, 32)  # the fleet-style candidates: today's diag/{4..16} extended to /24 and /32
+FILL_TODAY = (4, 6, 8, 12, 16)  # today's candidates
+#: the outside's connectivity in the fill: 4 (scipy's default), so a region is a hole exactly when it is an
+#: "enclosed outside cell" of the fleet's solid check (`is_solid`: ndimage.label's 4-connected outside) -- the fill
+#: removes what the check calls holes, no more; a corner-to-corner pinch of two inside cells is no gap a ray can use
+FILL_4 = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
+FILL_8 = np.ones((3, 3), dtype=bool)  # the other choice, measured alongside (a diagonal pinch lets the outside in)
+
+
+def fill_datasets() -> list[tuple[str, dict, dict]]:
+    """The development data: `ms_datasets()` (default run, six shapes, the 24 outlines) and the sparse five-shape
+    test's data (3 x 20, budget 100); each with the AutoGridParams overrides its benchmark uses. Never held-out 4/5."""
+    out = [(n, kw, {"tol": 1e-3, "max_points": 200} if n.startswith("six") else {}) for n, kw in ms_datasets()]
+    out += [(n, kw, pkw) for n, kw, pkw in datasets(["sparse"])]
+    return out
+
+
+def _filled(inside: np.ndarray, structure: np.ndarray = FILL_4) -> np.ndarray:
+    """{f < 0} on a 2-D raster with every region the outside cannot reach (connectivity `structure`) filled."""
+    from scipy import ndimage
+    return ndimage.binary_fill_holes(inside, structure=structure)
+
+
+def _on_raster(box, r: int) -> np.ndarray:
+    """An r x r raster of `box`, rows in y (the solid check's raster, `solid_on_raster`)."""
+    gx, gy = np.meshgrid(np.linspace(box[0], box[1], r), np.linspace(box[2], box[3], r))
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
+def _cells(pts: np.ndarray, box, r: int) -> np.ndarray:
+    """Flat index of the raster node of `_on_raster(box, r)` nearest to each point (clipped to the raster)."""
+    ix = np.clip(np.rint((pts[:, 0] - box[0]) / (box[1] - box[0]) * (r - 1)), 0, r - 1).astype(int)
+    iy = np.clip(np.rint((pts[:, 1] - box[2]) / (box[3] - box[2]) * (r - 1)), 0, r - 1).astype(int)
+    return iy * r + ix
+
+
+def _judge(decide, box, r: int, hp: np.ndarray, hl: np.ndarray) -> dict:
+    """One trained model seen as the fleet would see it: held-out errors of {f < 0} raw and filled (a held-out
+    point in a filled hole counts as inside), the solid check strict / islands only, one piece after the fill,
+    and that piece bounded (`solid_fb`: no inside cell on the box's rim -- where the outside points surround the
+    object a real object never reaches the box's rim, and f < 0 there means gamma < 0, the far field inside; on
+    sparse data they need not surround it)."""
+    inside = (decide(_on_raster(box, r)) < 0).reshape(r, r)
+    filled = _filled(inside)
+    f = decide(hp) if len(hp) else np.zeros(0)
+    ins_f = (f < 0) | filled.ravel()[_cells(hp, box, r)]
+    solid_f = is_solid(filled, True)
+    return {"err": int(np.sum(hl * f <= 0)), "err_f": int(np.sum((hl < 0) != ins_f)), "held": len(hl),
+            "solid": is_solid(inside, False), "solid_h": is_solid(inside, True), "solid_f": solid_f,
+            "solid_fb": solid_f and not _rim(inside)}
+
+
+def _rim(inside: np.ndarray) -> bool:
+    """True when a raster's inside region touches its border."""
+    return bool(inside[0].any() or inside[-1].any() or inside[:, 0].any() or inside[:, -1].any())
+
+
+def fill_one(item: tuple[str, dict, dict]) -> dict:
+    """Per data set: SVC (C = 1e6) at diag/k raw and filled (IoU, 5-fold CV raw and filled, pieces), and the
+    fleet-style sweep (exact central soft solves per candidate and fold on its coarse lattice) with each
+    candidate's final model (`central_final_model`, one width) raw and filled."""
+    import shapely
+    from scipy import ndimage
+    from sklearn.model_selection import StratifiedKFold
+    from sklearn.svm import SVC
+
+    from agents.autogrid_rules import lattice_box
+    from agents.kernel import _squared_distances as sqd
+    name, kw, pkw = item
+    world, spec = build_world(Options(fleet_id="bench", **kw))
+    params = dataclasses.replace(spec.autogrid_params, **pkw)
+    p, y = world.points, world.labels
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    bounds, diag = (lo[0], hi[0], lo[1], hi[1]), float(np.hypot(*(hi - lo)))
+    res = 200
+    q = scenario.make_grid(res, res, B.padded_bounds(world.shape))  # the IoU raster (benchmarks/autogrid.py)
+    truth = shapely.contains_xy(world.shape, q[:, 0], q[:, 1])
+
+    def scores(inside_flat: np.ndarray) -> dict:
+        """IoU raw, filled (4- and 8-connected outside), pieces after the fill, whether f < 0 reaches the raster's
+        rim (there the raster cuts the region and the fill can only under-fill), areas, the truth covered."""
+        ins = inside_flat.reshape(res, res)
+        f4, f8 = _filled(ins, FILL_4), _filled(ins, FILL_8)
+        iou = lambda a: float(np.count_nonzero(truth & a.ravel()) / max(1, np.count_nonzero(truth | a.ravel())))  # noqa: E731
+        return {"raw": iou(ins), "fill": iou(f4), "fill8": iou(f8), "pieces": int(ndimage.label(f4)[1]), "rim": _rim(ins),
+                "area": int(ins.sum()), "area_f": int(f4.sum()),
+                "recall": float(np.count_nonzero(truth & f4.ravel()) / max(1, np.count_nonzero(truth)))}
+
+    row = {"name": name, "n": len(y), "diag": diag, "svc": {}, "cand": {}}
+    # SVC on the data (the references): the multiscale subcommand's kernels, folds and raster
+    dp, dq = sqd(p, p), sqd(q, p)
+    folds = list(StratifiedKFold(5, shuffle=True, random_state=0).split(p, y))
+    r = params.solid_raster
+    for k in MS_KS:
+        g = k * k / (2 * diag * diag)
+        clf = SVC(kernel="precomputed", C=1e6).fit(np.exp(-dp * g), y)
+        rec = scores(clf.decision_function(np.exp(-dq * g)) < 0)
+        box = lattice_box(bounds, diag / k)  # a raster the fleet could draw: the candidate's lattice box
+        rb = _on_raster(box, r)
+        acc, acc_f = [], []
+        for a, b in folds:
+            m = SVC(kernel="precomputed", C=1e6).fit(np.exp(-dp[np.ix_(a, a)] * g), y[a])
+            jd = _judge(lambda x: m.decision_function(np.exp(-sqd(x, p[a]) * g)), box, r, p[b], y[b])
+            acc.append(1 - jd["err"] / len(b)); acc_f.append(1 - jd["err_f"] / len(b))
+        whole = (clf.decision_function(np.exp(-sqd(rb, p) * g)) < 0).reshape(r, r)
+        solid_f = is_solid(_filled(whole), True)
+        rec.update(cv=float(np.mean(acc)), cv_f=float(np.mean(acc_f)), solid_f=solid_f, solid_fb=solid_f and not _rim(whole))
+        row["svc"][k] = rec
+    # fleet-style: the sweep's exact soft solves on each candidate's coarse lattice, 5 folds (the rules use 2 or 5)
+    fsets = [B._fold_sets(spec, dataclasses.replace(params, validate_folds=5), f) for f in range(5)]
+    for d in FILL_KS:
+        sigma = diag / d
+        lbox, basis, sols = sweep_solves(fsets, bounds, sigma, params, params.sweep_slot(d))
+        fl = [_judge(lambda x, s=sol: basis.decision(x, s.c, s.gamma), lbox, r, hp, hl) for sol, hp, hl in sols]
+        fb, fs = B.central_final_model(p, y, params, bounds, sigma)
+        rec = scores(fb.decision(q, fs.c, fs.gamma) < 0)
+        rec.update(folds=fl, lattice=basis.size, grid=fb.size, margin="hard" if fs.solved else "soft", gamma=fs.gamma)
+        row["cand"][d] = rec
+    return row
+
+
+def fill_choose(row: dict, cands, folds: int, solid: str, err: str, ties: str = "smaller") -> int:
+    """The fleet's rule on the emulated tallies: the candidates solid (`solid` key) in every fold, else all;
+    the fewest held-out errors (`err` key) summed over the first `folds` folds; ties -> `ties` sigma."""
+    recs = [(d, sum(f[err] for f in row["cand"][d]["folds"][:folds]), all(f[solid] for f in row["cand"][d]["folds"][:folds]))
+            for d in cands]
+    pool = [t for t in recs if t[2]] or recs
+    return min(pool, key=lambda t: (t[1], -t[0] if ties == "smaller" else t[0]))[0]
+
+
+def svc_choose(row: dict, key: str, solid: str | None, ties: str) -> int:
+    """SVC with sigma by 5-fold CV (`key`: accuracy raw or filled), optionally among the widths whose filled inside
+    region passes the check `solid` (a key of the row); ties -> the larger sigma (SVC-CV as in `multiscale`) or
+    the smaller."""
+    ks = [k for k in MS_KS if solid is None or row["svc"][k][solid]] or list(MS_KS)
+    best = max(row["svc"][k][key] for k in ks)
+    tied = [k for k in ks if row["svc"][k][key] == best]
+    return tied[0] if ties == "larger" else tied[-1]
+
+
+#: the columns, fixed before the first run: (label, function of a row -> (divisor, IoU))
+FILL_COLS = {
+    "SVC-CV raw": lambda r: (k := svc_choose(r, "cv", None, "larger"), r["svc"][k]["raw"]),
+    "SVC-CV filled": lambda r: (k := svc_choose(r, "cv", None, "larger"), r["svc"][k]["fill"]),
+    "oracle raw": lambda r: max(((k, r["svc"][k]["raw"]) for k in MS_KS), key=lambda t: t[1]),
+    "oracle filled": lambda r: max(((k, r["svc"][k]["fill"]) for k in MS_KS), key=lambda t: t[1]),
+    "today raw": lambda r: (d := fill_choose(r, FILL_TODAY, 2, "solid", "err"), r["cand"][d]["raw"]),
+    "today filled": lambda r: (d := fill_choose(r, FILL_TODAY, 2, "solid", "err"), r["cand"][d]["fill"]),
+    "fill rule /4-16": lambda r: (d := fill_choose(r, FILL_TODAY, 2, "solid_f", "err_f"), r["cand"][d]["fill"]),
+    "fill rule /4-32": lambda r: (d := fill_choose(r, FILL_KS, 2, "solid_f", "err_f"), r["cand"][d]["fill"]),
+    "fill rule /4-32, 5 folds": lambda r: (d := fill_choose(r, FILL_KS, 5, "solid_f", "err_f"), r["cand"][d]["fill"]),
+    "SVC fill-CV": lambda r: (k := svc_choose(r, "cv_f", "solid_f", "smaller"), r["svc"][k]["fill"]),
+    # added after the first run (the leak table: gamma < 0 turned the far field inside, six_crescent and
+    # sparse_bracket at diag/32): the filled piece must also be bounded, i.e. off the lattice box's rim
+    "fill rule /4-32 bounded": lambda r: (d := fill_choose(r, FILL_KS, 2, "solid_fb", "err_f"), r["cand"][d]["fill"]),
+    "SVC fill-CV bounded": lambda r: (k := svc_choose(r, "cv_f", "solid_fb", "smaller"), r["svc"][k]["fill"]),
+}
+FILL_GROUPS = {"24 development outlines": ("dev_", "ho2_", "ho3_"), "original 12": ("dev_",), "held-out 2": ("ho2_",),
+               "held-out 3": ("ho3_",), "six shapes": ("six_",), "default run": ("default",),
+               "sparse five (3 x 20)": ("sparse_",)}
+
+
+def fill_table(rows: list[dict]) -> list[str]:
+    """Markdown: per data set and k the SVC IoU raw / filled; the rules per data set; the means and counts; leaks."""
+    out = ["| data set | n | " + " | ".join(f"SVC /{k} raw / filled" for k in MS_KS) + " |",
+           "|---|---:|" + "---|" * len(MS_KS)]
+    for r in rows:
+        out.append(f"| {r['name']} | {r['n']} | " + " | ".join(
+            f"{r['svc'][k]['raw']:.3f} / {r['svc'][k]['fill']:.3f}" for k in MS_KS) + " |")
+    means = {k: (np.mean([r["svc"][k]["raw"] for r in rows if r["name"].startswith(("dev_", "ho2_", "ho3_"))]),
+                 np.mean([r["svc"][k]["fill"] for r in rows if r["name"].startswith(("dev_", "ho2_", "ho3_"))])) for k in MS_KS}
+    out.append("| mean, 24 outlines | | " + " | ".join(f"{a:.3f} / {b:.3f}" for a, b in means.values()) + " |")
+    # the same for the fleet's final model at each candidate (its grid budget), per group of data sets
+    out += ["", "| mean raw / filled | " + " | ".join(f"SVC /{k}" for k in FILL_KS) + " | "
+            + " | ".join(f"fleet final /{d}" for d in FILL_KS) + " |", "|---|" + "---|" * 2 * len(FILL_KS)]
+    for g, pref in FILL_GROUPS.items():
+        rs = [r for r in rows if r["name"].startswith(pref)]
+        if rs:
+            out.append(f"| {g} | " + " | ".join(
+                f"{np.mean([r[src][k]['raw'] for r in rs]):.3f} / {np.mean([r[src][k]['fill'] for r in rs]):.3f}"
+                for src in ("svc", "cand") for k in FILL_KS) + " |")
+    out += ["", "| data set | " + " | ".join(FILL_COLS) + " |", "|---|" + "---:|" * len(FILL_COLS)]
+    for r in rows:
+        out.append(f"| {r['name']} | " + " | ".join(f"{v:.3f} (/{k:g})" for k, v in (f(r) for f in FILL_COLS.values())) + " |")
+    out += ["", "| mean (>= SVC-CV raw; >= SVC-CV filled: counts) | " + " | ".join(FILL_COLS) + " |",
+            "|---|" + "---|" * len(FILL_COLS)]
+    for g, pref in FILL_GROUPS.items():
+        rs = [r for r in rows if r["name"].startswith(pref)]
+        if not rs:
+            continue
+        cv = [FILL_COLS["SVC-CV raw"](r)[1] for r in rs]
+        cvf = [FILL_COLS["SVC-CV filled"](r)[1] for r in rs]
+        cells = []
+        for f in FILL_COLS.values():
+            v = [f(r)[1] for r in rs]
+            cells.append(f"{np.mean(v):.3f} ({sum(a >= b - 1e-9 for a, b in zip(v, cv))}; "
+                         f"{sum(a >= b - 1e-9 for a, b in zip(v, cvf))}/{len(rs)})")
+        out.append(f"| {g} | " + " | ".join(cells) + " |")
+    # leaks: a rule's narrow choice, filled, far below a wider width filled; why (the fill's area, pieces, the share
+    # of the truth it covers, f < 0 on the raster's rim: gamma < 0)
+    out += ["", "| data set | rule | chosen | filled IoU | best wider (filled) | area raw -> filled (cells) | pieces | "
+            "truth covered | inside on the rim |", "|---|---|---|---:|---|---|---:|---:|---|"]
+    leak_rules = {lab: ("cand", FILL_KS) for lab in FILL_COLS if lab.startswith("fill rule /4-32")}
+    leak_rules.update({lab: ("svc", MS_KS) for lab in FILL_COLS if lab.startswith("SVC fill-CV")})
+    for r in rows:
+        for label, (src, ks) in leak_rules.items():
+            d, v = FILL_COLS[label](r)
+            wider = [(w, r[src][w]["fill"]) for w in ks if w < d]
+            if wider and max(t[1] for t in wider) - v >= 0.03:
+                w, bv = max(wider, key=lambda t: t[1])
+                c = r[src][d]
+                out.append(f"| {r['name']} | {label} | /{d} | {v:.3f} | /{w} ({bv:.3f}) | {c['area']} -> {c['area_f']} | "
+                           f"{c['pieces']} | {c['recall']:.3f} | {'yes' if c['rim'] else 'no'} |")
+    rim = sum(r[src][k]["rim"] for r in rows for src, ks in (("svc", MS_KS), ("cand", FILL_KS)) for k in ks)
+    out += ["", f"models whose f < 0 reaches the IoU raster's rim (the fill can only under-fill there): {rim} of "
+            f"{len(rows) * (len(MS_KS) + len(FILL_KS))}"]
+    gain8 = [r[src][k]["fill8"] - r[src][k]["fill"] for r in rows for src, ks in (("svc", MS_KS), ("cand", FILL_KS))
+             for k in ks]
+    out.append(f"8-connected outside instead of 4 (every model above): IoU filled changes by "
+               f"{min(gain8):+.4f} .. {max(gain8):+.4f}, mean {np.mean(gain8):+.5f}")
+    return out
+
+
+def fill(out_dir: str, jobs: int) -> None:
+    """Collect the pickles OUT lacks (in `jobs` processes), then print the tables."""
+    print("\n".join(fill_table(collect_rows(out_dir, jobs, "fill", fill_datasets(), fill_one))))
 
 
 SETS = ("default", "sparse", "six", "out")
 
 
 def main(argv: list[str] | None = None) -> None:
-    """The command line: `collect SETS OUT`, `rank OUT` or `multiscale OUT`; bad use exits 2 with one message (argparse)."""
+    """The command line: `collect SETS OUT`, `rank OUT`, `multiscale OUT` or `fill OUT`; bad use exits 2 with one
+    message (argparse)."""
     import argparse
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = ap.add_subparsers(dest="command", required=True, metavar="{collect,rank,multiscale}")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="{collect,rank,multiscale,fill}")
     c = sub.add_parser("collect", help="exact central solves per data set and candidate; one pickle per data set in OUT")
     c.add_argument("sets", help=f"comma-separated data sets, of {','.join(SETS)}")
     c.add_argument("out", help="an existing directory for the pickles")
@@ -362,13 +614,16 @@ def main(argv: list[str] | None = None) -> None:
     m = sub.add_parser("multiscale", help="issue 15: models beyond one width vs SVC-CV and the oracle")
     m.add_argument("out", help="an existing directory for the pickles (kept between calls)")
     m.add_argument("--jobs", type=int, default=2, help="data sets in parallel (processes)")
+    fl = sub.add_parser("fill", help="issue 15: the inside region with its enclosed holes filled, vs SVC-CV and the oracle")
+    fl.add_argument("out", help="an existing directory for the pickles (kept between calls)")
+    fl.add_argument("--jobs", type=int, default=2, help="data sets in parallel (processes)")
     args = ap.parse_args(argv)
     if not Path(args.out).is_dir():
         ap.error(f"{args.out}: not a directory")
-    if args.command == "multiscale":
+    if args.command in ("multiscale", "fill"):
         if args.jobs < 1:
             ap.error(f"--jobs must be >= 1, got {args.jobs}")
-        multiscale(args.out, args.jobs)
+        (multiscale if args.command == "multiscale" else fill)(args.out, args.jobs)
         return
     if args.command == "rank":
         if not glob.glob(f"{args.out}/*.pkl"):

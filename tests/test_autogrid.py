@@ -924,7 +924,8 @@ def test_width_test_is_one_stacked_pass_agreed_by_every_robot_and_resumes_bit_fo
 
 
 @pytest.mark.parametrize("argv", [[], ["frob"], ["collect"], ["collect", "bogus", "."], ["rank", "/nonexistent"],
-                                  ["multiscale", ".", "--jobs", "0"]])
+                                  ["multiscale", ".", "--jobs", "0"], ["fill"], ["fill", "/nonexistent"],
+                                  ["fill", ".", "--jobs", "0"]])
 def test_rules_emulation_cli_exits_2_with_one_message_on_bad_use(argv, capsys):
     """benchmarks/autogrid_rules_emulation.py once raised an IndexError traceback without arguments."""
     from benchmarks import autogrid_rules_emulation as emulation
@@ -934,3 +935,15 @@ def test_rules_emulation_cli_exits_2_with_one_message_on_bad_use(argv, capsys):
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert "error:" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv, says", [(["fill", ".", "--jobs", "0"], "--jobs must be >= 1"),
+                                        (["fill", "/nonexistent"], "not a directory")])
+def test_rules_emulation_fill_names_the_bad_argument(argv, says, capsys):
+    """The fill subcommand checks its arguments itself before any data set is built (--jobs 0 would otherwise
+    reach ProcessPoolExecutor as a ValueError traceback, a missing OUT a FileNotFoundError after minutes)."""
+    from benchmarks import autogrid_rules_emulation as emulation
+
+    with pytest.raises(SystemExit) as exit_info:
+        emulation.main(argv)
+    assert exit_info.value.code == 2 and says in capsys.readouterr().err
