@@ -441,7 +441,7 @@ class AdaptiveGridCore(RoundCore):
             if self._values[-2] > bound:  # known before any ADMM round: some robot's own hard margin is past it
                 self._note(status="hard-ill-conditioned", rounds=self.params.diameter, bound_norm2=bound,
                            detected_by=f"vote (a robot's own hard margin has |x|^2 = {self._values[-2]:.6g} > "
-                                       f"{bound:.6g}: the fleet's needs a multiplier > "
+                                       f"{bound:.6g}: the fleet's, if any, needs a multiplier > "
                                        f"{self.params.ill_multiplier:g} x soft_C)")
                 self._mode = "soft"
                 return "ill-conditioned"
@@ -462,7 +462,7 @@ class AdaptiveGridCore(RoundCore):
             passed = self._alarm_base() - float(self._values[-1]) - self._phase_start
             self._note(status="hard-ill-conditioned", rounds=rounds, bound_norm2=bound,
                        detected_by=f"a robot's ADMM iterate had |x|^2 > {bound:.6g} in round {passed:.0f} of the "
-                                   f"hard margin: its solution needs a multiplier > {k:g} x soft_C")
+                                   f"hard margin: a hard solution, if any, needs a multiplier > {k:g} x soft_C")
             self._mode = "soft"
             return "ill-conditioned"
         converged = sub.converged or not sub.neighbours
