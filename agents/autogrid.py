@@ -242,6 +242,7 @@ class AdaptiveGridCore(RoundCore):
             try:
                 x = qp.solve(np.zeros(qp.dim)).x
                 own_norm2 = float(x @ x)
+                own_norm2 = own_norm2 if math.isfinite(own_norm2) else 0.0  # (frames carry finite numbers)
             except InfeasibleError:
                 infeasible = 1.0
         v = self._pad(np.zeros(0), 0.0, infeasible)

@@ -155,3 +155,8 @@ def test_ill_multiplier_is_checked():
     for bad in (0.5, -1.0, float("nan")):
         with pytest.raises(ValueError, match="ill_multiplier"):
             AutoGridParams(ill_multiplier=bad)
+
+
+def test_a_bound_that_overflows_means_no_test():
+    # frames carry finite numbers only: an infinite bound would make every frame of the phase invalid
+    assert ill_conditioned_norm2(np.array([1e200, 0.0]), 0.0, 3, AutoGridParams()) == 0.0
