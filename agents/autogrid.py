@@ -241,7 +241,8 @@ class AdaptiveGridCore(RoundCore):
             qp = MarginQP(self._features, self._labels, x_weight=1.0 / self._n_robots, prox_weight=0.0, C=None)
             try:
                 x = qp.solve(np.zeros(qp.dim)).x
-                own_norm2 = float(x @ x)
+                with np.errstate(over="ignore", invalid="ignore"):
+                    own_norm2 = float(x @ x)
                 own_norm2 = own_norm2 if math.isfinite(own_norm2) else 0.0  # (frames carry finite numbers)
             except InfeasibleError:
                 infeasible = 1.0
@@ -622,7 +623,9 @@ class AdaptiveGridCore(RoundCore):
         this robot's and its neighbours' last frames), or this round if this robot's new iterate passes it."""
         heard = max(float(v[-1]) for v in (mine, *theirs.values()))
         x = new[: len(self.grid)]
-        if float(x @ x) > float(mine[-3]):
+        with np.errstate(over="ignore", invalid="ignore"):  # (a diverging iterate passes the bound, quietly)
+            norm2 = float(x @ x)
+        if norm2 > float(mine[-3]):
             heard = max(heard, self._alarm_base() - self.round)
         return heard
 

@@ -276,8 +276,9 @@ def ill_conditioned_norm2(warm: np.ndarray, hinge_max: float, n_robots: int, par
     if K <= 0:
         return 0.0
     x0 = warm[:-1]
-    upper = 0.5 * float(x0 @ x0) + params.soft_C * n_robots * hinge_max
-    bound = 2.0 * K * K / (2.0 * K - 1.0) * upper
+    with np.errstate(over="ignore", invalid="ignore"):  # (an overflow is handled below, not printed)
+        upper = 0.5 * float(x0 @ x0) + params.soft_C * n_robots * hinge_max
+        bound = 2.0 * K * K / (2.0 * K - 1.0) * upper
     return bound if math.isfinite(bound) else 0.0  # (frames carry finite numbers: an overflow means no test)
 
 
