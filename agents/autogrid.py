@@ -21,7 +21,9 @@ in agents/autogrid_state.py. docs/autogrid.md tells the whole story; in short:
 4. ADMM: `ConsensusADMM` as a sub-machine on the grid, warm-started (the chosen candidate's
    sweep solution, or the previous grid's function and edge duals carried exactly onto the
    refined grid). A hard margin not converged within `hard_rounds` is declared infeasible and
-   the soft margin is solved on the same grid.
+   the soft margin is solved on the same grid; so is one whose iterate's |x|^2 passes the bound
+   `ill_conditioned_norm2` (an ill-conditioned hard margin: multipliers far above soft_C), the
+   same round on every robot (a max-consensus of the earliest round it was passed, slot -1).
 5. FLOOD (D + 1 rounds): every robot measures its relative gap to its neighbours' final values;
    a max-consensus of those gaps runs alongside a flood of the lowest id's vector. Only when the
    fleet's largest gap is within `tol` does every robot adopt the flooded vector; otherwise each
@@ -59,6 +61,8 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     refine_grid,
     folds_for_data,
     grid_widths,
+    hinge_sum,
+    ill_conditioned_norm2,
     widths_for_data,
     scale_from_bounds,
 )
@@ -98,9 +102,11 @@ TRANSITIONS = {
     (VOTE, "separable"): ADMM,  # hard margin
     (VOTE, "inseparable"): ADMM,  # a robot's own data not separable: soft margin
     (VOTE, "soft"): ADMM,  # soft margin asked for (C given)
+    (VOTE, "ill-conditioned"): ADMM,  # a robot's own hard margin already past the multiplier bound: soft
     (ADMM, "solved"): FLOOD,
     (ADMM, "stopped at its cap"): FLOOD,  # a soft margin (or validation) at its round cap
     (ADMM, "hard cap"): ADMM,  # hard margin not converged: declared infeasible, soft on the same grid
+    (ADMM, "ill-conditioned"): ADMM,  # hard iterate past the multiplier bound: soft on the same grid
     (FLOOD, "refined"): VOTE,
     (FLOOD, "final"): DONE,
     (FLOOD, "disagree"): DONE,
@@ -174,6 +180,7 @@ class AdaptiveGridCore(RoundCore):
         self._edges_out: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # last ADMM's edges
         self._own: np.ndarray | None = None  # this robot's (x, gamma) entering the flood
         self._sub_converged = False
+        self._ill_norm2 = 0.0  # the next hard ADMM's bound on |x|^2 (0: no test); in its frames at slot -3
         self._admm_rounds = 0
         self._capped = ""  # why the answer is not a converged solve ("" when it is)
         self._agreed = False
@@ -229,14 +236,20 @@ class AdaptiveGridCore(RoundCore):
 
     def _enter_vote(self) -> None:
         """This robot's separability (hard margin) and its near-data marks on the level-0 lattice."""
-        infeasible = 0.0
+        infeasible, own_norm2 = 0.0, 0.0
         if self.margin == "hard" and len(self._points):
             qp = MarginQP(self._features, self._labels, x_weight=1.0 / self._n_robots, prox_weight=0.0, C=None)
             try:
-                qp.solve(np.zeros(qp.dim))
+                x = qp.solve(np.zeros(qp.dim)).x
+                with np.errstate(over="ignore", invalid="ignore"):
+                    own_norm2 = float(x @ x)
+                own_norm2 = own_norm2 if math.isfinite(own_norm2) else 0.0  # (frames carry finite numbers)
             except InfeasibleError:
                 infeasible = 1.0
         v = self._pad(np.zeros(0), 0.0, infeasible)
+        if self._tests_conditioning():  # (max-consensus) the warm start's slack on my data: a bound of the
+            v[-3] = hinge_sum(self._features, self._labels, self._warm)  # soft objective; and my own hard
+            v[-2] = own_norm2  # margin's |x|^2: the fleet's hard margin (more constraints) needs at least that
         coarse = lattice(self._box, self._h0, 0)
         if len(coarse) <= self.dim - 3:  # the cell of a node: within h0 / sqrt(2) of it
             radius = self.params.near_data * self.sigma + self._h0 / math.sqrt(2.0)
@@ -258,6 +271,8 @@ class AdaptiveGridCore(RoundCore):
         self._carry = {}
         self._mark(ADMM)
         self._values, self._flags = self._sub_frame(), 0
+        if mode == "hard":  # the bound rides in every frame of the phase: a restart re-derives the test from it
+            self._values[-3] = self._ill_norm2
 
     def _sub_frame(self) -> np.ndarray:
         """The ADMM sub-machine's message as a frame: v padded, and in the hub form its w at
@@ -289,7 +304,9 @@ class AdaptiveGridCore(RoundCore):
                 text for status, text in (
                     ("hard-infeasible", "a robot's own data not separable on the grid"),
                     ("hard-not-converged", f"its ADMM not converged within {self.params.hard_rounds} rounds "
-                                           "(infeasible, or too slow to tell)"))
+                                           "(infeasible, or too slow to tell)"),
+                    ("hard-ill-conditioned", "its solution ill-conditioned: |x|^2 past the bound of every hard "
+                                             f"solution with multipliers <= {self.params.ill_multiplier:g} x soft_C"))
                 if status in statuses)
             self.message = (
                 "the hard margin was not reached within the budget of "
@@ -419,11 +436,37 @@ class AdaptiveGridCore(RoundCore):
             self._note(status="hard-infeasible", detected_by="vote (a robot's own data not separable)", rounds=self.params.diameter)
             self._mode = "soft"
             return "inseparable"
+        self._ill_norm2 = 0.0
+        if self._tests_conditioning():
+            self._ill_norm2 = bound = ill_conditioned_norm2(self._warm, float(self._values[-3]), self._n_robots,
+                                                            self.params)
+            if self._values[-2] > bound:  # known before any ADMM round: some robot's own hard margin is past it
+                self._note(status="hard-ill-conditioned", rounds=self.params.diameter, bound_norm2=bound,
+                           detected_by=f"vote (a robot's own hard margin has |x|^2 = {self._values[-2]:.6g} > "
+                                       f"{bound:.6g}: the fleet's, if any, needs a multiplier > "
+                                       f"{self.params.ill_multiplier:g} x soft_C)")
+                self._mode = "soft"
+                return "ill-conditioned"
         self._mode = "hard"
         return "separable"
 
+    def _tests_conditioning(self) -> bool:
+        """The hard margin's conditioning is tested when there is a warm start (a function every robot
+        holds, whose soft objective bounds the soft margin's) and the test is on."""
+        return self.margin == "hard" and self._warm is not None and self.params.ill_multiplier > 0
+
     def _finish_admm(self) -> str:
         sub, rounds = self._sub, self.round - self._phase_start
+        if self._ill_due():
+            # some robot's iterate passed the bound: a hard solution there has a multiplier > K soft_C
+            # (ill_conditioned_norm2); the fleet takes the soft margin it would fall back to anyway
+            bound, k = float(self._values[-3]), self.params.ill_multiplier
+            passed = self._alarm_base() - float(self._values[-1]) - self._phase_start
+            self._note(status="hard-ill-conditioned", rounds=rounds, bound_norm2=bound,
+                       detected_by=f"a robot's ADMM iterate had |x|^2 > {bound:.6g} in round {passed:.0f} of the "
+                                   f"hard margin: a hard solution, if any, needs a multiplier > {k:g} x soft_C")
+            self._mode = "soft"
+            return "ill-conditioned"
         converged = sub.converged or not sub.neighbours
         if not converged and self._mode == "hard":
             # the rule: a hard margin that does not converge within hard_rounds is treated as infeasible --
@@ -526,6 +569,8 @@ class AdaptiveGridCore(RoundCore):
     def _ended(self) -> bool:
         if EXCHANGE[self.phase] in ("max", "flood"):
             return self._left == 0
+        if self.phase == ADMM and self._ill_due():
+            return True
         return (self._sweep if self.phase in (VALIDATE, WIDTHS) else self._sub).finished
 
     def _settle(self) -> None:
@@ -554,6 +599,8 @@ class AdaptiveGridCore(RoundCore):
             sub.advance()
             self.residual = sub.residual
             new, flags = self._sub_frame(), sub.outgoing().flags
+            if mine[-3] > 0:  # a hard margin under the conditioning test: carry the bound, spread the alarm
+                new[-3], new[-1] = mine[-3], self._alarm(mine, theirs, new)
         self._prev_values, self._prev_flags = mine, self._flags
         self._values, self._flags = new, flags
         self.round += 1
@@ -565,6 +612,32 @@ class AdaptiveGridCore(RoundCore):
             self.message = f"stopped at the round cap {self._round_cap} in phase {self.phase}"
         self._record()
         return self.outgoing()
+
+    def _alarm_base(self) -> float:
+        """Slot -1 of a hard ADMM's frames holds base - (the round some robot's iterate passed the bound):
+        positive, larger for earlier rounds, so a max-consensus keeps the earliest; 0: not passed."""
+        return float(self.params.max_total_rounds + 1)
+
+    def _alarm(self, mine: np.ndarray, theirs: dict[int, np.ndarray], new: np.ndarray) -> float:
+        """The earliest round any robot's iterate is known here to have passed the bound (slot -1, max of
+        this robot's and its neighbours' last frames), or this round if this robot's new iterate passes it."""
+        heard = max(float(v[-1]) for v in (mine, *theirs.values()))
+        x = new[: len(self.grid)]
+        with np.errstate(over="ignore", invalid="ignore"):  # (a diverging iterate passes the bound, quietly)
+            norm2 = float(x @ x)
+        if norm2 > float(mine[-3]):
+            heard = max(heard, self._alarm_base() - self.round)
+        return heard
+
+    def _ill_due(self) -> bool:
+        """True in the round every robot acts on the alarm: D + 1 rounds after the earliest round r* any
+        iterate passed the bound. By then the max-consensus has brought r* to every robot (D >= the graph's
+        diameter), and no robot can act earlier: it would need an earlier r than r*. The same round
+        everywhere, from the frame alone (a restart re-derives it)."""
+        v = self._values
+        if self.phase != ADMM or not v[-3] > 0 or not v[-1] > 0:
+            return False
+        return self.round >= self._alarm_base() - float(v[-1]) + 1 + self.params.diameter
 
     def _flood_round(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> np.ndarray:
         """The lowest id's vector wins; slot -3 carries the largest gap, measured in round 1

@@ -109,8 +109,10 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 
 
 #: 2 since branch certtight: the certified guard's payload and a checkpointed certificate changed meaning
-#: (|u+_l| and g_half where max|phi_i| stood), so a checkpoint of version 1 is refused, never read as today's
-CHECKPOINT_VERSION = 2
+#: (|u+_l| and g_half where max|phi_i| stood), so a checkpoint of version 1 is refused, never read as today's.
+#: 3 since branch illcond: an autogrid robot's frame slots -3/-2 (VOTE) and -3/-1 (hard ADMM) carry the
+#: conditioning test (docs/autogrid.md); a version-2 checkpoint there would resume with zeros in them
+CHECKPOINT_VERSION = 3
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the
