@@ -418,10 +418,10 @@ def main() -> None:
     if args.replay is not None:
         replay([Path(p) for p in args.replay], args.trace_tols, args.as_unguarded)
         return
+    fleets = stop_check_fleets() if args.stop_check else {f: RELAY_FLEETS[f] for f in args.fleets}
+    if args.seeds is not None:
+        fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
     if args.emulate_delay is not None:
-        fleets = {f: RELAY_FLEETS[f] for f in args.fleets}
-        if args.seeds is not None:
-            fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
         print("| fleet | its D | emulated D | rounds to 1e-3 | restarts | active-set changes | last change |")
         print("|---|---:|---:|---:|---:|---:|---:|")
         tasks = [(f, kw, D, args.max_rounds) for f, kw in fleets.items() for D in args.emulate_delay]
@@ -440,9 +440,6 @@ def main() -> None:
     print(f"variant: {variant}", flush=True)
     print("| fleet | D | memory | rounds to 1e-3 | rounds at stop | converged | error at stop | restarts | "
           "CPU s | CPU ms per round | bound at stop | bound < error |", flush=True)
-    fleets = stop_check_fleets() if args.stop_check else {f: RELAY_FLEETS[f] for f in args.fleets}
-    if args.seeds is not None:
-        fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
     tasks = [(args.label + f, kw, variant, args.max_rounds) for f, kw in fleets.items()]
     total, worst, checked, unsafe = 0, 0.0, 0, 0
     with multiprocessing.Pool(args.jobs) as pool:
