@@ -99,7 +99,11 @@ RELAY_RELAX = 1.7
 #: 30 pairs, eta 1.5; hold 40 in both; the sweep of memory, regularisation, relaxation and pair
 #: selection: docs/algorithm.md, benchmarks/relay_anderson.py)
 RELAY_MEMORY = 50
-#: restart Anderson when the residual exceeds this x its best since the last restart
+#: restart Anderson when the residual exceeds this x its best since the last restart. With delay D the
+#: D - 1 points formed before a restart are still in flight after it, extrapolated by the history it has
+#: just dropped: they count towards the best but restart nothing (branch ring16; restarting on them
+#: dropped the new history for the old one's faults, a cascade of a restart about every D rounds -- 16-ring
+#: seed 3: 121 restarts, 2450 rounds at stop, now 1832; benchmarks/results/rounds-stop-relay.md, top)
 RELAY_SAFEGUARD = 10.0
 #: Tikhonov regularisation of Anderson's least squares, relative to the mean diagonal
 RELAY_REG = 3e-3
@@ -255,6 +259,7 @@ class RelayHubADMM(RoundCore):
         self._S: dict[int, np.ndarray] = {}
         self._a: dict[int, dict[int, np.ndarray]] = {l: {} for l in self.ids}
         self._forget()
+        self._fresh = self.delay  # steps since the last restart, up to D: no restart yet, the safeguard is armed
         # digest of everything the copy's state follows from (see _SHARED); the data enter by S^0
         self._token = _digest(repr((self.ids, self.dim, self.delay, params.rho, params.gamma_penalty, params.tol,
                                     self._memory, RELAY_RELAX, RELAY_SAFEGUARD, RELAY_REG,
@@ -408,7 +413,7 @@ class RelayHubADMM(RoundCore):
 
     def _snapshot(self) -> tuple[Any, ...]:
         """The copy's state after a step (arrays are never changed in place: copies may share them)."""
-        return (list(self._hist_F), list(self._hist_g), self._dg, self._df, self._gram, self._best,
+        return (list(self._hist_F), list(self._hist_g), self._dg, self._df, self._gram, self._best, self._fresh,
                 self._S[self.round + 1], self.residual, list(self._residuals), self._prev_mean, self._held)
 
     def _shared_step(self, S: np.ndarray, A: np.ndarray) -> bool:
@@ -421,7 +426,7 @@ class RelayHubADMM(RoundCore):
 
         (snap, below), adopted = shared_step(_SHARED, key, compute, SHARED_KEPT)
         if adopted:
-            (hist_F, hist_g, self._dg, self._df, self._gram, self._best, S_new, self.residual,
+            (hist_F, hist_g, self._dg, self._df, self._gram, self._best, self._fresh, S_new, self.residual,
              residuals, self._prev_mean, self._held) = snap
             self._hist_F, self._hist_g, self._residuals = list(hist_F), list(hist_g), list(residuals)
             self._S[self.round + 1] = S_new
@@ -438,9 +443,10 @@ class RelayHubADMM(RoundCore):
         F = S + G
         g = G * self._w
         res = math.sqrt(float(_pairwise_sum((g * g)[:, None])[0]))
-        if res > RELAY_SAFEGUARD * self._best:
+        if self._fresh >= self.delay and res > RELAY_SAFEGUARD * self._best:  # (S^j formed after the last restart)
             self._forget()
         self._best = min(self._best, res)
+        self._fresh = min(self._fresh + 1, self.delay)
         self._push(S, F, g)
         self._S[self.round + 1] = self._extrapolate(F) if len(self._dg) else F
         # stop test on the fleet's residual: the x's spread around their mean, the mean's move
@@ -466,6 +472,7 @@ class RelayHubADMM(RoundCore):
         self._df = np.zeros((0, 0))
         self._gram = np.zeros((0, 0))
         self._best = math.inf
+        self._fresh = 0  # the next D - 1 steps evaluate points formed before this restart: they restart nothing
 
     def _push(self, S: np.ndarray, F: np.ndarray, g: np.ndarray) -> None:
         """Add the pair (S, F) (weighted residual g): a row of differences and its Gram row."""
@@ -540,6 +547,7 @@ class RelayHubADMM(RoundCore):
             "df": [to_bytes(r) for r in self._df],
             "gram": [to_bytes(r) for r in self._gram],
             "best": self._best,
+            "fresh": self._fresh,
             "residuals": list(self._residuals),
             "held": list(self._held),
             "prev_mean": to_bytes(self._prev_mean),
@@ -561,6 +569,7 @@ class RelayHubADMM(RoundCore):
         rows = lambda key: np.array([from_bytes(r) for r in state[key]]) if state[key] else np.zeros((0, 0))  # noqa: E731
         self._dg, self._df, self._gram = rows("dg"), rows("df"), rows("gram")
         self._best = float(state["best"])
+        self._fresh = int(state.get("fresh", self.delay))  # (before branch ring16: always armed)
         self._residuals = [float(r) for r in state["residuals"]]
         held = state["held"]  # a list per stop test; one int (main's test) before branch relaystop, whose
         # count is main's test's only: the others start afresh (a later stop, never an earlier one)

@@ -26,6 +26,12 @@ every trace (its safety on the guarded fleets' plateaus too); --certify 0 runs e
 
     .venv/bin/python benchmarks/relay_anderson.py --jobs 2 --fleets 8-ring 16-ring --seeds 0 1 2 --trace /tmp/tr
     .venv/bin/python benchmarks/relay_anderson.py --replay /tmp/tr/*.json [--as-unguarded] [--trace-tols 1e-3 1e-4]
+
+The slow phase (branch ring16): --emulate-delay D... runs the chosen fleets' own map and the module's Anderson
+with another delay (1: the undelayed accelerated hub on the same robots' data), to tell a plateau that is the
+hub ADMM's own from one the delay makes (benchmarks/results/rounds-stop-relay.md, top).
+
+    .venv/bin/python benchmarks/relay_anderson.py --fleets 16-ring --seeds 0 1 2 3 4 5 --emulate-delay 1 2 4 8 --jobs 2
 """
 
 from __future__ import annotations
@@ -38,6 +44,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -313,6 +321,62 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
             "bound": None if None in bounds else max(bounds), "checked": checked, "unsafe": unsafe}
 
 
+def emulate(task: tuple[str, dict[str, Any], int, int]) -> dict[str, Any]:
+    """The relay's fleet iteration with another delay D, in process (`--emulate-delay`): the same map F
+    (every robot's own QP step) and the same Anderson code (`RelayHubADMM._fleet_step` of one copy), S^(k+1)
+    formed from F(S^(k+1-D)); D = 1 is the undelayed accelerated hub on these robots' data. Why: it tells
+    a plateau that is the hub ADMM's own (in iterations) from one the delay makes. Returns the first round
+    whose x_l (the step of round k + 1 - D, max over robots) is within 1e-3 of the exact QP, restarts, and
+    the active sets (rows with margin < 1 + 1e-7 in each robot's step): changes and the last round one changed."""
+    from agents.problem import solve_central
+    from agents.spec import build_core
+    from launcher.world import Options, build_world
+
+    label, kwargs, delay, max_rounds = task
+    configure({})
+    world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
+    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    b = spec.basis
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    copy = cores[0]
+    assert isinstance(copy, relay_hub.RelayHubADMM), "not a relay fleet"
+    n, d = copy.n, copy.dim
+    restarts = [0]
+    forget = copy._forget
+
+    def counted() -> None:
+        restarts[0] += 1
+        forget()
+
+    copy._forget = counted  # type: ignore[method-assign]
+    S: dict[int, Any] = {0: np.concatenate([c._values for c in cores])}  # S^0: every robot's own solution
+    rows = [c._qp._rows for c in cores]
+    first, changes, settled, previous = None, 0, 0, None
+    for k in range(max_rounds):
+        j = k + 1 - delay
+        if j < 0:
+            S[k + 1] = S[0]
+            continue
+        T = S[j].reshape(n, d)
+        X = np.array([c._values if j == 0 else c._solve(T[l]) for l, c in enumerate(cores)])
+        copy.round = k
+        copy._fleet_step(S[j], 2.0 * X - T)
+        S[k + 1] = copy._S.pop(k + 1)
+        if j > 1:  # (S^0 stays: the steps before round D read it)
+            S.pop(j - 1, None)
+        active = [tuple(np.nonzero(r @ x < 1.0 + 1e-7)[0]) for r, x in zip(rows, X)]
+        if previous is not None and active != previous:
+            changes += sum(a != p for a, p in zip(active, previous))
+            settled = k + 1
+        previous = active
+        error = max(b.function_error(b.c_from_x(x[:-1]), x[-1], central.c, central.gamma) for x in X)
+        if error < 1e-3:
+            first = k + 1
+            break
+    return {"fleet": label, "D": delay, "real_D": copy.delay, "first": first, "restarts": restarts[0],
+            "changes": changes, "settled": settled}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fleets", nargs="*", default=list(RELAY_FLEETS), choices=list(RELAY_FLEETS))
@@ -345,11 +409,26 @@ def main() -> None:
     ap.add_argument("--check", action="store_true",
                     help="the certificate every round and every robot's certified bound against its true error "
                          "(columns: bound at the stop, robot-rounds with the bound below the error of those checked)")
+    ap.add_argument("--emulate-delay", nargs="*", type=int, default=None, metavar="D",
+                    help="no real runs: the chosen fleets' map and Anderson with each delay D in turn (1: no delay), "
+                         "rounds until the step's x is within 1e-3 and the active sets' changes")
     ap.add_argument("--max-rounds", type=int, default=5000)
     ap.add_argument("--jobs", type=int, default=1)
     args = ap.parse_args()
     if args.replay is not None:
         replay([Path(p) for p in args.replay], args.trace_tols, args.as_unguarded)
+        return
+    fleets = stop_check_fleets() if args.stop_check else {f: RELAY_FLEETS[f] for f in args.fleets}
+    if args.seeds is not None:
+        fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
+    if args.emulate_delay is not None:
+        print("| fleet | its D | emulated D | rounds to 1e-3 | restarts | active-set changes | last change |")
+        print("|---|---:|---:|---:|---:|---:|---:|")
+        tasks = [(f, kw, D, args.max_rounds) for f, kw in fleets.items() for D in args.emulate_delay]
+        with multiprocessing.Pool(args.jobs) as pool:
+            for r in pool.imap(emulate, tasks):
+                print(f"| {r['fleet']} | {r['real_D']} | {r['D']} | {r['first'] or 'cap'} | {r['restarts']} | "
+                      f"{r['changes']} | {r['settled']} |", flush=True)
         return
     variant = {"memory": args.memory, "RELAY_REG": args.reg, "RELAY_SAFEGUARD": args.safeguard,
                "RELAY_RELAX": args.relax, "RELAY_HOLD": args.hold,
@@ -361,9 +440,6 @@ def main() -> None:
     print(f"variant: {variant}", flush=True)
     print("| fleet | D | memory | rounds to 1e-3 | rounds at stop | converged | error at stop | restarts | "
           "CPU s | CPU ms per round | bound at stop | bound < error |", flush=True)
-    fleets = stop_check_fleets() if args.stop_check else {f: RELAY_FLEETS[f] for f in args.fleets}
-    if args.seeds is not None:
-        fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
     tasks = [(args.label + f, kw, variant, args.max_rounds) for f, kw in fleets.items()]
     total, worst, checked, unsafe = 0, 0.0, 0, 0
     with multiprocessing.Pool(args.jobs) as pool:

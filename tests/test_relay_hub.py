@@ -195,3 +195,35 @@ def test_the_relay_fleet_stops_in_the_round_its_test_passes_without_flag_rounds(
     assert {c.round for c in cores} == set(passed.values())  # no flag rounds after the verdict
     assert max_function_error(spec, central, [c.result() for c in cores]) <= spec.params["tol"]
     assert not RoundCore.fleet_wide_verdict  # (the other cores flood their own robot's test)
+
+
+def test_the_points_in_flight_at_a_restart_restart_nothing(monkeypatch):
+    """With delay D the D - 1 points formed before a restart arrive after it, extrapolated by the history
+    it dropped: they count towards the safeguard's best but restart nothing; the first point formed after
+    the restart is judged again (branch ring16: restarting on them cascaded, 121 restarts on the 16-ring
+    seed 3, where main's rule fails this test at the first point in flight)."""
+    _, spec, _, cores = _fleet(preset="paper", robots=8, topology="ring", max_rounds=10)
+    c = cores[0]
+    D, n, d = c.delay, c.n, c.dim
+    assert D == 4
+    restarts = []
+    forget = c._forget
+    monkeypatch.setattr(c, "_forget", lambda: (restarts.append(c.round), forget()))
+    rows = np.random.default_rng(0).normal(size=(n, d))
+    S = np.zeros(n * d)
+
+    def step(scale: float) -> float:  # a step whose residual is proportional to scale (X = A / 2 at S = 0)
+        c._fleet_step(S, scale * rows)
+        c.round += 1
+        return c._best
+
+    unit = step(1.0)  # armed from the start
+    assert step(10.0 * relay_hub.RELAY_SAFEGUARD) == pytest.approx(100.0 * unit) and len(restarts) == 1  # a restart
+    for k in range(D - 1):  # formed before it: 100 x to 10^5 x worse than its best, no restart
+        assert step(10.0 ** (4 + k)) == pytest.approx(100.0 * unit)
+    assert len(restarts) == 1 and len(c._dg) == D - 1  # (their secants are kept)
+    assert step(1.0) == unit and len(restarts) == 1  # the first point formed after the restart is judged
+    step(10.0 * relay_hub.RELAY_SAFEGUARD)
+    assert len(restarts) == 2 and c._fresh == 1  # beyond the safeguard: a restart, and D - 1 in flight again
+    step(1e9)
+    assert len(restarts) == 2
