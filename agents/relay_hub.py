@@ -569,7 +569,7 @@ class RelayHubADMM(RoundCore):
         rows = lambda key: np.array([from_bytes(r) for r in state[key]]) if state[key] else np.zeros((0, 0))  # noqa: E731
         self._dg, self._df, self._gram = rows("dg"), rows("df"), rows("gram")
         self._best = float(state["best"])
-        self._fresh = int(state.get("fresh", self.delay))  # (before branch ring16: always armed)
+        self._fresh = int(state["fresh"])
         self._residuals = [float(r) for r in state["residuals"]]
         held = state["held"]  # a list per stop test; one int (main's test) before branch relaystop, whose
         # count is main's test's only: the others start afresh (a later stop, never an earlier one)
