@@ -218,7 +218,7 @@ def _round_cap_hint(spec: Any, result: dict[str, Any]) -> str | None:
     (benchmarks/results/polish-sweep.md); otherwise a slow fleet only needs a larger cap."""
     if spec.algorithm != "admm" or not spec.fixed_grid:
         return None
-    agreement, cap = result.get("agreement") or {}, _round_budget(spec)
+    agreement, cap = result.get("agreement") or {}, _round_cap(spec)
     late = set(agreement.get("not_converged") or [])
     if not late or agreement.get("failed") or not agreement.get("connected"):
         return None
@@ -247,13 +247,22 @@ def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], 
 
 
 def _round_budget(spec: Any) -> int:
-    """Rounds the run is planned to take: the cap, for ct-admm the stop time in periods, for
-    autogrid its phases' planned rounds (AutoGridParams.planned_rounds, not the 50,000 cap)."""
+    """Rounds the run is planned to take (a progress bar's total): the cap, for ct-admm the stop
+    time in periods, for autogrid its phases' planned rounds (AutoGridParams.planned_rounds, an
+    estimate: a run with a soft-margin fallback or a second refinement lasts longer)."""
+    if spec.algorithm == "autogrid":
+        return int(spec.algorithm_params.planned_rounds)
+    return _round_cap(spec)
+
+
+def _round_cap(spec: Any) -> int:
+    """Rounds the run can last at most: the cap (autogrid: max_total_rounds, not its plan), for
+    ct-admm the stop time in periods."""
     params = spec.algorithm_params
     if spec.algorithm == "ct-admm":
         return int(params.rounds)
     if spec.algorithm == "autogrid":
-        return int(params.planned_rounds)
+        return int(params.max_total_rounds)
     return int(params.max_rounds)
 
 
@@ -531,11 +540,11 @@ def _crash_check(crashes: list[Any]) -> Callable[[Any], None]:
         unknown = [c.robot for c in crashes if c.robot not in spec.robots]
         if unknown:
             raise UsageError(f"--crash: robot {unknown[0]} is not in the fleet (robots {list(spec.robot_ids)})")
-        budget = _round_budget(spec)
-        late = [c for c in crashes if c.round >= budget]
+        cap = _round_cap(spec)
+        late = [c for c in crashes if c.round >= cap]
         if late:
             raise UsageError(f"--crash: {late[0].robot}@{late[0].round} is at or past the run's last possible round "
-                             f"({budget - 1}: the round cap is {budget}); it could never fire")
+                             f"({cap - 1}: the round cap is {cap}); it could never fire")
 
     return check
 
