@@ -32,6 +32,16 @@ with another delay (1: the undelayed accelerated hub on the same robots' data), 
 hub ADMM's own from one the delay makes (benchmarks/results/rounds-stop-relay.md, top).
 
     .venv/bin/python benchmarks/relay_anderson.py --fleets 16-ring --seeds 0 1 2 3 4 5 --emulate-delay 1 2 4 8 --jobs 2
+
+Identification and cuts (branch hubactive): with --emulate-delay, --identify restart|skip restarts Anderson or
+leaves out the secant pair where a robot's active set changed (--signal oracle: the rows' truth; test: the
+copies' `piece_changed`; --cool C: at most once every C x D rounds), --cut-model replaces Anderson's iterate by
+the fixed point of the relaxed QP on the cuts every copy can compute (`step_cuts`; steps: every round until
+--handoff; rows: the robots' own rows, beyond the frames; potential: the path unchanged, the model's first round
+within 1e-3). --emulate-delay 0 runs each fleet at its own D.
+
+    .venv/bin/python benchmarks/relay_anderson.py --fleets 16-ring --seeds 0 1 2 3 4 5 --emulate-delay 8 --identify restart --cool 2
+    .venv/bin/python benchmarks/relay_anderson.py --fleets 16-ring 8-ring --seeds 0 1 2 3 4 5 --emulate-delay 0 --cut-model steps --handoff 200
 """
 
 from __future__ import annotations
@@ -321,18 +331,97 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
             "bound": None if None in bounds else max(bounds), "checked": checked, "unsafe": unsafe}
 
 
-def emulate(task: tuple[str, dict[str, Any], int, int]) -> dict[str, Any]:
+#: a margin row counts as active in a step when within this of tight (the emulation's truth; piqp: ~1e-10)
+ACTIVE_TOL = 1e-7
+#: W_l below this fraction of its two terms is the step solver's noise: no active row (`step_normals`). piqp's
+#: steps on the 16-ring leave W_l up to 3.5e-7 of its terms with no row within 5e-2 of its margin (a multiplier
+#: 2e-4 on a row at margin 1.056), and rows with multipliers up to 1.7e-5 above their margin
+NORMAL_FLOOR = 1e-5
+#: the piece test's threshold on |W . (x - x_prev)| relative to |W| |x| (`piece_changed`)
+PIECE_TOL = 1e-6
+
+
+def step_normals(copy: relay_hub.RelayHubADMM, X: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Every robot's W_l = (P + 1/N on x) x_l - P t_l, row by row: by its step's KKT conditions A_l' lam_l,
+    the combination of robot l's active margin rows by their multipliers (lam >= 0) -- what every copy can
+    compute from the relayed a_l (x_l = (a_l + t_l) / 2) and its own t_l, no row leaving the robot. A W_l
+    at the solver's noise (below NORMAL_FLOOR of its terms) is zero: no active row."""
+    W = copy._pdiag * X - copy._P * T
+    scale = np.linalg.norm(copy._pdiag * X, axis=1) + np.linalg.norm(copy._P * T, axis=1)
+    return np.where((np.linalg.norm(W, axis=1) <= NORMAL_FLOOR * scale)[:, None], 0.0, W)
+
+
+def piece_changed(X_prev: np.ndarray, W_prev: np.ndarray, X: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Per robot: True when its two consecutive steps lie on different affine pieces of its step map, seen
+    from held values only. On one piece (active set A_W) the step is the projection, in the metric of
+    (P + 1/N on x), of P t / (P + 1/N on x) onto the face {A_W v = 1}: both W's are combinations of the
+    face's rows, so W . (x - x_prev) = W_prev . (x - x_prev) = 0; a row that enters or leaves breaks one
+    of them by its margin gap. Relative to |W| |x| (PIECE_TOL): piqp's answers are exact to ~1e-10."""
+    dX = X - X_prev
+    num = np.maximum(np.abs(np.sum(W * dX, axis=1)), np.abs(np.sum(W_prev * dX, axis=1)))
+    scale = np.maximum(np.linalg.norm(W, axis=1), np.linalg.norm(W_prev, axis=1)) * np.linalg.norm(X, axis=1)
+    return num > PIECE_TOL * np.maximum(scale, 1e-300)
+
+
+def step_cuts(X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cuts of a step, hard margins: w_l = W_l / (W_l . x_l) satisfies w_l . v >= 1 at every v that
+    satisfies robot l's margins, since W_l . x_l = sum lam_i (complementarity: a_i . x_l = 1 where lam_i >
+    0) and w_l is a convex combination of its active rows -- an outer approximation of the fleet's feasible
+    set from held values. Returns (cuts, owners) for the robots with an active row."""
+    s = np.sum(W * X, axis=1)
+    ok = (np.linalg.norm(W, axis=1) > 0) & (s > 0)
+    return W[ok] / s[ok, None], np.nonzero(ok)[0]
+
+
+def cut_model(cuts: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The relaxed central QP min 1/2 |x|^2 s.t. cuts @ v >= 1 (piqp to 1e-10): its v and the cuts'
+    multipliers, or None (unbounded or unsolved: too few cuts yet)."""
+    import piqp
+
+    dim = cuts.shape[1]
+    solver = piqp.DenseSolver()
+    solver.settings.eps_abs = solver.settings.eps_rel = 1e-10
+    P = np.eye(dim)
+    P[-1, -1] = 0.0
+    m = len(cuts)
+    solver.setup(P, np.zeros(dim), None, None, np.ascontiguousarray(cuts), np.ones(m), np.full(m, np.inf), None, None)
+    if solver.solve() != piqp.PIQP_SOLVED:
+        return None
+    return np.array(solver.result.x), np.array(solver.result.z_l)
+
+
+def model_state(copy: relay_hub.RelayHubADMM, z: np.ndarray, mu: np.ndarray, cuts: np.ndarray,
+                owners: np.ndarray) -> np.ndarray:
+    """The fleet state whose fixed point the cut model says z is: robot l's multiplier combination W_l =
+    sum of mu_c w_c over its cuts, t_l = ((P + 1/N on x) z - W_l) / P (then sum_l t_l = N z, as at a fixed
+    point). Exact where the model's rows are robot l's (the model then equals the problem near z)."""
+    Wm = np.zeros((copy.n, copy.dim))
+    np.add.at(Wm, owners, mu[:, None] * cuts)
+    return ((copy._pdiag * z - Wm) / copy._P).ravel()
+
+
+def emulate(task: tuple[str, dict[str, Any], int, int, dict[str, Any]]) -> dict[str, Any]:
     """The relay's fleet iteration with another delay D, in process (`--emulate-delay`): the same map F
     (every robot's own QP step) and the same Anderson code (`RelayHubADMM._fleet_step` of one copy), S^(k+1)
     formed from F(S^(k+1-D)); D = 1 is the undelayed accelerated hub on these robots' data. Why: it tells
     a plateau that is the hub ADMM's own (in iterations) from one the delay makes. Returns the first round
     whose x_l (the step of round k + 1 - D, max over robots) is within 1e-3 of the exact QP, restarts, and
-    the active sets (rows with margin < 1 + 1e-7 in each robot's step): changes and the last round one changed."""
+    the active sets (rows with margin < 1 + ACTIVE_TOL in each robot's step): changes and the last round one
+    changed.
+
+    Variants (branch hubactive, `--identify`, `--cut-model`): `identify` restarts Anderson ("restart") or
+    leaves out the secant pair ("skip") wherever a robot's active set changed between two steps -- by the
+    truth ("oracle") or by `piece_changed` ("test"), at most once every `cool` x D rounds; `cut_model`
+    replaces Anderson's S^(k+1) by `model_state` of the relaxed QP on the cuts so far ("steps": the cuts the
+    last model used plus the newest; "rows": the robots' own active rows instead of the cuts, beyond the
+    frames) until round `handoff`, or only solves it on every cut so far ("potential": the path unchanged)."""
     from agents.problem import solve_central
     from agents.spec import build_core
     from launcher.world import Options, build_world
 
-    label, kwargs, delay, max_rounds = task
+    label, kwargs, delay, max_rounds, variant = task
+    identify, signal, cool = variant.get("identify"), variant.get("signal", "oracle"), variant.get("cool", 0.0)
+    model, handoff = variant.get("cut_model"), variant.get("handoff") or max_rounds
     configure({})
     world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
     central = solve_central(spec.basis, world.points, world.labels, spec.C)
@@ -341,6 +430,7 @@ def emulate(task: tuple[str, dict[str, Any], int, int]) -> dict[str, Any]:
     copy = cores[0]
     assert isinstance(copy, relay_hub.RelayHubADMM), "not a relay fleet"
     n, d = copy.n, copy.dim
+    delay = delay or copy.delay  # (0: the fleet's own D)
     restarts = [0]
     forget = copy._forget
 
@@ -351,7 +441,11 @@ def emulate(task: tuple[str, dict[str, Any], int, int]) -> dict[str, Any]:
     copy._forget = counted  # type: ignore[method-assign]
     S: dict[int, Any] = {0: np.concatenate([c._values for c in cores])}  # S^0: every robot's own solution
     rows = [c._qp._rows for c in cores]
+    error_of = lambda v: b.function_error(b.c_from_x(v[:-1]), v[-1], central.c, central.gamma)  # noqa: E731
     first, changes, settled, previous = None, 0, 0, None
+    prev_XW: tuple[np.ndarray, np.ndarray] | None = None
+    last_identify, signalled, missed, false = -(10**9), 0, 0, 0
+    cuts, owners, model_first, model_steps = np.zeros((0, d)), np.zeros(0, int), None, 0
     for k in range(max_rounds):
         j = k + 1 - delay
         if j < 0:
@@ -359,22 +453,53 @@ def emulate(task: tuple[str, dict[str, Any], int, int]) -> dict[str, Any]:
             continue
         T = S[j].reshape(n, d)
         X = np.array([c._values if j == 0 else c._solve(T[l]) for l, c in enumerate(cores)])
+        active = [tuple(np.nonzero(r @ x < 1.0 + ACTIVE_TOL)[0]) for r, x in zip(rows, X)]
+        truth = np.array([previous is not None and a != p for a, p in zip(active, previous or active)])
+        W = step_normals(copy, X, T)
+        seen = np.zeros(n, bool) if prev_XW is None or j == 1 else piece_changed(*prev_XW, X, W)
+        prev_XW = (X, W)
+        signalled, missed, false = signalled + int(np.sum(seen & truth)), missed + int(np.sum(truth & ~seen)), \
+            false + int(np.sum(seen & ~truth))
+        if identify and (truth if signal == "oracle" else seen).any() and k - last_identify >= cool * delay:
+            last_identify = k
+            if identify == "restart":
+                copy._forget()
+            else:  # "skip": the pair across the change is not recorded; older pairs stay
+                copy._hist_g, copy._hist_F = [], []
         copy.round = k
         copy._fleet_step(S[j], 2.0 * X - T)
         S[k + 1] = copy._S.pop(k + 1)
         if j > 1:  # (S^0 stays: the steps before round D read it)
             S.pop(j - 1, None)
-        active = [tuple(np.nonzero(r @ x < 1.0 + 1e-7)[0]) for r, x in zip(rows, X)]
+        if model and j > 0:
+            if model == "rows":  # the robots' own active rows (beyond the frames): the model's best case
+                new = [r[list(a)] for r, a in zip(rows, active)]
+                c_new, o_new = np.vstack(new), np.repeat(np.arange(n), [len(a) for a in new])
+            else:
+                c_new, o_new = step_cuts(X, W)
+            cuts, owners = np.vstack([cuts, c_new]), np.concatenate([owners, o_new])
+            if model == "potential" and (k + 1) % 10 == 0 and model_first is None:
+                solved = cut_model(cuts)
+                if solved is not None and error_of(solved[0]) < 1e-3:
+                    model_first = k + 1
+            elif model != "potential" and k < handoff and len(cuts) >= d:
+                solved = cut_model(cuts)
+                if solved is not None:
+                    z, mu = solved
+                    S[k + 1] = model_state(copy, z, mu, cuts, owners)
+                    model_steps += 1
+                    keep = mu > 1e-9 * max(1.0, float(mu.max()))  # the pool: the cuts the model used
+                    cuts, owners = cuts[keep], owners[keep]
         if previous is not None and active != previous:
-            changes += sum(a != p for a, p in zip(active, previous))
+            changes += int(np.sum(truth))
             settled = k + 1
         previous = active
-        error = max(b.function_error(b.c_from_x(x[:-1]), x[-1], central.c, central.gamma) for x in X)
-        if error < 1e-3:
+        if max(error_of(x) for x in X) < 1e-3:
             first = k + 1
             break
     return {"fleet": label, "D": delay, "real_D": copy.delay, "first": first, "restarts": restarts[0],
-            "changes": changes, "settled": settled}
+            "changes": changes, "settled": settled, "signalled": signalled, "missed": missed, "false": false,
+            "model_first": model_first, "model_steps": model_steps}
 
 
 def main() -> None:
@@ -410,8 +535,20 @@ def main() -> None:
                     help="the certificate every round and every robot's certified bound against its true error "
                          "(columns: bound at the stop, robot-rounds with the bound below the error of those checked)")
     ap.add_argument("--emulate-delay", nargs="*", type=int, default=None, metavar="D",
-                    help="no real runs: the chosen fleets' map and Anderson with each delay D in turn (1: no delay), "
+                    help="no real runs: the chosen fleets' map and Anderson with each delay D in turn (1: no delay, "
+                         "0: the fleet's own), "
                          "rounds until the step's x is within 1e-3 and the active sets' changes")
+    ap.add_argument("--identify", choices=("restart", "skip"), default=None,
+                    help="with --emulate-delay: restart Anderson / leave out the secant pair where a robot's active "
+                         "set changed (branch hubactive)")
+    ap.add_argument("--signal", choices=("oracle", "test"), default="oracle",
+                    help="with --identify: the change by the truth (rows) or by the copies' piece test")
+    ap.add_argument("--cool", type=float, default=0.0, help="with --identify: at most once every COOL x D rounds")
+    ap.add_argument("--cut-model", choices=("potential", "steps", "rows"), default=None,
+                    help="with --emulate-delay: the relaxed QP on the cuts the copies can compute (branch hubactive)")
+    ap.add_argument("--handoff", type=int, default=None, help="with --cut-model steps/rows: model steps until this round")
+    ap.add_argument("--normal-floor", type=float, default=None,
+                    help="with --emulate-delay: NORMAL_FLOOR (W_l below it relative to its terms: no active row)")
     ap.add_argument("--max-rounds", type=int, default=5000)
     ap.add_argument("--jobs", type=int, default=1)
     args = ap.parse_args()
@@ -422,13 +559,20 @@ def main() -> None:
     if args.seeds is not None:
         fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
     if args.emulate_delay is not None:
-        print("| fleet | its D | emulated D | rounds to 1e-3 | restarts | active-set changes | last change |")
-        print("|---|---:|---:|---:|---:|---:|---:|")
-        tasks = [(f, kw, D, args.max_rounds) for f, kw in fleets.items() for D in args.emulate_delay]
+        global NORMAL_FLOOR
+        NORMAL_FLOOR = NORMAL_FLOOR if args.normal_floor is None else args.normal_floor  # (the pool's workers fork)
+        emulated = {"identify": args.identify, "signal": args.signal, "cool": args.cool, "cut_model": args.cut_model,
+                    "handoff": args.handoff}
+        print(f"variant: {emulated}, NORMAL_FLOOR {NORMAL_FLOOR:g}")
+        print("| fleet | its D | emulated D | rounds to 1e-3 | restarts | active-set changes | last change | "
+              "piece test: seen / missed / false | model: steps, potential's first < 1e-3 |")
+        print("|---|---:|---:|---:|---:|---:|---:|---|---|")
+        tasks = [(f, kw, D, args.max_rounds, emulated) for f, kw in fleets.items() for D in args.emulate_delay]
         with multiprocessing.Pool(args.jobs) as pool:
             for r in pool.imap(emulate, tasks):
                 print(f"| {r['fleet']} | {r['real_D']} | {r['D']} | {r['first'] or 'cap'} | {r['restarts']} | "
-                      f"{r['changes']} | {r['settled']} |", flush=True)
+                      f"{r['changes']} | {r['settled']} | {r['signalled']} / {r['missed']} / {r['false']} | "
+                      f"{r['model_steps']}, {r['model_first'] or '-'} |", flush=True)
         return
     variant = {"memory": args.memory, "RELAY_REG": args.reg, "RELAY_SAFEGUARD": args.safeguard,
                "RELAY_RELAX": args.relax, "RELAY_HOLD": args.hold,
