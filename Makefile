@@ -22,8 +22,12 @@ compile: install
 demo: compile
 	$(VENV)/bin/shapefleet launch
 
+# Two pytest-xdist workers (2 cores): tests/conftest.py puts every test that starts robot or
+# router processes in one group (one worker, one fleet at a time) and keeps each other file on one
+# worker (its module fixtures computed once). `make test WORKERS=0` runs the suite serially.
+WORKERS ?= 2
 test: compile
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(WORKERS) --dist loadgroup
 
 bench: install
 	$(PY) benchmarks/rounds.py

@@ -181,6 +181,39 @@ def skip_evidence(reason: str, *, allow_module_level: bool = False):
     pytest.skip(reason, allow_module_level=allow_module_level)
 
 
+# -- two workers (`make test`: pytest-xdist `-n 2 --dist loadgroup`) ------------------------------
+#: the xdist group of every test that starts robot or router processes: one worker runs them one
+#: after the other, so two multi-process fleets never share the 2 cores (their wall-clock bounds
+#: and dead-after timers were written for one fleet at a time), while the other worker runs the
+#: in-process tests
+PROCESS_GROUP = "processes"
+#: fixtures that start a router process (launcher/pytest_plugin.py, tests/test_robot_shell.py)
+ROUTER_FIXTURES = ("zenoh_router", "router")
+
+
+def starts_processes(item: pytest.Item) -> bool:
+    """True for a test marked as starting processes (markers integration / fleet_processes) or
+    using a router fixture."""
+    if item.get_closest_marker("integration") or item.get_closest_marker("fleet_processes"):
+        return True
+    return any(name in getattr(item, "fixturenames", ()) for name in ROUTER_FIXTURES)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under ``--dist loadgroup`` only: every test gets an xdist group, PROCESS_GROUP or its file.
+
+    Grouping by file keeps a module fixture (one expensive fleet several tests assert on) on one
+    worker, computed once, as in a serial run. Without loadgroup (a plain `pytest`) nothing changes.
+    """
+    if not getattr(config.option, "loadgroup", False):  # set on xdist workers (xdist/remote.py)
+        return
+    for item in items:
+        if item.get_closest_marker("xdist_group") is not None:
+            continue
+        group = PROCESS_GROUP if starts_processes(item) else item.nodeid.split("::", 1)[0]
+        item.add_marker(pytest.mark.xdist_group(group))
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     """Safety net: with REQUIRE_EVIDENCE_ENV set, any skip in a module that declares
