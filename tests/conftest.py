@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import signal
 import subprocess
@@ -181,37 +182,41 @@ def skip_evidence(reason: str, *, allow_module_level: bool = False):
     pytest.skip(reason, allow_module_level=allow_module_level)
 
 
-# -- two workers (`make test`: pytest-xdist `-n 2 --dist loadgroup`) ------------------------------
-#: the xdist group of every test that starts robot or router processes: one worker runs them one
-#: after the other, so two multi-process fleets never share the 2 cores (their wall-clock bounds
-#: and dead-after timers were written for one fleet at a time), while the other worker runs the
-#: in-process tests
+# -- two workers (`make test`: pytest-xdist `-n 2 --dist loadscope`) -----------------------------
+#: the xdist work unit of every test file that starts robot or router processes: one worker runs
+#: them one after the other, so two multi-process fleets never share the 2 cores (their wall-clock
+#: bounds and dead-after timers were written for one fleet at a time) while the other worker runs
+#: the in-process files; every other file stays one unit (its module fixtures computed once)
 PROCESS_GROUP = "processes"
-#: fixtures that start a router process (launcher/pytest_plugin.py, tests/test_robot_shell.py)
-ROUTER_FIXTURES = ("zenoh_router", "router")
+#: what marks a file as starting processes: the integration and fleet_processes markers and the
+#: plugin's router fixture (the controller sees test ids only, not markers: it reads the file)
+PROCESS_SIGNS = ("pytest.mark.integration", "pytest.mark.fleet_processes", "zenoh_router")
 
 
-def starts_processes(item: pytest.Item) -> bool:
-    """True for a test marked as starting processes (markers integration / fleet_processes) or
-    using a router fixture."""
-    if item.get_closest_marker("integration") or item.get_closest_marker("fleet_processes"):
-        return True
-    return any(name in getattr(item, "fixturenames", ()) for name in ROUTER_FIXTURES)
+@functools.lru_cache(maxsize=None)
+def starts_processes(path: Path) -> bool:
+    """True for a test file that names one of PROCESS_SIGNS."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError:
+        return False
+    return any(sign in text for sign in PROCESS_SIGNS)
 
 
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under ``--dist loadgroup`` only: every test gets an xdist group, PROCESS_GROUP or its file.
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: absent without it
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """``--dist loadscope`` with every process-starting file in one unit (PROCESS_GROUP)."""
+    if config.getvalue("dist") != "loadscope":
+        return None  # xdist's own scheduler for the mode asked
+    from xdist.scheduler import LoadScopeScheduling
 
-    Grouping by file keeps a module fixture (one expensive fleet several tests assert on) on one
-    worker, computed once, as in a serial run. Without loadgroup (a plain `pytest`) nothing changes.
-    """
-    if not getattr(config.option, "loadgroup", False):  # set on xdist workers (xdist/remote.py)
-        return
-    for item in items:
-        if item.get_closest_marker("xdist_group") is not None:
-            continue
-        group = PROCESS_GROUP if starts_processes(item) else item.nodeid.split("::", 1)[0]
-        item.add_marker(pytest.mark.xdist_group(group))
+    class ProcessesTogether(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            if starts_processes(config.rootpath / nodeid.split("::", 1)[0]):
+                return PROCESS_GROUP
+            return super()._split_scope(nodeid)
+
+    return ProcessesTogether(config, log)
 
 
 @pytest.hookimpl(hookwrapper=True)
