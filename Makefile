@@ -22,8 +22,12 @@ compile: install
 demo: compile
 	$(VENV)/bin/shapefleet launch
 
+# Two pytest-xdist workers (2 cores), one test file at a time each: tests/conftest.py makes every
+# file that starts robot or router processes one unit (one worker, one fleet at a time); each other
+# file stays on one worker (its module fixtures computed once). `make test WORKERS=0`: serially.
+WORKERS ?= 2
 test: compile
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(WORKERS) --dist loadscope
 
 bench: install
 	$(PY) benchmarks/rounds.py

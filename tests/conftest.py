@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import signal
 import subprocess
@@ -179,6 +180,43 @@ def skip_evidence(reason: str, *, allow_module_level: bool = False):
     if evidence_required():
         pytest.fail(f"evidence test cannot run: {reason} ({REQUIRE_EVIDENCE_ENV} is set)", pytrace=False)
     pytest.skip(reason, allow_module_level=allow_module_level)
+
+
+# -- two workers (`make test`: pytest-xdist `-n 2 --dist loadscope`) -----------------------------
+#: the xdist work unit of every test file that starts robot or router processes: one worker runs
+#: them one after the other, so two multi-process fleets never share the 2 cores (their wall-clock
+#: bounds and dead-after timers were written for one fleet at a time) while the other worker runs
+#: the in-process files; every other file stays one unit (its module fixtures computed once)
+PROCESS_GROUP = "processes"
+#: what marks a file as starting processes: the integration and fleet_processes markers and the
+#: plugin's router fixture (the controller sees test ids only, not markers: it reads the file)
+PROCESS_SIGNS = ("pytest.mark.integration", "pytest.mark.fleet_processes", "zenoh_router")
+
+
+@functools.lru_cache(maxsize=None)
+def starts_processes(path: Path) -> bool:
+    """True for a test file that names one of PROCESS_SIGNS."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError:
+        return False
+    return any(sign in text for sign in PROCESS_SIGNS)
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: absent without it
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """``--dist loadscope`` with every process-starting file in one unit (PROCESS_GROUP)."""
+    if config.getvalue("dist") != "loadscope":
+        return None  # xdist's own scheduler for the mode asked
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ProcessesTogether(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            if starts_processes(config.rootpath / nodeid.split("::", 1)[0]):
+                return PROCESS_GROUP
+            return super()._split_scope(nodeid)
+
+    return ProcessesTogether(config, log)
 
 
 @pytest.hookimpl(hookwrapper=True)

@@ -19,6 +19,7 @@ from protocol.zenoh_config import free_loopback_port
 from .conftest import processes_with
 
 ROOT = Path(__file__).resolve().parent.parent
+pytestmark = pytest.mark.integration  # routers and forked robots: real processes
 
 
 def test_bad_input_stops_the_early_router_and_removes_its_folder(tmp_path):
