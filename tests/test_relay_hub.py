@@ -154,6 +154,7 @@ def test_a_dead_neighbour_or_a_non_finite_relay_stops_the_robot_with_a_reason():
             c.advance()
 
 
+@pytest.mark.integration
 def test_launch_equals_simulate_bit_for_bit_with_a_crash_and_restart(tmp_path):
     """Over Zenoh, lossy links, robot 2 killed at round 35 and restarted from its checkpoint: every
     relay robot's iterates are simulate's, bit for bit (the relayed values are exact copies)."""
