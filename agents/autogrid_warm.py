@@ -34,6 +34,7 @@ class WarmADMM(ConsensusADMM):
         *args: Any,
         start: np.ndarray | None = None,
         edges: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+        hub_dual: np.ndarray | None = None,
         **kwargs: Any,
     ) -> None:
         self._start = None if start is None else np.asarray(start, dtype=float).copy()
@@ -42,6 +43,11 @@ class WarmADMM(ConsensusADMM):
         # each copy computes every w itself: exact only while the copies agree
         kwargs.setdefault("hub_frames", False)
         super().__init__(*args, **kwargs)
+        # the hub form's scaled dual u_me carried in: round 0 sends w = v + u_me, so the hub starts at
+        # z = mean v + mean u, u_l = w_l - z (sum_l u_l = 0 by construction: the fixed point, the exact
+        # optimum, does not depend on it; only where the iteration starts does)
+        if hub_dual is not None and self._hub_frames and len(hub_dual) == self.dim and self.neighbours:
+            self._w = self._values + np.asarray(hub_dual, dtype=float)
 
     def _local_step(self) -> np.ndarray:
         for j, (z, lam) in self._carry.items():
@@ -67,6 +73,23 @@ def superset_maps(old: GridBasis, new: GridBasis) -> tuple[np.ndarray, np.ndarra
 def carry_vector(v: np.ndarray, M: np.ndarray) -> np.ndarray:
     """(x, gamma) -> (M x, gamma)."""
     return np.append(M @ v[:-1], v[-1])
+
+
+def hub_duals(sub: ConsensusADMM) -> tuple[tuple[int, ...], np.ndarray] | None:
+    """A hub-form sub-machine's robot ids and scaled duals u_l (a row each, in id order), or None
+    (edge form, or no step taken): every robot's copy holds them, bit for bit."""
+    hub = sub._hub
+    if hub is None or hub.s is None:
+        return None
+    return hub.ids, hub.s[hub.dim :].reshape(len(hub.ids), hub.dim).copy()
+
+
+def carry_hub_duals(duals: tuple[tuple[int, ...], np.ndarray], old: GridBasis, new: GridBasis
+                    ) -> tuple[tuple[int, ...], np.ndarray]:
+    """Hub duals on `old` expressed on `new` (the dual map Q, row by row: exact on the superset)."""
+    _, Q = superset_maps(old, new)
+    ids, U = duals
+    return ids, np.array([carry_vector(u, Q) for u in U])
 
 
 def carry_edges(
