@@ -442,6 +442,7 @@ class _Hub:
         # steps since the acceleration last restarted from a plain step (`_forget`) or re-armed after the
         # stall switch: the stop's rate estimate is read only from residuals of one such stretch (`settled`)
         self.age = 0
+        self._dual0: np.ndarray | None = None  # duals to start from (`seed_duals`), used by `start`
         self.token = _digest(repr((ids, dim, self.relax, self.memory, self.safeguard, STALL, ANDERSON_REG,
                                    STALL_WINDOW, STALL_DROP)).encode(), penalty)
 
@@ -472,8 +473,19 @@ class _Hub:
         return np.add.reduce(np.array(rows), axis=0) / len(rows)
 
     def start(self, ws: list[np.ndarray]) -> None:
-        """After round 0 (each robot's own solution, w_l = v_l): z = their mean, u_l = v_l - z."""
+        """After round 0 (each robot's own solution, w_l = v_l): z = their mean, u_l = v_l - z
+        (+ the seeded duals, centred: `seed_duals`)."""
         self.s = self._map(ws)
+        if self._dual0 is not None:
+            U = self._dual0
+            self.s[self.dim :] += (U - np.add.reduce(U, axis=0) / len(U)).ravel()
+            self._dual0 = None
+
+    def seed_duals(self, U: np.ndarray) -> None:
+        """Start the duals from U (a row per robot, in id order; the same bits on every copy) instead of
+        zero: a warm start of the iteration, not of its fixed point (sum_l u_l = 0 is kept)."""
+        self._dual0 = np.array(U, dtype=float)
+        self.token = _digest(self.token, b"duals", self._dual0)
 
     def message(self, me: int, v: np.ndarray) -> np.ndarray:
         """w_me = h_me + u_me from this copy (h = relax v + (1 - relax) z): robot `me`'s share of

@@ -178,7 +178,9 @@ class AdaptiveGridCore(RoundCore):
         self._warm: np.ndarray | None = None  # first iterate of the next ADMM
         self._carry: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # its edges' (z, lambda)
         self._edges_out: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # last ADMM's edges
-        # the last soft-margin hub duals (robot ids, u_l rows) on the current grid: the next soft solve's start
+        # the last soft-margin hub duals (robot ids, u_l rows) on the current grid: the next soft solve's start.
+        # A soft margin's duals travel far (multipliers at C = 1e3 against a penalty of 15): from zero, held-out
+        # 4's pliers does not converge in 3000 rounds even when started at the exact optimum
         self._soft_duals: tuple[tuple[int, ...], np.ndarray] | None = None
         self._own: np.ndarray | None = None  # this robot's (x, gamma) entering the flood
         self._sub_converged = False
@@ -270,22 +272,13 @@ class AdaptiveGridCore(RoundCore):
         self._sub = WarmADMM(
             self._share.with_data(self.neighbours, self._features, self._labels, C), sub_params, keep_trace=False,
             start=self._warm, edges=self._carry if p.warm_duals else None, hub_frames=p.hub_frames,
-            hub_dual=self._soft_dual() if mode == "soft" else None,
+            hub_duals=self._soft_duals if mode == "soft" and p.warm_duals else None,
         )
         self._carry = {}
         self._mark(ADMM)
         self._values, self._flags = self._sub_frame(), 0
         if mode == "hard":  # the bound rides in every frame of the phase: a restart re-derives the test from it
             self._values[-3] = self._ill_norm2
-
-    def _soft_dual(self) -> np.ndarray | None:
-        """This robot's carried soft-margin hub dual u_me (`warm_duals`), or None. A soft margin's
-        duals travel far (bound multipliers C = 1e3 against a penalty of 15): from zero, held-out 4's
-        pliers does not converge in 3000 rounds even when started at the exact optimum."""
-        if not self.params.warm_duals or self._soft_duals is None or self.robot_id not in self._soft_duals[0]:
-            return None
-        ids, U = self._soft_duals
-        return U[ids.index(self.robot_id)]
 
     def _sub_frame(self) -> np.ndarray:
         """The ADMM sub-machine's message as a frame: v padded, and in the hub form its w at

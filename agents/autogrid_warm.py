@@ -34,7 +34,7 @@ class WarmADMM(ConsensusADMM):
         *args: Any,
         start: np.ndarray | None = None,
         edges: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
-        hub_dual: np.ndarray | None = None,
+        hub_duals: tuple[tuple[int, ...], np.ndarray] | None = None,
         **kwargs: Any,
     ) -> None:
         self._start = None if start is None else np.asarray(start, dtype=float).copy()
@@ -43,11 +43,13 @@ class WarmADMM(ConsensusADMM):
         # each copy computes every w itself: exact only while the copies agree
         kwargs.setdefault("hub_frames", False)
         super().__init__(*args, **kwargs)
-        # the hub form's scaled dual u_me carried in: round 0 sends w = v + u_me, so the hub starts at
-        # z = mean v + mean u, u_l = w_l - z (sum_l u_l = 0 by construction: the fixed point, the exact
-        # optimum, does not depend on it; only where the iteration starts does)
-        if hub_dual is not None and self._hub_frames and len(hub_dual) == self.dim and self.neighbours:
-            self._w = self._values + np.asarray(hub_dual, dtype=float)
+        # the hub form's scaled duals carried in (every robot holds the same rows, bit for bit): the hub
+        # starts at z = mean w, u_l = w_l - z + (U_l - mean U) (`_Hub.start`); sum_l u_l = 0 stays, so the
+        # fixed point -- the exact optimum -- does not depend on them, only where the iteration starts
+        hub = self._hub
+        if hub_duals is not None and hub is not None and tuple(hub_duals[0]) == hub.ids \
+                and hub_duals[1].shape == (len(hub.ids), self.dim):
+            hub.seed_duals(hub_duals[1])
 
     def _local_step(self) -> np.ndarray:
         for j, (z, lam) in self._carry.items():
