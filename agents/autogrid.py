@@ -20,7 +20,8 @@ in agents/autogrid_state.py. docs/autogrid.md tells the whole story; in short:
    level-0 lattice nodes near its data; a max-consensus tells every robot both.
 4. ADMM: `ConsensusADMM` as a sub-machine on the grid, warm-started (the chosen candidate's
    sweep solution, or the previous grid's function and edge duals carried exactly onto the
-   refined grid). A hard margin not converged within `hard_rounds` is declared infeasible and
+   refined grid; a soft solve on a complete graph also the last soft hub duals, the seed task's at first).
+   The answer's stop reads its rate within one stretch of Anderson (`ADMMParams.settled_rate`). A hard margin not converged within `hard_rounds` is declared infeasible and
    the soft margin is solved on the same grid; so is one whose iterate's |x|^2 passes the bound
    `ill_conditioned_norm2` (an ill-conditioned hard margin: multipliers far above soft_C), the
    same round on every robot (a max-consensus of the earliest round it was passed, slot -1).

@@ -8,7 +8,9 @@ and a dual lambda (paired with x: lambda' x = (K_G^{1/2} lambda)' c) maps by
     Q = K_G'^{-1/2} E K_G^{1/2}            so that (Q lambda)' (P x) = lambda' x.
 Both ends of an edge apply the same matrices to the same (z, lambda), so their copies stay equal
 bit for bit and lambda_lj = -lambda_jl -- the sum-of-duals-zero invariant -- holds on every edge.
-The offset gamma is the same variable on both grids and is carried unchanged.
+The offset gamma is the same variable on both grids and is carried unchanged. The hub form's scaled
+duals u_l (complete graphs: one per robot, every copy holds all of them) are duals paired with x too
+and map by the same Q (`carry_hub_duals`).
 """
 
 from __future__ import annotations
