@@ -273,7 +273,8 @@ class AdaptiveGridCore(RoundCore):
         self._sub = WarmADMM(
             self._share.with_data(self.neighbours, self._features, self._labels, C), sub_params, keep_trace=False,
             start=self._warm, edges=self._carry if p.warm_duals else None, hub_frames=p.hub_frames,
-            hub_duals=self._soft_duals if mode == "soft" and p.warm_duals else None,
+            # (the carried duals are soft_C's: a user's other C starts from zero)
+            hub_duals=self._soft_duals if mode == "soft" and p.warm_duals and C == p.soft_C else None,
         )
         self._carry = {}
         self._mark(ADMM)
