@@ -20,7 +20,8 @@ in agents/autogrid_state.py. docs/autogrid.md tells the whole story; in short:
    level-0 lattice nodes near its data; a max-consensus tells every robot both.
 4. ADMM: `ConsensusADMM` as a sub-machine on the grid, warm-started (the chosen candidate's
    sweep solution, or the previous grid's function and edge duals carried exactly onto the
-   refined grid). A hard margin not converged within `hard_rounds` is declared infeasible and
+   refined grid; a soft solve on a complete graph also the last soft hub duals, the seed task's at first).
+   The answer's stop reads its rate within one stretch of Anderson (`ADMMParams.settled_rate`). A hard margin not converged within `hard_rounds` is declared infeasible and
    the soft margin is solved on the same grid; so is one whose iterate's |x|^2 passes the bound
    `ill_conditioned_norm2` (an ill-conditioned hard margin: multipliers far above soft_C), the
    same round on every robot (a max-consensus of the earliest round it was passed, slot -1).
@@ -68,7 +69,7 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
 )
 from agents.autogrid_state import load_state, save_state
 from agents.autogrid_sweep import SigmaSweep, SweepModel
-from agents.autogrid_warm import WarmADMM, carry_edges, carry_vector, superset_maps
+from agents.autogrid_warm import WarmADMM, carry_edges, carry_hub_duals, carry_vector, hub_duals, superset_maps
 from agents.kernel import GridBasis
 from agents.problem import InfeasibleError, MarginQP
 from agents.rounds import RobotShare, RoundCore, relative_gap
@@ -178,6 +179,10 @@ class AdaptiveGridCore(RoundCore):
         self._warm: np.ndarray | None = None  # first iterate of the next ADMM
         self._carry: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # its edges' (z, lambda)
         self._edges_out: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # last ADMM's edges
+        # the last soft-margin hub duals (robot ids, u_l rows) on the current grid: the next soft solve's start.
+        # A soft margin's duals travel far (multipliers at C = 1e3 against a penalty of 15): from zero, held-out
+        # 4's pliers does not converge in 3000 rounds even when started at the exact optimum
+        self._soft_duals: tuple[tuple[int, ...], np.ndarray] | None = None
         self._own: np.ndarray | None = None  # this robot's (x, gamma) entering the flood
         self._sub_converged = False
         self._ill_norm2 = 0.0  # the next hard ADMM's bound on |x|^2 (0: no test); in its frames at slot -3
@@ -262,11 +267,14 @@ class AdaptiveGridCore(RoundCore):
             rho=p.rho, relax=p.relax, tol=p.tol, diameter=p.diameter,
             max_rounds=p.hard_rounds if mode == "hard" else p.soft_rounds,
             certify=0.0,  # the nested runs keep the rule alone (their frames have no room for the guard)
+            settled_rate=True,  # ... so its rate is read within one stretch of Anderson (admm.settled)
         )
         C = None if mode == "hard" else (p.C if p.C is not None else p.soft_C)
         self._sub = WarmADMM(
             self._share.with_data(self.neighbours, self._features, self._labels, C), sub_params, keep_trace=False,
             start=self._warm, edges=self._carry if p.warm_duals else None, hub_frames=p.hub_frames,
+            # (the carried duals are soft_C's: a user's other C starts from zero)
+            hub_duals=self._soft_duals if mode == "soft" and p.warm_duals and C == p.soft_C else None,
         )
         self._carry = {}
         self._mark(ADMM)
@@ -352,6 +360,7 @@ class AdaptiveGridCore(RoundCore):
         # the same lattice: the fold-0 solve seeds the refinement (after a flood makes it common)
         self._own = task.sub.values
         self._edges_out = {}  # its duals belong to another problem (soft, 4/5 of the data): not carried
+        self._soft_duals = hub_duals(task.sub)  # ... except into a soft solve: its hub duals (the same C)
         return "seed"
 
     def _enter_seed(self) -> None:
@@ -479,6 +488,8 @@ class AdaptiveGridCore(RoundCore):
         self._sub_converged, self._admm_rounds = converged, rounds
         self._own = sub.values
         self._edges_out = {j: (e.z.copy(), e.lam.copy()) for j, e in sub._edges.items()}
+        if self._mode == "soft":
+            self._soft_duals = hub_duals(sub) or self._soft_duals
         self._sub = None
         return "solved" if converged else "stopped at its cap"
 
@@ -536,6 +547,8 @@ class AdaptiveGridCore(RoundCore):
         P, _ = superset_maps(old, self._basis)
         self._warm = carry_vector(np.append(x, gamma), P)
         self._carry = carry_edges({j: _EdgeView(z, lam) for j, (z, lam) in self._edges_out.items()}, old, self._basis)
+        if self._soft_duals is not None:
+            self._soft_duals = carry_hub_duals(self._soft_duals, old, self._basis)
         return True
 
     _ENTER = {VALIDATE: _enter_validate, TALLY: _enter_tally, SEED: _enter_seed, WIDTHS: _enter_widths,
@@ -553,6 +566,7 @@ class AdaptiveGridCore(RoundCore):
             grid = self._start_grid.copy()
         self._set_grid(grid)
         self._mode = self.margin
+        self._soft_duals = None  # (a new first grid: duals of another grid do not apply)
 
     def _set_grid(self, grid: np.ndarray) -> None:
         self.grid = grid

@@ -45,6 +45,7 @@ def save_state(core: AdaptiveGridCore) -> dict[str, Any]:
         "allowed": None if core._allowed is None else to_bytes(core._allowed.astype(float)),
         "carry": _edges_out(core._carry),
         "edges_out": _edges_out(core._edges_out),
+        "soft_duals": None if core._soft_duals is None else [list(core._soft_duals[0]), to_bytes(core._soft_duals[1].ravel())],
         "phases": [[p, r] for p, r in core.phases],
         "residuals": to_bytes(np.asarray(core.residuals, dtype=float)),
         "sweep": None if core._sweep is None else core._sweep.checkpoint(),
@@ -82,6 +83,9 @@ def load_state(core: AdaptiveGridCore, state: dict[str, Any]) -> None:
     core._allowed = None if state["allowed"] is None else from_bytes(state["allowed"]) > 0
     core._carry = _edges_in(state["carry"])
     core._edges_out = _edges_in(state["edges_out"])
+    duals = state["soft_duals"]  # (checkpoint version 4)
+    core._soft_duals = None if duals is None else (
+        tuple(int(i) for i in duals[0]), from_bytes(duals[1]).reshape(len(duals[0]), -1))
     grid = from_bytes(state["grid"])
     if grid is not None:
         core._box = None if core.bounds is None else _box(core)

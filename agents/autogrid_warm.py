@@ -8,7 +8,9 @@ and a dual lambda (paired with x: lambda' x = (K_G^{1/2} lambda)' c) maps by
     Q = K_G'^{-1/2} E K_G^{1/2}            so that (Q lambda)' (P x) = lambda' x.
 Both ends of an edge apply the same matrices to the same (z, lambda), so their copies stay equal
 bit for bit and lambda_lj = -lambda_jl -- the sum-of-duals-zero invariant -- holds on every edge.
-The offset gamma is the same variable on both grids and is carried unchanged.
+The offset gamma is the same variable on both grids and is carried unchanged. The hub form's scaled
+duals u_l (complete graphs: one per robot, every copy holds all of them) are duals paired with x too
+and map by the same Q (`carry_hub_duals`).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ class WarmADMM(ConsensusADMM):
         *args: Any,
         start: np.ndarray | None = None,
         edges: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+        hub_duals: tuple[tuple[int, ...], np.ndarray] | None = None,
         **kwargs: Any,
     ) -> None:
         self._start = None if start is None else np.asarray(start, dtype=float).copy()
@@ -42,6 +45,13 @@ class WarmADMM(ConsensusADMM):
         # each copy computes every w itself: exact only while the copies agree
         kwargs.setdefault("hub_frames", False)
         super().__init__(*args, **kwargs)
+        # the hub form's scaled duals carried in (every robot holds the same rows, bit for bit): the hub
+        # starts at z = mean w, u_l = w_l - z + (U_l - mean U) (`_Hub.start`); sum_l u_l = 0 stays, so the
+        # fixed point -- the exact optimum -- does not depend on them, only where the iteration starts
+        hub = self._hub
+        if hub_duals is not None and hub is not None and tuple(hub_duals[0]) == hub.ids \
+                and hub_duals[1].shape == (len(hub.ids), self.dim):
+            hub.seed_duals(hub_duals[1])
 
     def _local_step(self) -> np.ndarray:
         for j, (z, lam) in self._carry.items():
@@ -67,6 +77,23 @@ def superset_maps(old: GridBasis, new: GridBasis) -> tuple[np.ndarray, np.ndarra
 def carry_vector(v: np.ndarray, M: np.ndarray) -> np.ndarray:
     """(x, gamma) -> (M x, gamma)."""
     return np.append(M @ v[:-1], v[-1])
+
+
+def hub_duals(sub: ConsensusADMM) -> tuple[tuple[int, ...], np.ndarray] | None:
+    """A hub-form sub-machine's robot ids and scaled duals u_l (a row each, in id order), or None
+    (edge form, or no step taken): every robot's copy holds them, bit for bit."""
+    hub = sub._hub
+    if hub is None or hub.s is None:
+        return None
+    return hub.ids, hub.s[hub.dim :].reshape(len(hub.ids), hub.dim).copy()
+
+
+def carry_hub_duals(duals: tuple[tuple[int, ...], np.ndarray], old: GridBasis, new: GridBasis
+                    ) -> tuple[tuple[int, ...], np.ndarray]:
+    """Hub duals on `old` expressed on `new` (the dual map Q, row by row: exact on the superset)."""
+    _, Q = superset_maps(old, new)
+    ids, U = duals
+    return ids, np.array([carry_vector(u, Q) for u in U])
 
 
 def carry_edges(

@@ -112,7 +112,8 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: (|u+_l| and g_half where max|phi_i| stood), so a checkpoint of version 1 is refused, never read as today's.
 #: 3 since branch illcond: an autogrid robot's frame slots -3/-2 (VOTE) and -3/-1 (hard ADMM) carry the
 #: conditioning test (docs/autogrid.md); a version-2 checkpoint there would resume with zeros in them
-CHECKPOINT_VERSION = 3
+#: 4 since branch softwarm: the hub state's `age` (the settled stop rule) and autogrid's carried soft duals
+CHECKPOINT_VERSION = 4
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the
