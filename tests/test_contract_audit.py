@@ -1,0 +1,70 @@
+"""The contract's user-facing rules, probed adversarially (the audit of 2026-11-24): bad input exits 2
+with one line naming the flag or file and leaves nothing behind; a run that cannot be measured says so
+in one line (exit 1), never with a traceback. Each case here failed before its fix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from launcher import cli
+from launcher.scenario import ScenarioError, load_data_csv
+
+
+def _exit_and_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    """(exit code, the last stderr line) of ``shapefleet argv`` run in this process."""
+    try:
+        code = cli.main(argv)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "Traceback" not in "\n".join(err)
+    return code, err[-1] if err else ""
+
+
+@pytest.mark.parametrize(
+    ("words", "names"),
+    [
+        (["--seed", "-1"], "--seed"),  # was: numpy's ValueError traceback while sampling the data
+        (["--shape-file="], "--shape-file"),  # was: silently the default shape
+        (["--data="], "--data"),  # was: ".: is a directory"
+        (["--config="], "--config"),  # was: ".: cannot read scenario file"
+        (["--shape="], "--shape"),  # was: ".: is a directory, not a CSV file"
+    ],
+)
+def test_bad_flag_exits_2_naming_it_and_writes_nothing(words: list[str], names: str, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "2", "--out", str(out), *words],
+                                capsys)
+    assert code == 2
+    assert line.startswith("shapefleet: error: ") and names in line
+    assert not out.exists()
+
+
+def test_empty_out_is_refused_not_the_default_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """--out "" used to mean "not given": the run went to runs/<stamp>-simulate/ instead."""
+    monkeypatch.chdir(tmp_path)
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "2", "--out="], capsys)
+    assert code == 2 and "--out" in line
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("label", "said"), [("1", r"\+1 \(outside\)"), ("-1", r"-1 \(inside\)")])
+def test_data_of_one_label_is_refused(label: str, said: str, tmp_path: Path) -> None:
+    """All points outside (or all inside): any function of one sign fits, there is no outline; such a run
+    used to report `converged` (exit 0) on a function with no zero level set."""
+    path = tmp_path / "one.csv"
+    path.write_text("robot,x,y,label\n" + "".join(f"{i % 2},{i}.0,{i / 3:.3f},{label}\n" for i in range(6)))
+    with pytest.raises(ScenarioError, match=rf"all 6 points are labelled {said}; an outline needs points of both labels"):
+        load_data_csv(path)
+
+
+def test_failed_reference_solve_is_one_line_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--C 1e300: piqp reaches its iteration cap on the exact centralized problem; this used to end in
+    a SolverError traceback."""
+    code, line = _exit_and_line(["central", "--preset", "paper", "--C", "1e300", "--out", str(tmp_path / "c")], capsys)
+    assert code == 1
+    assert line.startswith("shapefleet: error: the exact centralized solve failed") and "--C 1e+300" in line
