@@ -64,6 +64,10 @@ class UsageError(ValueError):
     """Bad input found after parsing; the message names the flag or file."""
 
 
+class RunFailure(RuntimeError):
+    """The run cannot go on for a reason that is not the input's form (exit 1, one line)."""
+
+
 #: set by launcher/api.py: bad input raises UsageError instead of printing and exiting 2
 _RAISE_USAGE: contextvars.ContextVar[bool] = contextvars.ContextVar("shapefleet_raise_usage", default=False)
 
@@ -272,14 +276,18 @@ def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None
     (an autogrid fleet's grid exists only after its run: central is None then).
     ``check(spec)`` validates what needs the fleet before anything is written (a refused run
     leaves nothing behind)."""
-    from agents.problem import solve_central
+    from agents.problem import SolverError, solve_central
 
     world, spec = build_world(options or _options(args, **extra))
     if check is not None:
         check(spec)
     out = _out_dir(args, mode)
     scenario.write_data_csv(out / "data.csv", world.robots)
-    central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
+    try:
+        central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
+    except SolverError as exc:  # e.g. --C 1e300: the reference every figure is measured against has no answer
+        raise RunFailure(f"the exact centralized solve failed ({exc}) with --C {spec.C:g} on the "
+                         f"{args_grid(spec)} grid: no reference to measure the fleet against; wrote {out}/data.csv") from None
     return out, world, spec, central
 
 
@@ -907,6 +915,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (UsageError, scenario.ScenarioError, topology.TopologyError) as exc:
         _fail(str(exc))
+    except RunFailure as exc:
+        print(f"shapefleet: error: {exc}", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
     except KeyboardInterrupt:
         print("shapefleet: interrupted", file=sys.stderr)
         return 130
