@@ -245,6 +245,8 @@ def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], 
     kept = world.robots
     if extra.get("absent"):
         kept = [r for r in world.robots if r.id in extra["participants"]]
+    if not kept:  # e.g. every robot crashed with --no-restart: nobody's answer to measure
+        raise RunFailure(f"no robot took part to the end (robots {extra['absent']} all lost): no answer to measure")
     pts = np.vstack([r.points for r in kept])
     labels = np.concatenate([r.labels for r in kept])
     return report.autogrid_references(robots, pts, labels, C=spec.C, soft_C=spec.autogrid_params.soft_C)
@@ -279,6 +281,7 @@ def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None
     from agents.problem import SolverError, solve_central
 
     world, spec = build_world(options or _options(args, **extra))
+    _fault_robots_check(spec)
     if check is not None:
         check(spec)
     out = _out_dir(args, mode)
@@ -289,6 +292,21 @@ def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None
         raise RunFailure(f"the exact centralized solve failed ({exc}) with --C {spec.C:g} on the "
                          f"{args_grid(spec)} grid: no reference to measure the fleet against; wrote {out}/data.csv") from None
     return out, world, spec, central
+
+
+def _fault_robots_check(spec: Any) -> None:
+    """--link-loss / --robot-loss / --partition name robots of this fleet: an entry for a robot it
+    lacks would be ignored without a word, and the run measured under faults it never had."""
+    faults = getattr(spec, "faults", None)
+    if faults is None:
+        return
+    known = set(spec.robot_ids)
+    named = ([("--link-loss", r) for a, b, _ in faults.link_loss for r in (a, b)]
+             + [("--robot-loss", r) for r, _ in faults.robot_loss]
+             + [("--partition", r) for a, b, _, _ in faults.partitions for r in (*a, *b)])
+    for flag, robot in named:
+        if robot not in known:
+            raise UsageError(f"{flag}: robot {robot} is not in the fleet (robots {sorted(known)})")
 
 
 def _infeasible(out: Path, world: World, spec: Any, central: Any) -> NoReturn:
@@ -672,6 +690,8 @@ def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, 
     if not extra["absent"]:
         return central
     kept = [r for r in world.robots if r.id in extra["participants"]]
+    if not kept:  # e.g. every robot crashed with --no-restart: nobody's answer to measure
+        raise RunFailure(f"no robot took part to the end (robots {extra['absent']} all lost): no answer to measure")
     pts = np.vstack([r.points for r in kept])
     labels = np.concatenate([r.labels for r in kept])
     extra["reference"] = "central solution of the participants' data"

@@ -68,3 +68,28 @@ def test_failed_reference_solve_is_one_line_exit_1(tmp_path: Path, capsys: pytes
     code, line = _exit_and_line(["central", "--preset", "paper", "--C", "1e300", "--out", str(tmp_path / "c")], capsys)
     assert code == 1
     assert line.startswith("shapefleet: error: the exact centralized solve failed") and "--C 1e+300" in line
+
+
+@pytest.mark.parametrize(
+    ("words", "flag"),
+    [(["--link-loss", "0-9:0.5"], "--link-loss"), (["--robot-loss", "9:0.3"], "--robot-loss"),
+     (["--partition", "0,1/2,9@1s-2s"], "--partition")],
+)
+def test_fault_entry_for_a_robot_not_in_the_fleet_is_refused(words: list[str], flag: str, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """Robot 9 of a 3-robot fleet: the entry used to be ignored without a word (exit as if it applied)."""
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "2", "--out", str(out), *words],
+                                capsys)
+    assert code == 2 and line.endswith(f"{flag}: robot 9 is not in the fleet (robots [0, 1, 2])")
+    assert not out.exists()
+
+
+def test_every_robot_lost_is_one_line_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """All three robots crash for good at round 3: no participant is left; this used to end in numpy's
+    'need at least one array to concatenate' traceback."""
+    crashes = [w for r in range(3) for w in ("--crash", f"{r}@3")]
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "20", "--no-restart", *crashes,
+                                 "--out", str(tmp_path / "run")], capsys)
+    assert code == 1
+    assert line == "shapefleet: error: no robot took part to the end (robots [0, 1, 2] all lost): no answer to measure"
