@@ -918,6 +918,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     argv = _join_negative_values(parser, argv)
     args = parser.parse_args(argv)
     if getattr(args, "config", None) is None:
+        _data_conflicts(args, argv)
         return args
     try:
         scenario_file = config.load_scenario(args.config)
@@ -925,7 +926,28 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     except config.ConfigError as exc:
         _fail(str(exc))
     _subparser(parser, args.command).set_defaults(**defaults)
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    _data_conflicts(args, argv)
+    return args
+
+
+#: the flags that shape the simulated LiDAR world: a --data run has none (its file holds the points)
+_LIDAR_FLAGS = ("robots", "points", "standoff", "range", "offset", "noise", "free-space")
+
+
+def _data_conflicts(args: argparse.Namespace, argv: Sequence[str] | None) -> None:
+    """--data with a LiDAR-world flag on the command line (--robots 5, --noise 0.5, ...): the flag
+    would be ignored without a word and the run made on the file's robots and points. (Such keys
+    beside ``data`` in one scenario file stay allowed: docker/scenario.toml is such a template.)"""
+    if getattr(args, "data", None) is None:
+        return
+    from launcher.options import BY_NAME
+
+    given = _given_on_command_line(args.command, argv)
+    for name in _LIDAR_FLAGS:
+        if BY_NAME[name].dest in given:
+            _fail(f"--{name}: not used with --data {args.data} (the file holds the robots and their points; "
+                  f"no LiDAR is simulated): drop --{name}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

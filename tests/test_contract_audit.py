@@ -93,3 +93,18 @@ def test_every_robot_lost_is_one_line_exit_1(tmp_path: Path, capsys: pytest.Capt
                                  "--out", str(tmp_path / "run")], capsys)
     assert code == 1
     assert line == "shapefleet: error: no robot took part to the end (robots [0, 1, 2] all lost): no answer to measure"
+
+
+@pytest.mark.parametrize(("words", "flag"), [(["--robots", "5"], "--robots"), (["--noise=0.5"], "--noise"),
+                                             (["--points", "7"], "--points")])
+def test_lidar_flag_with_data_is_refused_not_ignored(words: list[str], flag: str, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """--data fixes robots and points: --robots 5 used to be dropped without a word (the run had the
+    file's 3 robots and said nothing)."""
+    data = tmp_path / "data.csv"
+    data.write_text("robot,x,y,label\n0,0,0,1\n0,1,0,-1\n1,0,1,1\n1,1,1,-1\n")
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--data", str(data), *words, "--out", str(out)],
+                                capsys)
+    assert code == 2 and f"{flag}: not used with --data" in line
+    assert not out.exists()
