@@ -2,7 +2,8 @@
 
 Exit codes: 0 the fleet converged (every participant agrees with its neighbours within tol and
 their graph is connected: launcher/report.py ``agreement_verdict``); 1 it did not, or a robot's
-solve failed or diverged, or the machine failed (one line says why; result.json says more);
+solve failed or diverged, or the exact centralized solve failed, or no robot was left, or the
+machine failed (one line says why; result.json says more);
 2 bad input (one line naming the flag or file; nothing is left behind); 128+N stopped by signal N
 (SIGINT 130, SIGHUP 129, SIGTERM 143; a partial result.json is written).
 `--config scenario.toml` gives simulate/launch/central/prepare their flags from a scenario file
