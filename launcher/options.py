@@ -110,6 +110,8 @@ FROM_PARAMS: Any = _FromParams()
 
 def parse_int(text: str) -> int:
     try:
+        if "_" in str(text):  # Python's digit separator: --robots 1_0 would silently be 10
+            raise ValueError
         return int(str(text).strip())
     except ValueError:
         raise ValueError(f"{text!r} is not an integer") from None
@@ -117,6 +119,8 @@ def parse_int(text: str) -> int:
 
 def parse_float(text: str) -> float:
     try:
+        if "_" in str(text):  # Python's digit separator: --sigma 1_0 would silently be 10
+            raise ValueError
         value = float(text)
     except ValueError:
         raise ValueError(f"{text!r} is not a number") from None

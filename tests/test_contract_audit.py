@@ -31,6 +31,8 @@ def _exit_and_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple
         (["--data="], "--data"),  # was: ".: is a directory"
         (["--config="], "--config"),  # was: ".: cannot read scenario file"
         (["--shape="], "--shape"),  # was: ".: is a directory, not a CSV file"
+        (["--robots", "1_0"], "--robots"),  # was: 10 robots (Python's digit separator)
+        (["--sigma", "1_0"], "--sigma"),  # was: sigma 10
     ],
 )
 def test_bad_flag_exits_2_naming_it_and_writes_nothing(words: list[str], names: str, tmp_path: Path,
