@@ -783,6 +783,10 @@ def cmd_robot(args: argparse.Namespace) -> int:
     except (SolverError, InfeasibleError) as exc:  # the first local solve (building the core)
         print(f"shapefleet: robot {rid} round 0: local solver failed: {exc}", file=sys.stderr)
         return 1
+    except ValueError as exc:  # agents/robot.py refuses a --checkpoint that is no checkpoint of this robot's
+        if args.checkpoint is not None and str(args.checkpoint) in str(exc):
+            raise UsageError(f"--checkpoint: {exc}") from None
+        raise
     if result_path is None:
         print(json.dumps({"result": result}))
     if result.get("error"):

@@ -110,3 +110,17 @@ def test_lidar_flag_with_data_is_refused_not_ignored(words: list[str], flag: str
                                 capsys)
     assert code == 2 and f"{flag}: not used with --data" in line
     assert not out.exists()
+
+
+def test_a_checkpoint_that_is_not_one_exits_2_naming_the_flag(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """`shapefleet robot --checkpoint FILE` where FILE holds no checkpoint (here random bytes): this used
+    to end in agents/robot.py's ValueError traceback, exit 1."""
+    assert cli.main(["prepare", "--preset", "paper", "--out", str(tmp_path / "fleet")]) == 0
+    junk = tmp_path / "junk.ckpt"
+    junk.write_bytes(bytes(range(256)) * 4)
+    capsys.readouterr()
+    code, line = _exit_and_line(["robot", "--fleet-file", str(tmp_path / "fleet" / "fleet.json"), "--id", "0",
+                                 "--connect", "tcp/127.0.0.1:1", "--checkpoint", str(junk)], capsys)
+    assert code == 2
+    assert line == f"shapefleet: error: --checkpoint: {junk}: no complete shapefleet robot checkpoint (version 3)"
