@@ -2,7 +2,8 @@
 
 Exit codes: 0 the fleet converged (every participant agrees with its neighbours within tol and
 their graph is connected: launcher/report.py ``agreement_verdict``); 1 it did not, or a robot's
-solve failed or diverged, or the machine failed (one line says why; result.json says more);
+solve failed or diverged, or the exact centralized solve failed, or no robot was left, or the
+machine failed (one line says why; result.json says more);
 2 bad input (one line naming the flag or file; nothing is left behind); 128+N stopped by signal N
 (SIGINT 130, SIGHUP 129, SIGTERM 143; a partial result.json is written).
 `--config scenario.toml` gives simulate/launch/central/prepare their flags from a scenario file
@@ -62,6 +63,10 @@ EXIT_NOT_CONVERGED = 1
 
 class UsageError(ValueError):
     """Bad input found after parsing; the message names the flag or file."""
+
+
+class RunFailure(RuntimeError):
+    """The run cannot go on for a reason that is not the input's form (exit 1, one line)."""
 
 
 #: set by launcher/api.py: bad input raises UsageError instead of printing and exiting 2
@@ -241,6 +246,8 @@ def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], 
     kept = world.robots
     if extra.get("absent"):
         kept = [r for r in world.robots if r.id in extra["participants"]]
+    if not kept:  # e.g. every robot crashed with --no-restart: nobody's answer to measure
+        raise RunFailure(f"no robot took part to the end (robots {extra['absent']} all lost): no answer to measure")
     pts = np.vstack([r.points for r in kept])
     labels = np.concatenate([r.labels for r in kept])
     return report.autogrid_references(robots, pts, labels, C=spec.C, soft_C=spec.autogrid_params.soft_C)
@@ -272,15 +279,35 @@ def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None
     (an autogrid fleet's grid exists only after its run: central is None then).
     ``check(spec)`` validates what needs the fleet before anything is written (a refused run
     leaves nothing behind)."""
-    from agents.problem import solve_central
+    from agents.problem import SolverError, solve_central
 
     world, spec = build_world(options or _options(args, **extra))
+    _fault_robots_check(spec)
     if check is not None:
         check(spec)
     out = _out_dir(args, mode)
     scenario.write_data_csv(out / "data.csv", world.robots)
-    central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
+    try:
+        central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
+    except SolverError as exc:  # e.g. --C 1e300: the reference every figure is measured against has no answer
+        raise RunFailure(f"the exact centralized solve failed ({exc}) with --C {spec.C:g} on the "
+                         f"{args_grid(spec)} grid: no reference to measure the fleet against; wrote {out}/data.csv") from None
     return out, world, spec, central
+
+
+def _fault_robots_check(spec: Any) -> None:
+    """--link-loss / --robot-loss / --partition name robots of this fleet: an entry for a robot it
+    lacks would be ignored without a word, and the run measured under faults it never had."""
+    faults = getattr(spec, "faults", None)
+    if faults is None:
+        return
+    known = set(spec.robot_ids)
+    named = ([("--link-loss", r) for a, b, _ in faults.link_loss for r in (a, b)]
+             + [("--robot-loss", r) for r, _ in faults.robot_loss]
+             + [("--partition", r) for a, b, _, _ in faults.partitions for r in (*a, *b)])
+    for flag, robot in named:
+        if robot not in known:
+            raise UsageError(f"{flag}: robot {robot} is not in the fleet (robots {sorted(known)})")
 
 
 def _infeasible(out: Path, world: World, spec: Any, central: Any) -> NoReturn:
@@ -664,6 +691,8 @@ def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, 
     if not extra["absent"]:
         return central
     kept = [r for r in world.robots if r.id in extra["participants"]]
+    if not kept:  # e.g. every robot crashed with --no-restart: nobody's answer to measure
+        raise RunFailure(f"no robot took part to the end (robots {extra['absent']} all lost): no answer to measure")
     pts = np.vstack([r.points for r in kept])
     labels = np.concatenate([r.labels for r in kept])
     extra["reference"] = "central solution of the participants' data"
@@ -754,6 +783,10 @@ def cmd_robot(args: argparse.Namespace) -> int:
     except (SolverError, InfeasibleError) as exc:  # the first local solve (building the core)
         print(f"shapefleet: robot {rid} round 0: local solver failed: {exc}", file=sys.stderr)
         return 1
+    except ValueError as exc:  # agents/robot.py refuses a --checkpoint that is no checkpoint of this robot's
+        if args.checkpoint is not None and str(args.checkpoint) in str(exc):
+            raise UsageError(f"--checkpoint: {exc}") from None
+        raise
     if result_path is None:
         print(json.dumps({"result": result}))
     if result.get("error"):
@@ -890,6 +923,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     argv = _join_negative_values(parser, argv)
     args = parser.parse_args(argv)
     if getattr(args, "config", None) is None:
+        _data_conflicts(args, argv)
         return args
     try:
         scenario_file = config.load_scenario(args.config)
@@ -897,7 +931,28 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     except config.ConfigError as exc:
         _fail(str(exc))
     _subparser(parser, args.command).set_defaults(**defaults)
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    _data_conflicts(args, argv)
+    return args
+
+
+#: the flags that shape the simulated LiDAR world: a --data run has none (its file holds the points)
+_LIDAR_FLAGS = ("robots", "points", "standoff", "range", "offset", "noise", "free-space")
+
+
+def _data_conflicts(args: argparse.Namespace, argv: Sequence[str] | None) -> None:
+    """--data with a LiDAR-world flag on the command line (--robots 5, --noise 0.5, ...): the flag
+    would be ignored without a word and the run made on the file's robots and points. (Such keys
+    beside ``data`` in one scenario file stay allowed: docker/scenario.toml is such a template.)"""
+    if getattr(args, "data", None) is None:
+        return
+    from launcher.options import BY_NAME
+
+    given = _given_on_command_line(args.command, argv)
+    for name in _LIDAR_FLAGS:
+        if BY_NAME[name].dest in given:
+            _fail(f"--{name}: not used with --data {args.data} (the file holds the robots and their points; "
+                  f"no LiDAR is simulated): drop --{name}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -907,6 +962,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (UsageError, scenario.ScenarioError, topology.TopologyError) as exc:
         _fail(str(exc))
+    except RunFailure as exc:
+        print(f"shapefleet: error: {exc}", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
     except KeyboardInterrupt:
         print("shapefleet: interrupted", file=sys.stderr)
         return 130

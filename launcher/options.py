@@ -110,6 +110,8 @@ FROM_PARAMS: Any = _FromParams()
 
 def parse_int(text: str) -> int:
     try:
+        if "_" in str(text):  # Python's digit separator: --robots 1_0 would silently be 10
+            raise ValueError
         return int(str(text).strip())
     except ValueError:
         raise ValueError(f"{text!r} is not an integer") from None
@@ -117,6 +119,8 @@ def parse_int(text: str) -> int:
 
 def parse_float(text: str) -> float:
     try:
+        if "_" in str(text):  # Python's digit separator: --sigma 1_0 would silently be 10
+            raise ValueError
         value = float(text)
     except ValueError:
         raise ValueError(f"{text!r} is not a number") from None
@@ -295,6 +299,8 @@ class Option:
 
     def validate(self, value: Any) -> None:
         """The option's choices and check; ValueError without the flag name."""
+        if self.kind == PATH and not str(value).strip():  # "" would read as "not given" or as the folder "."
+            raise ValueError("an empty path; give one or leave the option out")
         if self.choices is not None and value not in self.choices:
             raise ValueError(f"{value!r} is not one of {', '.join(self.choices)}")
         if self.check is not None:
@@ -338,7 +344,8 @@ OPTIONS: tuple[Option, ...] = (
            section="world", metavar="CSV", exclusive="source"),
     Option("robots", INT, 3, "number of robots", group=WORLD, section="world", check=at_least(1)),
     Option("points", INT, 20, "labelled points per robot", group=WORLD, section="world", check=at_least(1)),
-    Option("seed", INT, 0, "seed of LiDAR noise and network faults", group=WORLD, section="world"),
+    Option("seed", INT, 0, "seed of LiDAR noise and network faults", group=WORLD, section="world",
+           check=at_least(0)),  # numpy's generators take no negative seed
     Option("standoff", FLOAT, None, f"robot distance from the object's hull (default 1.5 {_FOLLOWS})",
            group=WORLD, section="world"),
     Option("range", FLOAT, None, f"LiDAR range (default 4 {_FOLLOWS})", group=WORLD, section="world",

@@ -132,7 +132,7 @@ def get_shape(name_or_path: str) -> Polygon:
     if name_or_path in SHAPES:
         return SHAPES[name_or_path]()
     path = Path(name_or_path)
-    if path.suffix.lower() == ".csv" or path.exists():
+    if name_or_path.strip() and (path.suffix.lower() == ".csv" or path.exists()):  # "" is the folder "."
         return load_polygon_csv(path)
     raise ScenarioError(
         f"--shape: {name_or_path!r} is neither a built-in shape ({', '.join(shape_names())}) "
@@ -681,6 +681,11 @@ def load_data_csv(path: str | Path) -> list[RobotData]:
         points, labels = grouped.setdefault(int(robot_text), ([], []))
         points.append((x, y))
         labels.append(label)
+    kinds = {label for _, labels in grouped.values() for label in labels}
+    if len(kinds) == 1:  # every function positive (or negative) everywhere fits: no outline to learn
+        only = "+1 (outside)" if kinds == {1} else "-1 (inside)"
+        count = sum(len(labels) for _, labels in grouped.values())
+        raise ScenarioError(f"{name}: all {count} points are labelled {only}; an outline needs points of both labels")
     return [
         RobotData(id=robot_id, points=np.array(points, dtype=np.float64), labels=np.array(labels))
         for robot_id, (points, labels) in sorted(grouped.items())

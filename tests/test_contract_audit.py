@@ -1,0 +1,126 @@
+"""The contract's user-facing rules, probed adversarially (the audit of 2026-11-24): bad input exits 2
+with one line naming the flag or file and leaves nothing behind; a run that cannot be measured says so
+in one line (exit 1), never with a traceback. Each case here failed before its fix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from launcher import cli
+from launcher.scenario import ScenarioError, load_data_csv
+
+
+def _exit_and_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    """(exit code, the last stderr line) of ``shapefleet argv`` run in this process."""
+    try:
+        code = cli.main(argv)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "Traceback" not in "\n".join(err)
+    return code, err[-1] if err else ""
+
+
+@pytest.mark.parametrize(
+    ("words", "names"),
+    [
+        (["--seed", "-1"], "--seed"),  # was: numpy's ValueError traceback while sampling the data
+        (["--shape-file="], "--shape-file"),  # was: silently the default shape
+        (["--data="], "--data"),  # was: ".: is a directory"
+        (["--config="], "--config"),  # was: ".: cannot read scenario file"
+        (["--shape="], "--shape"),  # was: ".: is a directory, not a CSV file"
+        (["--robots", "1_0"], "--robots"),  # was: 10 robots (Python's digit separator)
+        (["--sigma", "1_0"], "--sigma"),  # was: sigma 10
+    ],
+)
+def test_bad_flag_exits_2_naming_it_and_writes_nothing(words: list[str], names: str, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "2", "--out", str(out), *words],
+                                capsys)
+    assert code == 2
+    assert line.startswith("shapefleet: error: ") and names in line
+    assert not out.exists()
+
+
+def test_empty_out_is_refused_not_the_default_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """--out "" used to mean "not given": the run went to runs/<stamp>-simulate/ instead."""
+    monkeypatch.chdir(tmp_path)
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "2", "--out="], capsys)
+    assert code == 2 and "--out" in line
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("label", "said"), [("1", r"\+1 \(outside\)"), ("-1", r"-1 \(inside\)")])
+def test_data_of_one_label_is_refused(label: str, said: str, tmp_path: Path) -> None:
+    """All points outside (or all inside): any function of one sign fits, there is no outline; such a run
+    used to report `converged` (exit 0) on a function with no zero level set."""
+    path = tmp_path / "one.csv"
+    path.write_text("robot,x,y,label\n" + "".join(f"{i % 2},{i}.0,{i / 3:.3f},{label}\n" for i in range(6)))
+    with pytest.raises(ScenarioError, match=rf"all 6 points are labelled {said}; an outline needs points of both labels"):
+        load_data_csv(path)
+
+
+def test_failed_reference_solve_is_one_line_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--C 1e300: piqp reaches its iteration cap on the exact centralized problem; this used to end in
+    a SolverError traceback."""
+    code, line = _exit_and_line(["central", "--preset", "paper", "--C", "1e300", "--out", str(tmp_path / "c")], capsys)
+    assert code == 1
+    assert line.startswith("shapefleet: error: the exact centralized solve failed") and "--C 1e+300" in line
+
+
+@pytest.mark.parametrize(
+    ("words", "flag"),
+    [(["--link-loss", "0-9:0.5"], "--link-loss"), (["--robot-loss", "9:0.3"], "--robot-loss"),
+     (["--partition", "0,1/2,9@1s-2s"], "--partition")],
+)
+def test_fault_entry_for_a_robot_not_in_the_fleet_is_refused(words: list[str], flag: str, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """Robot 9 of a 3-robot fleet: the entry used to be ignored without a word (exit as if it applied)."""
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "2", "--out", str(out), *words],
+                                capsys)
+    assert code == 2 and line.endswith(f"{flag}: robot 9 is not in the fleet (robots [0, 1, 2])")
+    assert not out.exists()
+
+
+def test_every_robot_lost_is_one_line_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """All three robots crash for good at round 3: no participant is left; this used to end in numpy's
+    'need at least one array to concatenate' traceback."""
+    crashes = [w for r in range(3) for w in ("--crash", f"{r}@3")]
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "20", "--no-restart", *crashes,
+                                 "--out", str(tmp_path / "run")], capsys)
+    assert code == 1
+    assert line == "shapefleet: error: no robot took part to the end (robots [0, 1, 2] all lost): no answer to measure"
+
+
+@pytest.mark.parametrize(("words", "flag"), [(["--robots", "5"], "--robots"), (["--noise=0.5"], "--noise"),
+                                             (["--points", "7"], "--points")])
+def test_lidar_flag_with_data_is_refused_not_ignored(words: list[str], flag: str, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """--data fixes robots and points: --robots 5 used to be dropped without a word (the run had the
+    file's 3 robots and said nothing)."""
+    data = tmp_path / "data.csv"
+    data.write_text("robot,x,y,label\n0,0,0,1\n0,1,0,-1\n1,0,1,1\n1,1,1,-1\n")
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--data", str(data), *words, "--out", str(out)],
+                                capsys)
+    assert code == 2 and f"{flag}: not used with --data" in line
+    assert not out.exists()
+
+
+def test_a_checkpoint_that_is_not_one_exits_2_naming_the_flag(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """`shapefleet robot --checkpoint FILE` where FILE holds no checkpoint (here random bytes): this used
+    to end in agents/robot.py's ValueError traceback, exit 1."""
+    assert cli.main(["prepare", "--preset", "paper", "--out", str(tmp_path / "fleet")]) == 0
+    junk = tmp_path / "junk.ckpt"
+    junk.write_bytes(bytes(range(256)) * 4)
+    capsys.readouterr()
+    code, line = _exit_and_line(["robot", "--fleet-file", str(tmp_path / "fleet" / "fleet.json"), "--id", "0",
+                                 "--connect", "tcp/127.0.0.1:1", "--checkpoint", str(junk)], capsys)
+    assert code == 2
+    assert line == f"shapefleet: error: --checkpoint: {junk}: no complete shapefleet robot checkpoint (version 3)"
