@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from agents.robot import CHECKPOINT_VERSION
 from launcher import cli
 from launcher.scenario import ScenarioError, load_data_csv
 
@@ -123,4 +124,4 @@ def test_a_checkpoint_that_is_not_one_exits_2_naming_the_flag(tmp_path: Path,
     code, line = _exit_and_line(["robot", "--fleet-file", str(tmp_path / "fleet" / "fleet.json"), "--id", "0",
                                  "--connect", "tcp/127.0.0.1:1", "--checkpoint", str(junk)], capsys)
     assert code == 2
-    assert line == f"shapefleet: error: --checkpoint: {junk}: no complete shapefleet robot checkpoint (version 3)"
+    assert line == f"shapefleet: error: --checkpoint: {junk}: no complete shapefleet robot checkpoint (version {CHECKPOINT_VERSION})"
