@@ -78,6 +78,8 @@ class GridBasis:
             raise ValueError("grid points must be finite")
         if not (np.isfinite(sigma) and sigma > 0):
             raise ValueError(f"sigma must be a positive number, got {sigma!r}")
+        if not (np.isfinite(float(sigma) ** 2) and float(sigma) ** 2 >= np.finfo(float).tiny):
+            raise ValueError(f"sigma {sigma!r} cannot be squared in floating point (the kernel divides by 2 sigma^2)")
         self.grid = grid
         self.sigma = float(sigma)
         self.widths: np.ndarray | None = None

@@ -75,7 +75,7 @@ def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario file (see the module doc); ConfigError names file and key."""
     path = Path(path)
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = path.read_bytes().decode("utf-8-sig")  # (a BOM, as Windows editors write, is dropped)
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read scenario file ({exc.strerror})") from None
     except UnicodeDecodeError:

@@ -57,6 +57,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import sys
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -159,6 +160,14 @@ _PARSE: dict[str, Callable[[str], Any]] = {
 def positive(value: float) -> None:
     if not value > 0:
         raise ValueError(f"{value!r} must be a positive number")
+
+
+def kernel_width(value: float) -> None:
+    """A positive width whose square 2 sigma^2 (the kernel's denominator) is a normal float."""
+    positive(value)
+    if not (math.isfinite(value * value) and value * value >= sys.float_info.min):
+        raise ValueError(f"{value!r} cannot be squared in floating point (the kernel divides by 2 sigma^2); "
+                         "rescale the data instead")
 
 
 def at_least(low: int) -> Callable[[Any], None]:
@@ -364,7 +373,7 @@ OPTIONS: tuple[Option, ...] = (
            group=MODEL, section="model", metavar="X0,X1,Y0,Y1", check=parse_bounds),
     Option("sigma", FLOAT, None, f"Gaussian kernel width (default: chosen by the fleet; the paper's is "
            f"{PAPER_SIGMA:g}). With --algorithm autogrid: kept fixed", group=MODEL, section="model",
-           check=positive),
+           check=kernel_width),
     Option("C", FLOAT, None, "soft margin with this penalty (default: hard margin, the paper's)", group=MODEL,
            section="model", check=positive),
     Option("preset", STR, None, f"'paper' = --grid {PAPER_GRID} --sigma {PAPER_SIGMA:g} --algorithm admm, the "

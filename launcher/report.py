@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import threading
@@ -521,10 +522,22 @@ def build_autogrid_result(
     return result
 
 
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every non-finite float as None (JSON null: not measured), so strict JSON can
+    hold it: e.g. the residual of a robot that heard nobody in its only round is inf."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj
+
+
 def write_json(path: Path, obj: Any) -> None:
-    """Atomic JSON write: a reader never sees half a result."""
+    """Atomic JSON write: a reader never sees half a result; non-finite numbers become null."""
     tmp = Path(f"{path}.tmp")
-    tmp.write_text(json.dumps(obj, indent=1, allow_nan=False))
+    tmp.write_text(json.dumps(json_safe(obj), indent=1, allow_nan=False))
     os.replace(tmp, path)
 
 

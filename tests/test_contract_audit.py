@@ -125,3 +125,37 @@ def test_a_checkpoint_that_is_not_one_exits_2_naming_the_flag(tmp_path: Path,
                                  "--connect", "tcp/127.0.0.1:1", "--checkpoint", str(junk)], capsys)
     assert code == 2
     assert line == f"shapefleet: error: --checkpoint: {junk}: no complete shapefleet robot checkpoint (version {CHECKPOINT_VERSION})"
+
+
+@pytest.mark.parametrize("sigma", ["1e-300", "1e300"])
+def test_a_width_that_cannot_be_squared_exits_2_naming_sigma(sigma: str, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """2 sigma^2 underflows to 0 (the kernel's diagonal became 0/0: an IndexError traceback) or overflows."""
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "2", "--sigma", sigma,
+                                 "--out", str(out)], capsys)
+    assert code == 2 and "--sigma" in line and "cannot be squared" in line
+    assert not out.exists()
+
+
+def test_a_robot_that_heard_nobody_is_written_as_null_not_a_traceback(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """--loss 1: every robot ran its round 0 alone, its residual is inf; strict JSON has no inf, so writing
+    result.json raised. Now: null (not measured), the run not converged, exit 1, one line saying why."""
+    import json
+
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--max-rounds", "5", "--loss", "1",
+                                 "--out", str(out)], capsys)
+    result = json.loads((out / "result.json").read_text())
+    assert code == 1 and "NOT converged" in line and "isolated" in line
+    assert result["converged"] is False and [r["residual"] for r in result["robots"]] == [None, None, None]
+
+
+def test_a_scenario_file_with_a_byte_order_mark_is_read(tmp_path: Path) -> None:
+    """Windows editors start UTF-8 files with a BOM; the CSV readers accepted it, the TOML reader did not."""
+    from launcher.config import load_scenario
+
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf[world]\nrobots = 4\n")
+    assert load_scenario(path).values["robots"] == 4
