@@ -4,7 +4,9 @@ Exit codes: 0 the fleet converged (every participant agrees with its neighbours 
 their graph is connected: launcher/report.py ``agreement_verdict``); 1 it did not, or a robot's
 solve failed or diverged, or the exact centralized solve failed, or no robot was left, or the
 machine failed (one line says why; result.json says more);
-2 bad input (one line naming the flag or file; nothing is left behind); 128+N stopped by signal N
+2 bad input (one line naming the flag or file; nothing is left behind -- except for a fixed grid on which
+the hard margin is infeasible: the run folder then holds data.csv, result.json and the shapes.png of the
+paper's Fig. 5, which show why); 128+N stopped by signal N
 (SIGINT 130, SIGHUP 129, SIGTERM 143; a partial result.json is written).
 `--config scenario.toml` gives simulate/launch/central/prepare their flags from a scenario file
 (launcher/config.py); flags on the command line override it.
