@@ -92,7 +92,10 @@ def agreement_verdict(
             "the participants are split into " + " | ".join(str(c) for c in components)
             + (f" since round {min(since)}" if since else "")
         )
-    if worst is not None and not disagreement <= tol:
+    if worst is not None and disagreement == math.inf:
+        reasons.append(f"robots {worst[0]} and {worst[1]} hold no comparable answers (no function on a common "
+                       "grid and sigma, e.g. stopped before the fleet agreed on one, or a non-finite one)")
+    elif worst is not None and not disagreement <= tol:
         reasons.append(f"robots {worst[0]} and {worst[1]} disagree by {disagreement:.3g} > tol {tol:g}")
     wrong = _wrong_answer(rows, exact_error)
     if wrong is not None and wrong[1] > WRONG_ANSWER_FACTOR * tol:

@@ -159,3 +159,14 @@ def test_a_scenario_file_with_a_byte_order_mark_is_read(tmp_path: Path) -> None:
     path = tmp_path / "bom.toml"
     path.write_bytes(b"\xef\xbb\xbf[world]\nrobots = 4\n")
     assert load_scenario(path).values["robots"] == 4
+
+
+def test_robots_without_comparable_answers_are_said_so_not_disagree_by_inf() -> None:
+    """Two robots on different grids (an autogrid run stopped mid-sweep) have no finite disagreement: the
+    verdict used to read "disagree by inf"; it names the pair and why, and the run is not converged."""
+    from launcher.report import agreement_verdict
+
+    rows = [{"id": 0, "neighbours": [1], "converged": True}, {"id": 1, "neighbours": [0], "converged": True}]
+    v = agreement_verdict(rows, lambda a, b: float("inf"), tol=1e-3)
+    assert v["converged"] is False and "robots 0 and 1 hold no comparable answers" in v["verdict"]
+    assert "inf" not in v["verdict"]
