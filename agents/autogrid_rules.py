@@ -33,6 +33,10 @@ PACK = 2.0**20
 TALLY_BLOCKS = 2
 
 
+#: the largest graph diameter autogrid runs: its stop flags ride as bits of one float (53-bit mantissa)
+AUTOGRID_MAX_DIAMETER = 52
+
+
 @dataclass(frozen=True)
 class AutoGridParams:
     """Everything the robots must agree on (the same on every robot)."""
@@ -110,8 +114,9 @@ class AutoGridParams:
     narrow_by_holdout: bool = False
 
     def __post_init__(self) -> None:
-        if not 0 <= self.diameter <= 52:
-            raise ValueError(f"diameter must be in [0, 52] (flag bits carried as exact floats), got {self.diameter}")
+        if not 0 <= self.diameter <= AUTOGRID_MAX_DIAMETER:
+            raise ValueError(f"diameter must be in [0, {AUTOGRID_MAX_DIAMETER}] (flag bits carried as exact floats), "
+                             f"got {self.diameter}")
         if self.max_points < 4:
             raise ValueError(f"max_points must be at least 4, got {self.max_points}")
         if not (math.isfinite(self.narrow_ratio) and self.narrow_ratio >= 1):

@@ -29,8 +29,10 @@ from shapely import Polygon
 
 from agents.admm import ADMMParams
 from agents.autogrid import AutoGridParams
+from agents.autogrid_rules import AUTOGRID_MAX_DIAMETER
 from agents.ct_admm import CTADMMParams
 from agents.extension import ENTRY_POINT_GROUP, load_algorithm
+from agents.params import MAX_DIAMETER
 from agents.relay_hub import relay_cert_slot, relay_form
 from agents.spec import ALGORITHMS, FleetSpec, RobotSpec
 from launcher import scenario, topology
@@ -149,6 +151,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         positions = np.array([r.points.mean(axis=0) for r in robots])
     neighbours = topology.links(opts.topology, ids, positions=positions, comm_range=lengths.comm_range)
     diameter = max(1, topology.diameter(neighbours)) if len(ids) > 1 else 0
+    _check_diameter(opts, len(ids), diameter)
     params = algorithm_params(opts, opts.algorithm, diameter=diameter)
     if opts.polish and opts.algorithm == "admm":  # written only when asked: other fleets' files stay as they were
         params["polish"] = True
@@ -187,6 +190,17 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         _check_certify(opts, spec)
     where = None if positions is None else dict(zip(ids, positions))
     return World(shape, robots, grid, bounds, neighbours, lengths, where), spec
+
+
+def _check_diameter(opts: Options, n_robots: int, diameter: int) -> None:
+    """The round protocol's stop flags reach MAX_DIAMETER hops (autogrid's AUTOGRID_MAX_DIAMETER): a
+    sparser fleet could never agree to stop, so it is refused before anything runs."""
+    limit = AUTOGRID_MAX_DIAMETER if opts.algorithm == "autogrid" else MAX_DIAMETER
+    if diameter > limit:
+        raise topology.TopologyError(
+            f"--topology {opts.topology}: the {n_robots} robots' graph has a diameter of {diameter} hops, more than "
+            f"the round protocol's stop flags reach ({limit}); use a denser topology (complete, or geometric with "
+            "a larger --comm-range) or fewer robots")
 
 
 def _check_polish(opts: Options, spec: FleetSpec) -> None:

@@ -170,3 +170,17 @@ def test_robots_without_comparable_answers_are_said_so_not_disagree_by_inf() -> 
     v = agreement_verdict(rows, lambda a, b: float("inf"), tol=1e-3)
     assert v["converged"] is False and "robots 0 and 1 hold no comparable answers" in v["verdict"]
     assert "inf" not in v["verdict"]
+
+
+@pytest.mark.parametrize(("words", "diameter", "limit"),
+                         [(["--preset", "paper", "--robots", "126"], 63, 62), (["--robots", "106"], 53, 52)])
+def test_a_graph_wider_than_the_stop_flags_reach_exits_2_naming_topology(
+        words: list[str], diameter: int, limit: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A ring of 126 robots (admm) or 106 (autogrid) has a diameter past what the stop flags carry: this was
+    a ValueError traceback from the parameters (or, for ct-admm, a message naming --ct-period)."""
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", *words, "--topology", "ring", "--max-rounds", "1", "--out", str(out)],
+                                capsys)
+    assert code == 2 and line.startswith("shapefleet: error: --topology ring: ")
+    assert f"diameter of {diameter} hops" in line and f"reach ({limit})" in line
+    assert not out.exists()
