@@ -9,6 +9,9 @@ unique (no eigenvector sign ambiguity), so robots on different machines agree on
 
 from __future__ import annotations
 
+import math
+import sys
+
 import numpy as np
 
 #: Eigenvalues of K_G below RCOND * largest are treated as zero. A grid dense relative to
@@ -61,6 +64,14 @@ def lattice(nx: int, ny: int, bounds: tuple[float, float, float, float]) -> np.n
     return np.column_stack([gx.ravel(), gy.ravel()])
 
 
+def check_squarable_width(sigma: float) -> None:
+    """ValueError unless 2 sigma^2, the kernel's denominator, is a finite normal float (1e-300 squares
+    to 0: the Gram matrix became 0/0; 1e300 to inf)."""
+    square = float(sigma) * float(sigma)  # (a product overflows to inf; ** would raise)
+    if not (math.isfinite(square) and square >= sys.float_info.min):
+        raise ValueError(f"{sigma!r} cannot be squared in floating point (the kernel divides by 2 sigma^2)")
+
+
 class GridBasis:
     """The function space spanned by kernels on the shared grid, with its preconditioning."""
 
@@ -78,8 +89,7 @@ class GridBasis:
             raise ValueError("grid points must be finite")
         if not (np.isfinite(sigma) and sigma > 0):
             raise ValueError(f"sigma must be a positive number, got {sigma!r}")
-        if not (np.isfinite(float(sigma) ** 2) and float(sigma) ** 2 >= np.finfo(float).tiny):
-            raise ValueError(f"sigma {sigma!r} cannot be squared in floating point (the kernel divides by 2 sigma^2)")
+        check_squarable_width(sigma)
         self.grid = grid
         self.sigma = float(sigma)
         self.widths: np.ndarray | None = None

@@ -57,12 +57,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import sys
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from agents.kernel import check_squarable_width
 from agents.spec import ALGORITHMS, PARAMS_CLASSES, Timing
 from launcher.scenario import DEFAULT_SHAPE, parse_bounds, parse_grid, shape_names
 from launcher.topology import TOPOLOGIES
@@ -165,9 +165,10 @@ def positive(value: float) -> None:
 def kernel_width(value: float) -> None:
     """A positive width whose square 2 sigma^2 (the kernel's denominator) is a normal float."""
     positive(value)
-    if not (math.isfinite(value * value) and value * value >= sys.float_info.min):
-        raise ValueError(f"{value!r} cannot be squared in floating point (the kernel divides by 2 sigma^2); "
-                         "rescale the data instead")
+    try:
+        check_squarable_width(value)
+    except ValueError as exc:
+        raise ValueError(f"{exc}; rescale the data instead") from None
 
 
 def at_least(low: int) -> Callable[[Any], None]:
