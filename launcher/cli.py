@@ -245,14 +245,19 @@ def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], 
     data -- or, with robots absent (`launch`), of the participants' data."""
     from launcher import report
 
+    pts, labels = _participants_data(world, extra)
+    return report.autogrid_references(robots, pts, labels, C=spec.C, soft_C=spec.autogrid_params.soft_C)
+
+
+def _participants_data(world: World, extra: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """The points and labels of the robots that took part to the end (all of them when none is
+    absent): the data the fleet's answer is measured against."""
     kept = world.robots
     if extra.get("absent"):
         kept = [r for r in world.robots if r.id in extra["participants"]]
     if not kept:  # e.g. every robot crashed with --no-restart: nobody's answer to measure
         raise RunFailure(f"no robot took part to the end (robots {extra['absent']} all lost): no answer to measure")
-    pts = np.vstack([r.points for r in kept])
-    labels = np.concatenate([r.labels for r in kept])
-    return report.autogrid_references(robots, pts, labels, C=spec.C, soft_C=spec.autogrid_params.soft_C)
+    return np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept])
 
 
 def _round_budget(spec: Any) -> int:
@@ -692,11 +697,7 @@ def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, 
         return None
     if not extra["absent"]:
         return central
-    kept = [r for r in world.robots if r.id in extra["participants"]]
-    if not kept:  # e.g. every robot crashed with --no-restart: nobody's answer to measure
-        raise RunFailure(f"no robot took part to the end (robots {extra['absent']} all lost): no answer to measure")
-    pts = np.vstack([r.points for r in kept])
-    labels = np.concatenate([r.labels for r in kept])
+    pts, labels = _participants_data(world, extra)
     extra["reference"] = "central solution of the participants' data"
     return solve_central(spec.basis, pts, labels, spec.C)
 
