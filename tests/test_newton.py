@@ -137,7 +137,9 @@ def test_nearly_active_margin_does_not_stall_the_fleet_off_the_optimum():
     assert all(r["converged"] and r["message"] == "" for r in robots)
     _assert_identical(robots)
     assert max_function_error(spec, central, robots) < 1e-6
-    assert robots[0]["rounds"] <= 40
+    # 34 rounds where numpy, OpenBLAS and piqp run their AVX2 kernels, 41 on AVX-512 (their last bits
+    # differ); the stall itself shows in the error (2e-6 to 9e-6 with RECENTER_BELOW off, on both)
+    assert robots[0]["rounds"] <= 50
 
 
 def test_nearly_active_margin_on_one_robot_alone():
