@@ -244,3 +244,48 @@ def test_a_stale_default_is_reported_and_the_true_ones_pass():
 def test_a_key_missing_from_the_scenario_table_is_seen():
     text = "| `[world]` | `shape` | string | x |\n| | `robots`, `points` | integer | y |\n| `[fleet]` | `max-wall` | d | z |\n"
     assert scenario_table(text) == {"world": {"shape", "robots", "points"}, "fleet": {"max-wall"}}
+
+
+# -- docs/result-schema.md against the result.json the reports write ------------------------------
+def undocumented_keys(result: dict, schema: str) -> list[str]:
+    """The keys of ``result`` (top level, robots' rows, metrics, agreement, world) that the schema
+    does not name in backticks."""
+    named = set(re.findall(r"`([A-Za-z_]\w*)`", schema))
+    keys = [f"top.{k}" for k in result if k not in named]
+    for row in result.get("robots", []):
+        keys += [f"robots[].{k}" for k in row if k not in named]
+    for part in ("metrics", "agreement", "world"):
+        keys += [f"{part}.{k}" for k in (result.get(part) or {}) if k not in named]
+    return sorted(set(keys))
+
+
+RUNS = {  # in-process runs of about a second, one per kind of result.json
+    "admm (paper preset)": ("simulate", {"preset": "paper"}),
+    "autogrid (small)": ("simulate", {"robots": 2, "points": 8, "max_grid_points": 16}),
+    "free sync": ("simulate", {"preset": "paper", "sync": "free"}),
+    "a user's fleet algorithm": ("simulate", {"algorithm": "examples.average_consensus:Average"}),
+    "central": ("central", {}),
+}
+
+
+@pytest.mark.parametrize("name", RUNS)
+def test_every_key_of_result_json_is_in_the_schema(name, tmp_path, monkeypatch):
+    import json
+
+    from launcher import cli
+
+    monkeypatch.chdir(ROOT)  # the example algorithm is imported from the checkout
+    command, options = RUNS[name]
+    argv = [command, "--out", str(tmp_path / "run")]
+    for key, value in options.items():
+        argv += [f"--{key.replace('_', '-')}", str(value)]
+    assert cli.main(argv) == 0
+    result = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert result["robots"] or command == "central"
+    assert undocumented_keys(result, (ROOT / "docs" / "result-schema.md").read_text()) == []
+
+
+def test_an_undocumented_result_key_is_reported():
+    schema = "| `converged` | bool |\n| `id` | robot id |\n`metrics`: `iou`"
+    result = {"converged": True, "robots": [{"id": 0, "warp": 1}], "metrics": {"iou": 0.9, "speed": 2}}
+    assert undocumented_keys(result, schema) == ["metrics.speed", "robots[].warp", "top.robots"]
