@@ -28,9 +28,10 @@ OTHER_PROGRAMS = (
     ROOT / "launcher" / "pytest_plugin.py", *sorted((ROOT / "benchmarks").glob("*.py")),
     *sorted((ROOT / "docker").glob("*.py")),
 )
-#: flags of other tools quoted in the docs (docker, dockerd, debootstrap in docs/deploy.md; --help)
+#: flags of other tools quoted in the docs (docker, dockerd, debootstrap in docs/deploy.md; pytest-xdist's
+#: --dist in docs/testing.md; --help)
 EXTERNAL_FLAGS = frozenset({
-    "help", "mount", "build", "build-arg", "rm", "network", "variant", "storage-driver", "iptables",
+    "help", "dist", "mount", "build", "build-arg", "rm", "network", "variant", "storage-driver", "iptables",
     "ip6tables", "bridge", "data-root", "exec-root", "pidfile",
 })
 COMMANDS = ("simulate", "launch", "central", "prepare", "gridstudy", "sweep", "robot", "router", "collect")
