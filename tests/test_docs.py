@@ -3,9 +3,11 @@
 Every ``--flag`` they name exists (an option of launcher/options.py, or a flag of one of the
 project's other programs: the robot process, the router, the pytest plugin, a benchmark); every
 ``shapefleet COMMAND ...`` line uses only that command's flags; every default a doc states next to a
-flag is the table's (or the algorithm parameter's it feeds); docs/scenario-file.md lists exactly the
-TOML keys of each section; every command-line-only option is named somewhere. Each check is a
-function of the text, so the tests below also show that it fails on a made-up stale flag or default.
+flag is the table's (or the algorithm parameter's it feeds); a list of values given for a flag
+(`--shape a|b|c`) is all of them; docs/scenario-file.md lists exactly the TOML keys of each section;
+every command-line-only option is named somewhere; every key of result.json is in
+docs/result-schema.md. Each check is a function of the text, so the tests below also show that it
+fails on a made-up stale flag, default, value or key.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ from pathlib import Path
 import pytest
 
 from agents.spec import PARAMS_CLASSES
-from launcher.options import BY_NAME, OPTIONS, SECTIONS, Option, options_of, param_default
+from launcher.options import ALGORITHM_CHOICES, BY_NAME, OPTIONS, SECTIONS, Option, options_of, param_default
+from launcher.scenario import shape_names
 
 ROOT = Path(__file__).resolve().parent.parent
 USER_DOCS = (ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")))
@@ -180,6 +183,34 @@ def stale_table_defaults(text: str) -> list[tuple[str, str]]:
     return stale
 
 
+def closed_sets(option: Option) -> tuple[str, ...] | None:
+    """The values an option takes from a closed set: its choices, the built-in shapes, the algorithms."""
+    if option.name == "shape":
+        return tuple(shape_names())
+    if option.name == "algorithm":
+        return ALGORITHM_CHOICES
+    return option.choices
+
+
+_CHOICES_LISTED = re.compile(r"`--(?P<name>[a-zA-Z][\w-]*) (?P<values>[\w-]+(?:\|[\w-]+)+)")
+
+
+def stale_choices(text: str) -> list[tuple[str, list[str], list[str]]]:
+    """(flag, missing, unknown) where a doc lists "`--flag a|b|c`" and the list is not the option's
+    whole closed set of values."""
+    stale = []
+    for m in _CHOICES_LISTED.finditer(text):
+        option = BY_NAME.get(m.group("name"))
+        values = closed_sets(option) if option is not None else None
+        if values is None:
+            continue
+        listed = m.group("values").split("|")
+        missing, unknown = sorted(set(values) - set(listed)), sorted(set(listed) - set(values))
+        if missing or unknown:
+            stale.append((option.flag, missing, unknown))
+    return stale
+
+
 # -- the repository's docs ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def texts() -> dict[str, str]:
@@ -204,6 +235,10 @@ def test_defaults_stated_next_to_a_flag_are_the_tables(texts):
     assert [(p, s) for p, text in texts.items() for s in stale_defaults(text)] == []
     scenario = texts["docs/scenario-file.md"]
     assert stale_table_defaults(scenario) == []
+
+
+def test_values_listed_for_a_flag_are_all_its_values(texts):
+    assert [(p, s) for p, text in texts.items() for s in stale_choices(text)] == []
 
 
 def test_scenario_file_table_lists_exactly_the_toml_keys(texts):
@@ -240,6 +275,13 @@ def test_a_stale_default_is_reported_and_the_true_ones_pass():
     assert stale_defaults(stale) == [("--max-grid-points", "200"), ("--sync", "free")]
     row = "| | `certify` | float | a stop needs the bound (`--certify`, default 3) |"
     assert stale_table_defaults(row) == [("certify", "3")]
+
+
+def test_a_value_list_missing_a_shape_or_naming_a_made_up_one_is_reported():
+    names = "|".join(n for n in shape_names() if n != "kidney")
+    assert stale_choices(f"`--shape {names}`") == [("--shape", ["kidney"], [])]
+    assert stale_choices("`--topology complete|ring|line|geometric|torus`") == [("--topology", [], ["torus"])]
+    assert stale_choices("`--over inprocess|zenoh` and `--grid 5x3`") == []
 
 
 def test_a_key_missing_from_the_scenario_table_is_seen():
