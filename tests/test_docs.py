@@ -37,7 +37,8 @@ EXTERNAL_FLAGS = frozenset({
     "help", "dist", "mount", "build", "build-arg", "rm", "network", "variant", "storage-driver", "iptables",
     "ip6tables", "bridge", "data-root", "exec-root", "pidfile",
 })
-COMMANDS = ("simulate", "launch", "central", "prepare", "gridstudy", "sweep", "robot", "router", "collect")
+#: the shapefleet subcommands: every command some option of the table belongs to
+COMMANDS = tuple(sorted({command for o in OPTIONS for command in o.commands}))
 
 _FLAG = re.compile(r"(?<![\w-])--([a-zA-Z][\w-]*)")
 
