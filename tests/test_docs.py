@@ -135,7 +135,7 @@ def same_value(option: Option, text: str) -> bool:
 
 
 _DEFAULT_NEAR_FLAG = re.compile(
-    r"`--(?P<name>[a-zA-Z][\w-]*)[^`]*`[^.;\n]{0,80}?\bdefault (?P<value>[\w.+-]+)")
+    r"`--(?P<name>[a-zA-Z][\w-]*)[^`]*`[^.;\n]{0,80}?\bdefault [`\"]*(?P<value>[\w.+-]+)")
 _FLAG_WITH_VALUE_IS_DEFAULT = re.compile(r"`--(?P<name>[a-zA-Z][\w-]*) (?P<value>[\w.+-]+)` \((?:the )?default\b")
 
 
@@ -178,7 +178,7 @@ def stale_table_defaults(text: str) -> list[tuple[str, str]]:
     for line in text.splitlines():
         m = re.match(r"\|[^|]*\|\s*`([\w-]+)`\s*\|[^|]*\|(.*)\|\s*$", line)
         if m and m.group(1) in BY_NAME:
-            for value in re.findall(r"\bdefault ([\w.+\"-]+)", m.group(2)):
+            for value in re.findall(r"\bdefault `?([\w.+\"-]+)", m.group(2)):
                 if not same_value(BY_NAME[m.group(1)], value.rstrip(".:")):
                     stale.append((m.group(1), value))
     return stale
@@ -276,6 +276,8 @@ def test_a_stale_default_is_reported_and_the_true_ones_pass():
     assert stale_defaults(stale) == [("--max-grid-points", "200"), ("--sync", "free")]
     row = "| | `certify` | float | a stop needs the bound (`--certify`, default 3) |"
     assert stale_table_defaults(row) == [("certify", "3")]
+    assert stale_table_defaults('| | `max-wall` | string (duration) | cap (default `"60s"`) |') == [("max-wall", '"60s"')]
+    assert stale_table_defaults('| | `max-wall` | string (duration) | cap (default `"600s"`) |') == []
 
 
 def test_a_value_list_missing_a_shape_or_naming_a_made_up_one_is_reported():
