@@ -2,7 +2,7 @@
 
 Nothing to import from shapefleet's tests: `pip install shapefleet` registers the pytest plugin
 (launcher/pytest_plugin.py) and with it the fixture ``fleet``. Each call launches a Zenoh router
-and one process per robot on 127.0.0.1 (multicast scouting off), injects the faults on every
+and the robot processes (one or several robots each) on 127.0.0.1 (multicast scouting off), injects the faults on every
 directed link, kills and restarts robots as told, and returns a typed result
 (launcher/api.py ``Result``). After the test the fixture checks by PID that no process is left.
 """
