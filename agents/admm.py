@@ -1023,7 +1023,36 @@ def _common_solve(payloads: np.ndarray, n: int) -> tuple[np.ndarray, bool, np.nd
     return v, stationary, np.add.reduce(np.array(iterates), axis=0), len(iterates)
 
 
-class _Polish:
+class _Endgame:
+    """What both end-games beside the hub share (`_Polish`, agents/soft_endgame.py): the payload of this
+    round's frame and the last round's, what the current round carries (`kind`), and the certified optimum
+    once the fleet agreed on it (`result`)."""
+
+    kind: str
+    payload: np.ndarray
+    prev_payload: np.ndarray | None
+    result: np.ndarray | None
+
+    def _size(self) -> int:
+        """Floats of the payload."""
+        raise NotImplementedError
+
+    def _next(self, payload: np.ndarray, kind: str) -> None:
+        self.prev_payload, self.payload, self.kind = self.payload, payload, kind
+
+    def stop(self) -> None:
+        """No (more) attempts (a margin it does not certify, or a robot dropped): the payload stays zeros."""
+        self._next(np.zeros(self._size()), "off")
+
+    def _idle(self) -> bool:
+        """True (and the same payload again) once stopped or done: `step` returns `result` then."""
+        if self.kind in ("off", "done"):
+            self._next(self.payload, self.kind)
+            return True
+        return False
+
+
+class _Polish(_Endgame):
     """One robot's part of the exact end-game on a complete graph (docs/algorithm.md, "An exact
     end-game (polish)").
 
@@ -1069,18 +1098,13 @@ class _Polish:
         out[n * (n + 1) // 2 :] = A.sum(axis=0)
         self._next(out, "sum")
 
-    def _next(self, payload: np.ndarray, kind: str) -> None:
-        self.prev_payload, self.payload, self.kind = self.payload, payload, kind
-
-    def stop(self) -> None:
-        """No (more) attempts: a soft margin, or a robot dropped; the payload stays zeros."""
-        self._next(np.zeros(polish_payload_size(self.dim)), "off")
+    def _size(self) -> int:
+        return polish_payload_size(self.dim)
 
     def step(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
         """Fold in the round's payloads (a row per robot in id order); the certified optimum once
         every robot's verdict was ok, else None (and the next payload is set)."""
-        if self.kind in ("off", "done"):
-            self._next(self.payload, self.kind)
+        if self._idle():
             return self.result
         if self.kind == "sum":
             self._solve(payloads)

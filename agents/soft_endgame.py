@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.admm import _dots, _pairwise_sum, _spd_factor, _spd_solve
+from agents.admm import POLISH_EQ, _dots, _Endgame, _pairwise_sum, _spd_factor, _spd_solve
 from agents.rounds import from_bytes, to_bytes
 
 #: Krylov vectors per round: the frame carries BLOCK + 1 vectors of M + 1 floats (the last: P' r)
@@ -49,8 +49,8 @@ CAP = 8
 SOLVE_ROUNDS = 40
 #: rounds of iterative refinement alone once the span is exhausted (castellated: 1 took 4e-9 to 2e-13)
 REFINE = 3
-#: a robot's verdict: E margins equal 1, B margins at most 1, N margins at least 1, within EQ
-EQ = 1e-9
+#: a robot's verdict: E margins equal 1, B margins at most 1, N margins at least 1, within EQ (the hard polish's)
+EQ = POLISH_EQ
 #: the guess from a robot's own step multipliers: at the bound when >= (1 - GUESS) C, off when <= GUESS C
 GUESS = 1e-6
 #: a new Krylov vector is dropped when orthogonalisation leaves less than DROP of its image's norm
@@ -66,7 +66,7 @@ def payload_size(dim: int) -> int:
     return _SCALARS + (BLOCK + 1) * dim
 
 
-class SoftEndgame:
+class SoftEndgame(_Endgame):
     """One robot's part of the soft end-game (module docstring). Drive it with `step` once a hub
     round, after the robot's own step (`qp.multipliers` are that step's); `payload` goes into its
     next frame."""
@@ -104,8 +104,8 @@ class SoftEndgame:
         self.refined = 0  # rounds of refinement alone (the span exhausted: no block sent)
         self.move: tuple[int, int] | None = None  # this robot's worst row and its new label
 
-    def _next(self, payload: np.ndarray, kind: str) -> None:
-        self.prev_payload, self.payload, self.kind = self.payload, payload, kind
+    def _size(self) -> int:
+        return payload_size(self.dim)
 
     def guess(self) -> None:
         """A fresh attempt from this robot's own step multipliers (none yet: wait)."""
@@ -143,16 +143,11 @@ class SoftEndgame:
         for j in range(k):
             out[_SCALARS + j * d : _SCALARS + (j + 1) * d] = A.T @ self.U[:, j]
 
-    def stop(self) -> None:
-        """No (more) attempts: a robot dropped; the payload stays zeros."""
-        self._next(np.zeros(payload_size(self.dim)), "off")
-
     # -- one round ---------------------------------------------------------------------------------
     def step(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
         """Fold in the round's payloads (a row per robot in id order); the certified optimum once
         every robot's verdict was ok, else None (and the next payload is set)."""
-        if self.kind in ("off", "done"):
-            self._next(self.payload, self.kind)
+        if self._idle():
             return self.result
         if self.kind == "wait":
             self.guess()
