@@ -45,7 +45,7 @@ from collections import OrderedDict
 from itertools import islice
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -55,6 +55,9 @@ from agents.messages import StateUpdate
 from agents.params import check_counts, check_diameter, check_positive, params_from
 from agents.problem import MarginQP
 from agents.rounds import RobotShare, RoundCore, check_iterate, from_bytes, relative_gap, relative_gaps, to_bytes
+
+if TYPE_CHECKING:
+    from agents.soft_endgame import SoftEndgame
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,9 @@ class ADMMParams:
     safeguard: float = 2.0  # restart Anderson when the fixed-point residual exceeds this x its best
     relay: bool = True  # sparse graphs of <= 16 robots run the relay hub (agents/relay_hub.py); False: edge form
     polish: bool = False  # hub form, hard margin: the exact active-set end-game (`_Polish`, docs/algorithm.md)
+    # hub form, soft margin: the exact end-game by a block Krylov solve (agents/soft_endgame.py); autogrid's
+    # soft answer solves turn it on, False keeps main's frames and bits
+    soft_polish: bool = False
     # hub form, hard margin, no polish: a stop also needs the fleet's certified error bound
     # (agents/certificate.py) <= certify x max(tol, 1e-3); 0 = the rule alone (main's frames and bits)
     certify: float = 10.0
@@ -91,6 +97,8 @@ class ADMMParams:
             raise ValueError(f"safeguard must be above 1, got {self.safeguard}")
         if not (isinstance(self.certify, (int, float)) and 0 <= self.certify < math.inf):
             raise ValueError(f"certify must be a number >= 0 (0: off), got {self.certify!r}")
+        if self.polish and self.soft_polish:
+            raise ValueError("polish (hard margins) and soft_polish (soft margins) have different frames: choose one")
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> ADMMParams:
@@ -940,13 +948,17 @@ def certify_threshold(params: ADMMParams) -> float:
 
 def certify_slot(params: ADMMParams) -> bool:
     """True when hub frames carry the certificate's payload (agents/certificate.py): the guard is
-    on and the polish, which certifies its own stop, is off."""
-    return params.certify > 0 and not params.polish
+    on and neither end-game, which certifies its own stop, is."""
+    return params.certify > 0 and not params.polish and not params.soft_polish
 
 
 def hub_frame_dim(params: ADMMParams, dim: int) -> int:
-    """A hub frame's length: [v; w], and the polish payload when the polish is on, or the
-    certificate's PAYLOAD floats when the certified guard is on."""
+    """A hub frame's length: [v; w], and the polish payload when the polish is on (the soft
+    end-game's with `soft_polish`), or the certificate's PAYLOAD floats when the certified guard is on."""
+    if params.soft_polish:
+        from agents.soft_endgame import payload_size
+
+        return 2 * dim + payload_size(dim)
     return 2 * dim + (polish_payload_size(dim) if params.polish else cert_math.PAYLOAD if certify_slot(params) else 0)
 
 
@@ -1011,7 +1023,36 @@ def _common_solve(payloads: np.ndarray, n: int) -> tuple[np.ndarray, bool, np.nd
     return v, stationary, np.add.reduce(np.array(iterates), axis=0), len(iterates)
 
 
-class _Polish:
+class _Endgame:
+    """What both end-games beside the hub share (`_Polish`, agents/soft_endgame.py): the payload of this
+    round's frame and the last round's, what the current round carries (`kind`), and the certified optimum
+    once the fleet agreed on it (`result`)."""
+
+    kind: str
+    payload: np.ndarray
+    prev_payload: np.ndarray | None
+    result: np.ndarray | None
+
+    def _size(self) -> int:
+        """Floats of the payload."""
+        raise NotImplementedError
+
+    def _next(self, payload: np.ndarray, kind: str) -> None:
+        self.prev_payload, self.payload, self.kind = self.payload, payload, kind
+
+    def stop(self) -> None:
+        """No (more) attempts (a margin it does not certify, or a robot dropped): the payload stays zeros."""
+        self._next(np.zeros(self._size()), "off")
+
+    def _idle(self) -> bool:
+        """True (and the same payload again) once stopped or done: `step` returns `result` then."""
+        if self.kind in ("off", "done"):
+            self._next(self.payload, self.kind)
+            return True
+        return False
+
+
+class _Polish(_Endgame):
     """One robot's part of the exact end-game on a complete graph (docs/algorithm.md, "An exact
     end-game (polish)").
 
@@ -1057,18 +1098,13 @@ class _Polish:
         out[n * (n + 1) // 2 :] = A.sum(axis=0)
         self._next(out, "sum")
 
-    def _next(self, payload: np.ndarray, kind: str) -> None:
-        self.prev_payload, self.payload, self.kind = self.payload, payload, kind
-
-    def stop(self) -> None:
-        """No (more) attempts: a soft margin, or a robot dropped; the payload stays zeros."""
-        self._next(np.zeros(polish_payload_size(self.dim)), "off")
+    def _size(self) -> int:
+        return polish_payload_size(self.dim)
 
     def step(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
         """Fold in the round's payloads (a row per robot in id order); the certified optimum once
         every robot's verdict was ok, else None (and the next payload is set)."""
-        if self.kind in ("off", "done"):
-            self._next(self.payload, self.kind)
+        if self._idle():
             return self.result
         if self.kind == "sum":
             self._solve(payloads)
@@ -1180,7 +1216,7 @@ class ConsensusADMM(RoundCore):
         # no room for w) each copy computes every w itself -- exact only while the copies agree
         self._hub_frames = self._hub is not None and hub_frames
         # the exact end-game (params.polish, hard margin): its payload follows [v; w] in every frame
-        self._polish: _Polish | None = None
+        self._polish: _Polish | SoftEndgame | None = None
         if self._hub_frames:
             self.frame_dim = hub_frame_dim(params, self.dim)
             if params.polish:
@@ -1189,6 +1225,14 @@ class ConsensusADMM(RoundCore):
                     self._polish.guess(self._values)
                 else:  # soft margins: the frame keeps its layout, the polish stays off
                     self._polish.stop()
+            elif params.soft_polish:
+                from agents.soft_endgame import SoftEndgame  # (it builds on this module's exact sums)
+
+                self._polish = SoftEndgame(self._qp, self._hub.ids, robot_id, self._C or 0.0)
+                if self._C is None:  # hard margins: the frame keeps its layout, the end-game stays off
+                    self._polish.stop()
+                else:  # its guesses read the step's multipliers
+                    self._qp.keep_multipliers = True
         # the certified guard (params.certify): a payload of PAYLOAD floats follows [v; w]; it decides
         # (beside the rule) on hard margins while no robot was dropped, else the rule alone
         self._cert_slot = self._hub_frames and certify_slot(params)

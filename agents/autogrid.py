@@ -73,6 +73,7 @@ from agents.autogrid_warm import WarmADMM, carry_edges, carry_hub_duals, carry_v
 from agents.kernel import GridBasis
 from agents.problem import InfeasibleError, MarginQP
 from agents.rounds import RobotShare, RoundCore, relative_gap
+from agents.soft_endgame import payload_size as endgame_payload_size
 from protocol.frames import StateUpdate
 
 #: stands for "no data" in the max-consensus on bounds (frames carry finite values only)
@@ -185,6 +186,9 @@ class AdaptiveGridCore(RoundCore):
         self._soft_duals: tuple[tuple[int, ...], np.ndarray] | None = None
         self._own: np.ndarray | None = None  # this robot's (x, gamma) entering the flood
         self._sub_converged = False
+        # a soft answer solve with the exact end-game: "certified" when every robot certified its rows (the
+        # stop is the exact optimum), "not certified" when the ADMM's own rule stopped it first; "" without
+        self._endgame = ""
         self._ill_norm2 = 0.0  # the next hard ADMM's bound on |x|^2 (0: no test); in its frames at slot -3
         self._admm_rounds = 0
         self._capped = ""  # why the answer is not a converged solve ("" when it is)
@@ -268,6 +272,7 @@ class AdaptiveGridCore(RoundCore):
             max_rounds=p.hard_rounds if mode == "hard" else p.soft_rounds,
             certify=0.0,  # the nested runs keep the rule alone (their frames have no room for the guard)
             settled_rate=True,  # ... so its rate is read within one stretch of Anderson (admm.settled)
+            soft_polish=mode == "soft" and self._endgame_fits(),  # the soft end-game (agents/soft_endgame.py)
         )
         C = None if mode == "hard" else (p.C if p.C is not None else p.soft_C)
         self._sub = WarmADMM(
@@ -282,14 +287,22 @@ class AdaptiveGridCore(RoundCore):
         if mode == "hard":  # the bound rides in every frame of the phase: a restart re-derives the test from it
             self._values[-3] = self._ill_norm2
 
+    def _endgame_fits(self) -> bool:
+        """True when a soft answer solve runs the exact end-game (AutoGridParams.soft_polish): hub
+        frames, and its payload fits between w and the frame's last three slots on this grid."""
+        p = self.params
+        return p.soft_polish and p.hub_frames and 2 * p.max_points + 1 + endgame_payload_size(len(self.grid) + 1) <= p.dim - 3
+
     def _sub_frame(self) -> np.ndarray:
         """The ADMM sub-machine's message as a frame: v padded, and in the hub form its w at
-        [max_points : max_points + M] and [2 max_points] (room: params.hub_frames)."""
+        [max_points : max_points + M] and [2 max_points] (room: params.hub_frames), then the soft
+        end-game's payload from [2 max_points + 1] (`_endgame_fits`)."""
         msg, d = self._sub.outgoing().values, self._sub.dim
         out = self._pad(msg[: d - 1], msg[d - 1])
         if msg.size > d:
             mp = self.params.max_points
-            out[mp : mp + d - 1], out[2 * mp] = msg[d:-1], msg[-1]
+            out[mp : mp + d - 1], out[2 * mp] = msg[d : 2 * d - 1], msg[2 * d - 1]
+            out[2 * mp + 1 : 2 * mp + 1 + msg.size - 2 * d] = msg[2 * d :]
         return out
 
     def _sub_message(self, v: np.ndarray) -> np.ndarray:
@@ -297,7 +310,8 @@ class AdaptiveGridCore(RoundCore):
         if self._sub.frame_dim == self._sub.dim:
             return self._unpad(v)
         mp, m = self.params.max_points, len(self.grid)
-        return np.concatenate([self._unpad(v), v[mp : mp + m], v[2 * mp : 2 * mp + 1]])
+        extra = self._sub.frame_dim - 2 * self._sub.dim
+        return np.concatenate([self._unpad(v), v[mp : mp + m], v[2 * mp : 2 * mp + 1 + extra]])
 
     def _enter_flood(self) -> None:
         v = self._own
@@ -486,6 +500,8 @@ class AdaptiveGridCore(RoundCore):
             self._mode = "soft"
             return "hard cap"
         self._sub_converged, self._admm_rounds = converged, rounds
+        pol = sub._polish if sub.params.soft_polish else None
+        self._endgame = "" if pol is None else "certified" if pol.result is not None else "not certified"
         self._own = sub.values
         self._edges_out = {j: (e.z.copy(), e.lam.copy()) for j, e in sub._edges.items()}
         if self._mode == "soft":
@@ -498,8 +514,9 @@ class AdaptiveGridCore(RoundCore):
         self.disagreement = float(v[-3])
         agreed = self._unpad(v)
         status = f"{self._mode}-margin solved" if self._sub_converged else f"{self._mode}-margin round cap"
+        endgame = {"endgame": self._endgame} if self._endgame else {}
         if not self.disagreement <= self.params.tol:
-            self._note(status=status, rounds=self._admm_rounds, disagreement_before_flood=self.disagreement)
+            self._note(status=status, rounds=self._admm_rounds, disagreement_before_flood=self.disagreement, **endgame)
             self._final, self._agreed = self._own, False
             self._capped = (
                 f"the robots disagree by {self.disagreement:.3g} (largest relative gap to a neighbour) "
@@ -509,7 +526,7 @@ class AdaptiveGridCore(RoundCore):
         x, gamma = agreed[:-1], float(agreed[-1])
         norm2 = float(x @ x)
         self._note(status=status, rounds=self._admm_rounds, norm2=norm2, agreed_from=int(v[-1]),
-                   disagreement_before_flood=self.disagreement)
+                   disagreement_before_flood=self.disagreement, **endgame)
         self._final, self._agreed = agreed, True
         if not self._sub_converged:
             self._capped = f"the {self._mode} margin stopped at its round cap ({self._admm_rounds} rounds)"

@@ -81,6 +81,9 @@ class AutoGridParams:
     # a complete graph (set by the fleet file): the ADMM sub-machines run the hub form, whose
     # frames carry w beside v (agents/admm.py), so every ADMM slot has room for both
     hub_frames: bool = False
+    # with hub_frames, a soft answer solve runs the exact end-game (agents/soft_endgame.py) where its
+    # payload fits the frame (grids up to ~(dim - 2 max_points) / 4 points); False: main's soft solves
+    soft_polish: bool = True
     early_drop: bool = True  # end the sweep once a perfect candidate decides it (autogrid_sweep.py)
     # which candidate wins a tie of held-out errors: "smaller" sigma (the default: it follows the
     # outline more closely) or "larger" (issue 15: with narrow refined kernels, narrow_ratio > 1,

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 #: plain fields (msgpack-able as they are)
 _PLAIN = ("phase", "sigma_reason", "margin", "message", "disagreement", "_diag", "_h0", "_level", "_mode",
           "_left", "_phase_start", "_sub_converged", "_admm_rounds", "_capped", "_agreed", "_best_norm2",
-          "_refinements", "_held_units")
+          "_refinements", "_held_units", "_endgame")
 #: float vectors (raw '<f8' bytes)
 _VECTORS = ("_warm", "_own", "_final", "_seed")
 

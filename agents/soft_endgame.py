@@ -1,0 +1,302 @@
+"""The soft margin's exact end-game on a complete graph (`ADMMParams.soft_polish`; docs/algorithm.md,
+"The soft end-game").
+
+A soft solve's multipliers sit at the box C on the points it gives up, and the ADMM spends thousands
+of rounds on them (held-out 4's pliers 2713, the castellated nut > 3000: benchmarks/results/autogrid.md).
+Its active sets settle much earlier. Beside the ADMM, every robot guesses them for its own rows from
+its own step -- B (multiplier at C), E (on the margin), N (the rest) -- and the fleet solves the
+reduced problem exactly:
+
+    x = A_Ex' alpha + g_x,   A_E v = 1 (v = (x, gamma)),   t' alpha = -g_gamma   (t = A_E's gamma column)
+
+with g = C sum_B a_i. Its dual is G alpha + t gamma = 1 - A_Ex g_x with G = A_Ex A_Ex', solved by a
+block Krylov (Galerkin) method whose every round is one all-reduce of BLOCK + 1 function-space vectors
+and a few scalars -- issue 10's frame rule: no point, no per-point row, no Gram sum leaves a robot:
+
+* robot l holds the basis P_l (its own E rows of the fleet's Krylov vectors) and its multipliers
+  alpha_l = P_l y; every copy holds S = A_E' P (the vectors' images, (M+1)-vectors), y and gamma;
+* a round sends A_E,l' U_l for the new block U_l = diag(1/|a_i|^2) A_E,l,x s (s: last round's new
+  images; the first block: the preconditioned 1 and t, then g's image), U_l' r_l and P_l' r_l (r_l
+  = 1 - A_E,l v: its margins' residuals) and a verdict [ok, worst violation, residual];
+* every copy orthogonalises the new images on the shared S (the G inner product of two Krylov
+  vectors is the dot product of their images) and takes the exact Galerkin correction on the grown
+  span from the shared Gram S_x' S_x (a Cholesky solve, exactly rounded: the same bits on every
+  copy); the old columns' P' r makes it an iterative refinement too.
+
+Each robot then checks its own rows: E multipliers in [0, C] and margins 1 within EQ, B margins
+<= 1 + EQ, N margins >= 1 - EQ. All ok: every copy holds the certified optimum bit for bit and the
+fleet stops, as with the hard polish (`agents.admm._Polish`). A solved but violated set moves the
+fleet's single worst row (PDAS, one row a correction: all at once diverged in the replays); after CAP
+corrections, a fresh guess. Pure: no I/O, no clock; the ADMM runs on meanwhile, so a failed attempt
+costs bytes, not rounds.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from agents.admm import POLISH_EQ, _dots, _Endgame, _pairwise_sum, _spd_factor, _spd_solve
+from agents.rounds import from_bytes, to_bytes
+
+#: Krylov vectors per round: the frame carries BLOCK + 1 vectors of M + 1 floats (the last: P' r)
+BLOCK = 3
+#: single-row corrections per attempt before a fresh guess (replays: 2-8 needed, 8 reached 212 / 739)
+CAP = 8
+#: rounds one solve may take before its set is judged as it stands (solves took 10-13 rounds)
+SOLVE_ROUNDS = 40
+#: rounds of iterative refinement alone once the span is exhausted (castellated: 1 took 4e-9 to 2e-13)
+REFINE = 3
+#: a robot's verdict: E margins equal 1, B margins at most 1, N margins at least 1, within EQ (the hard polish's)
+EQ = POLISH_EQ
+#: the guess from a robot's own step multipliers: at the bound when >= (1 - GUESS) C, off when <= GUESS C
+GUESS = 1e-6
+#: a new Krylov vector is dropped when orthogonalisation leaves less than DROP of its image's norm
+DROP = 1e-8
+#: row labels
+N_ROW, E_ROW, B_ROW = 0, 1, 2
+_SCALARS = 3 + BLOCK  # ok, worst violation, residual; then U' r (or 1' U in a start round) per block vector
+
+
+def payload_size(dim: int) -> int:
+    """Floats of the end-game's part of a hub frame: the verdict and residual, BLOCK scalars, BLOCK
+    images A_E' u and one vector P' r (in a start round: g_l)."""
+    return _SCALARS + (BLOCK + 1) * dim
+
+
+class SoftEndgame(_Endgame):
+    """One robot's part of the soft end-game (module docstring). Drive it with `step` once a hub
+    round, after the robot's own step (`qp.multipliers` are that step's); `payload` goes into its
+    next frame."""
+
+    def __init__(self, qp: Any, ids: tuple[int, ...], me: int, C: float) -> None:
+        self.qp = qp
+        self.rows = qp._rows
+        self.ids = ids
+        self.me = me
+        self.C = float(C)
+        self.dim = self.rows.shape[1]
+        self.labels = np.zeros(len(self.rows), dtype=np.int8)
+        self.kind = "wait"  # wait (no multipliers yet), start, grow, done, off
+        self.payload = np.zeros(payload_size(self.dim))
+        self.prev_payload: np.ndarray | None = np.zeros(payload_size(self.dim))
+        self.result: np.ndarray | None = None
+        self.attempts = 0
+        self.corrections = 0
+        self._reset_solve()
+
+    # -- an attempt and its solves ---------------------------------------------------------------
+    def _reset_solve(self) -> None:
+        d = self.dim
+        n_e = int(np.count_nonzero(self.labels == E_ROW))
+        self.S = np.zeros((d, 0))  # shared: the Krylov vectors' images A_E' P, one column each
+        self.P = np.zeros((n_e, 0))  # own: those vectors on this robot's E rows
+        self.Pr = np.zeros(0)  # shared: P' r at the current solution (r: the E margins' residuals)
+        self.y = np.zeros(0)
+        self.mu = 0.0  # the offset gamma of the current solution
+        self.g = np.zeros(d)
+        self.v = np.zeros(d)
+        self.U = np.zeros((n_e, 0))  # own: the block sent this round (a column each)
+        self.sent = 0  # block vectors in the frame sent this round
+        self.solve_rounds = 0
+        self.refined = 0  # rounds of refinement alone (the span exhausted: no block sent)
+        self.move: tuple[int, int] | None = None  # this robot's worst row and its new label
+
+    def _size(self) -> int:
+        return payload_size(self.dim)
+
+    def guess(self) -> None:
+        """A fresh attempt from this robot's own step multipliers (none yet: wait)."""
+        lam = self.qp.multipliers
+        if lam is None or len(lam) != len(self.rows):
+            self._next(np.zeros(payload_size(self.dim)), "wait")
+            return
+        labels = np.full(len(self.rows), E_ROW, dtype=np.int8)
+        labels[lam >= (1.0 - GUESS) * self.C] = B_ROW
+        labels[lam <= GUESS * self.C] = N_ROW
+        self.labels = labels
+        self.attempts += 1
+        self.corrections = 0
+        self._start()
+
+    def _own_e(self) -> tuple[np.ndarray, np.ndarray]:
+        """This robot's E rows and their Jacobi weights 1 / |a_i,x|^2."""
+        A = self.rows[self.labels == E_ROW]
+        return A, 1.0 / np.maximum(np.einsum("ij,ij->i", A[:, :-1], A[:, :-1]), 1e-300)
+
+    def _start(self) -> None:
+        """A start round: g_l = C sum of its B rows, and the first block: the preconditioned 1 and t."""
+        self._reset_solve()
+        A, w = self._own_e()
+        self.U = np.column_stack([w, w * A[:, -1]]) if len(A) else np.zeros((0, 2))
+        out = np.zeros(payload_size(self.dim))
+        self._put_block(out, A, self.U.sum(axis=0))
+        out[-self.dim :] = self.C * self.rows[self.labels == B_ROW].sum(axis=0)
+        self._next(out, "start")
+
+    def _put_block(self, out: np.ndarray, A: np.ndarray, scalars: np.ndarray) -> None:
+        d, k = self.dim, self.U.shape[1]
+        self.sent = k
+        out[3 : 3 + k] = scalars
+        for j in range(k):
+            out[_SCALARS + j * d : _SCALARS + (j + 1) * d] = A.T @ self.U[:, j]
+
+    # -- one round ---------------------------------------------------------------------------------
+    def step(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
+        """Fold in the round's payloads (a row per robot in id order); the certified optimum once
+        every robot's verdict was ok, else None (and the next payload is set)."""
+        if self._idle():
+            return self.result
+        if self.kind == "wait":
+            self.guess()
+            return None
+        if not np.all(np.isfinite(payloads)):  # a bad payload fails the attempt on every copy alike
+            self.guess()
+            return None
+        d = self.dim
+        sums = _pairwise_sum(np.ascontiguousarray(payloads))
+        images = [sums[_SCALARS + j * d : _SCALARS + (j + 1) * d] for j in range(self.sent)]
+        if self.kind == "start":
+            self.g = sums[-d:].copy()
+            self.v = np.append(self.g[:-1], 0.0)
+            # U' r at v = (g_x, 0): 1' u - (A_x' u)' g_x, from the sums alone
+            ur = [float(sums[3 + j]) - float(_dots(s[:-1], self.g[:-1])) for j, s in enumerate(images)]
+            first = True
+        else:
+            if bool(np.all(payloads[:, 0] == 1.0)):  # every robot certified its rows: the optimum
+                self.result = self.v.copy()
+                self._next(np.zeros(payload_size(d)), "done")
+                return self.result
+            residual = float(payloads[:, 2].max())
+            self.refined = self.refined + 1 if self.sent == 0 else 0
+            if residual <= EQ or self.solve_rounds >= SOLVE_ROUNDS or self.refined > REFINE:
+                self._correct(payloads)  # solved (or as far as it goes) and violated: move a row
+                return None
+            self.Pr = sums[-d:][: self.S.shape[1]].copy()
+            ur = [float(sums[3 + j]) for j in range(self.sent)]
+            first = False
+        added = self._grow(images, ur)
+        if added is None:  # the reduced system is singular on this set: a fresh guess
+            self.guess()
+            return None
+        self._verdict(added, first)
+        return None
+
+    def _grow(self, images: list[np.ndarray], ur: list[float]) -> list[np.ndarray] | None:
+        """Orthogonalise the new images on S (twice), append them, and take the Galerkin correction on
+        the grown span; the images added (None when the small system is not solvable)."""
+        added = []
+        for j, s in enumerate(images):
+            s, u, r = s.copy(), self.U[:, j].copy(), ur[j]
+            norm0 = math.sqrt(float(_dots(s[:-1], s[:-1])))
+            for _ in range(2):
+                if self.S.shape[1]:
+                    c = _dots(self.S[:-1].T, s[:-1])
+                    s = s - _dots(self.S, c)
+                    u = u - self.P @ c
+                    r = r - float(_dots(self.Pr, c))
+            norm = math.sqrt(float(_dots(s[:-1], s[:-1])))
+            if not norm > DROP * norm0:
+                continue
+            self.S = np.column_stack([self.S, s / norm])
+            self.P = np.column_stack([self.P, u / norm])
+            self.Pr = np.append(self.Pr, r / norm)
+            self.y = np.append(self.y, 0.0)
+            added.append(self.S[:, -1])
+        if self.S.shape[1] == 0:
+            return None
+        Sx, h = self.S[:-1], self.S[-1]
+        gram = _dots(Sx.T[:, None, :], Sx.T[None, :, :])
+        try:
+            factor = _spd_factor(gram)
+        except np.linalg.LinAlgError:
+            return None
+        z1, z2 = _spd_solve(factor, self.Pr), _spd_solve(factor, h)
+        hz2 = float(_dots(h, z2))
+        if not abs(hz2) > 0:
+            return None
+        rho = -self.g[-1] - float(_dots(h, self.y))  # t' alpha + g_gamma must vanish
+        dmu = (float(_dots(h, z1)) - rho) / hz2
+        self.y = self.y + (z1 - dmu * z2)
+        self.mu = self.mu + dmu
+        self.v = np.append(self.g[:-1] + _dots(Sx, self.y), self.mu)
+        return added
+
+    def _verdict(self, added: list[np.ndarray], first: bool) -> None:
+        """This robot's check of its own rows at the new solution, its worst violation, and the next
+        frame: the verdict, the next block (images of the new vectors; the first also g's) and P' r."""
+        C, d = self.C, self.dim
+        A, w = self._own_e()
+        e_rows = np.flatnonzero(self.labels == E_ROW)
+        alpha = self.P @ self.y if len(e_rows) else np.zeros(0)
+        m = self.rows @ self.v
+        r = 1.0 - m[e_rows]
+        residual = float(np.abs(r).max()) if len(r) else 0.0
+        worst, self.move = 0.0, None
+        for i, a in zip(e_rows, alpha):
+            for value, label in ((-a / C, N_ROW), ((a - C) / C, B_ROW)):
+                if value > worst:
+                    worst, self.move = value, (int(i), label)
+        for label, sign, new in ((B_ROW, 1.0, E_ROW), (N_ROW, -1.0, E_ROW)):
+            idx = np.flatnonzero(self.labels == label)
+            if len(idx):
+                viol = sign * (m[idx] - 1.0)
+                k = int(np.argmax(viol))
+                if viol[k] > EQ and viol[k] > worst:
+                    worst, self.move = float(viol[k]), (int(idx[k]), new)
+        ok = residual <= EQ and worst == 0.0
+        blocks = [w * (A[:, :-1] @ s[:-1]) for s in added]
+        if first:
+            blocks.append(w * (A[:, :-1] @ self.g[:-1]))
+        self.U = np.column_stack(blocks[:BLOCK]) if blocks else np.zeros((len(A), 0))
+        out = np.zeros(payload_size(d))
+        out[:3] = [1.0 if ok else 0.0, worst, residual]
+        self._put_block(out, A, self.U.T @ r if self.U.size else np.zeros(self.U.shape[1]))
+        out[-d:][: self.P.shape[1]] = self.P.T @ r if len(e_rows) else 0.0
+        self.solve_rounds += 1
+        self._next(out, "grow")
+
+    def _correct(self, payloads: np.ndarray) -> None:
+        """The fleet's single worst row changes sides (its owner moves it); after CAP corrections, or
+        with nothing to move, a fresh guess."""
+        worst = payloads[:, 1]
+        k = int(np.argmax(worst))  # ties: the lowest id
+        if not worst[k] > 0.0 or self.corrections >= CAP:
+            self.guess()
+            return
+        self.corrections += 1
+        if self.ids[k] == self.me and self.move is not None:
+            self.labels[self.move[0]] = self.move[1]
+        self._start()
+
+    # -- checkpoints -------------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        return {
+            "labels": self.labels.tolist(), "kind": self.kind, "attempts": self.attempts,
+            "corrections": self.corrections, "payload": to_bytes(self.payload),
+            "prev_payload": to_bytes(self.prev_payload), "result": to_bytes(self.result),
+            "S": to_bytes(self.S.ravel()), "P": to_bytes(self.P.ravel()), "P_cols": self.P.shape[1],
+            "Pr": to_bytes(self.Pr), "y": to_bytes(self.y), "mu": self.mu, "g": to_bytes(self.g),
+            "v": to_bytes(self.v), "U": to_bytes(self.U.ravel()), "U_cols": self.U.shape[1], "sent": self.sent,
+            "solve_rounds": self.solve_rounds, "refined": self.refined, "move": None if self.move is None else list(self.move),
+        }
+
+    def load(self, state: dict[str, Any]) -> None:
+        def arr(key: str) -> np.ndarray:
+            a = from_bytes(state[key])
+            return np.zeros(0) if a is None else a
+
+        self.labels = np.array(state["labels"], dtype=np.int8)
+        self.kind, self.attempts, self.corrections = state["kind"], int(state["attempts"]), int(state["corrections"])
+        self.payload, self.prev_payload = from_bytes(state["payload"]), from_bytes(state["prev_payload"])
+        self.result = from_bytes(state["result"])
+        self.S = arr("S").reshape(self.dim, -1)
+        n_e = int(np.sum(self.labels == E_ROW))
+        self.P = arr("P").reshape(n_e, int(state["P_cols"]))
+        self.Pr, self.y, self.mu = arr("Pr"), arr("y"), float(state["mu"])
+        self.g, self.v = arr("g"), arr("v")
+        self.U = arr("U").reshape(n_e, int(state["U_cols"]))
+        self.sent, self.solve_rounds, self.refined = int(state["sent"]), int(state["solve_rounds"]), int(state["refined"])
+        self.move = None if state["move"] is None else (int(state["move"][0]), int(state["move"][1]))
