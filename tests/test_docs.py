@@ -335,3 +335,13 @@ def test_an_undocumented_result_key_is_reported():
     schema = "| `converged` | bool |\n| `id` | robot id |\n`metrics`: `iou`"
     result = {"converged": True, "robots": [{"id": 0, "warp": 1}], "metrics": {"iou": 0.9, "speed": 2}}
     assert undocumented_keys(result, schema) == ["metrics.speed", "robots[].warp", "top.robots"]
+
+
+def test_the_checkpoint_format_names_the_current_version():
+    """docs/robot.md spells the checkpoint map's "v"; a version bump must update it (it said 4 at version 5)."""
+    import re
+
+    from agents.robot import CHECKPOINT_VERSION
+
+    text = (ROOT / "docs" / "robot.md").read_text()
+    assert re.findall(r'\{"v": (\d+),', text) == [str(CHECKPOINT_VERSION)]
