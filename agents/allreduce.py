@@ -28,7 +28,7 @@ No I/O, no clock: the caller feeds every neighbour's frame of the current round 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -189,34 +189,42 @@ def _graph_key(graph: Mapping[int, Sequence[int]]) -> tuple[tuple[int, tuple[int
     return tuple(sorted((int(i), n if isinstance(n, tuple) else tuple(n)) for i, n in graph.items()))
 
 
-@lru_cache(maxsize=2)
-def _layout(key: tuple[tuple[int, tuple[int, ...]], ...]) -> _Layout:
-    """Hop distances between all robots (one breadth-first search per robot, vectorized over each
-    shell) and each robot's spheres in id order; ValueError as :func:`check_graph`."""
-    graph = {i: tuple(int(j) for j in n) for i, n in key}
-    check_graph(graph)
-    ids = tuple(i for i, _ in key)
+def hop_rows(graph: Mapping[int, Sequence[int]]) -> Iterator[tuple[int, np.ndarray]]:
+    """(robot, its hops to every robot in ascending id order, -1 where unreachable), robot by robot
+    in ascending id order: one breadth-first search each, vectorized over each shell (numpy)."""
+    ids = sorted(int(i) for i in graph)
     index = {r: a for a, r in enumerate(ids)}
     n = len(ids)
-    near = [np.fromiter((index[j] for j in graph[i]), dtype=np.intp, count=len(graph[i])) for i in ids]
+    near = [np.fromiter((index[int(j)] for j in graph[i]), dtype=np.intp, count=len(graph[i])) for i in ids]
     degree = np.fromiter((len(x) for x in near), dtype=np.intp, count=n)
     starts = np.concatenate(([0], np.cumsum(degree)))
     flat = np.concatenate(near) if n else np.zeros(0, dtype=np.intp)
-    dist = np.full((n, n), -1, dtype=np.int32)
     for a in range(n):
-        row = dist[a]
+        row = np.full(n, -1, dtype=np.int32)
         row[a] = 0
         shell, hops = np.array([a]), 0
         while len(shell):
             hops += 1
             lengths = degree[shell]
             offsets = np.repeat(starts[shell] - np.concatenate(([0], np.cumsum(lengths)[:-1])), lengths)
-            reached = flat[offsets + np.arange(int(lengths.sum()))]
             fresh = np.zeros(n, dtype=bool)
-            fresh[reached] = True
+            fresh[flat[offsets + np.arange(int(lengths.sum()))]] = True
             fresh &= row < 0
             shell = np.flatnonzero(fresh)
             row[shell] = hops
+        yield ids[a], row
+
+
+@lru_cache(maxsize=2)
+def _layout(key: tuple[tuple[int, tuple[int, ...]], ...]) -> _Layout:
+    """Hop distances between all robots (:func:`hop_rows`) and each robot's spheres in id order;
+    ValueError as :func:`check_graph`."""
+    graph = {i: tuple(int(j) for j in n) for i, n in key}
+    check_graph(graph)
+    ids = tuple(i for i, _ in key)
+    index = {r: a for a, r in enumerate(ids)}
+    n = len(ids)
+    dist = np.stack([row for _, row in hop_rows(graph)]) if n else np.zeros((0, 0), dtype=np.int32)
     diameter = int(dist.max()) if n else 0
     order = np.argsort(dist, axis=1, kind="stable")  # by hops, then by id (ids ascending)
     counts = np.stack([np.bincount(row, minlength=diameter + 1) for row in dist]) if n else np.zeros((0, 1), int)
