@@ -12,15 +12,12 @@ from agents.robot import CHECKPOINT_VERSION
 from launcher import cli
 from launcher.scenario import ScenarioError, load_data_csv
 
+from .conftest import cli_exit_and_stderr
+
 
 def _exit_and_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
     """(exit code, the last stderr line) of ``shapefleet argv`` run in this process."""
-    try:
-        code = cli.main(argv)
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert "Traceback" not in "\n".join(err)
+    code, err = cli_exit_and_stderr(argv, capsys)
     return code, err[-1] if err else ""
 
 

@@ -13,25 +13,16 @@ from launcher import cli, fleet
 from launcher import simulate as sim
 from launcher.world import Options, resolve_options
 
+from .conftest import cli_exit_and_stderr
+
 PAPER = ["--preset", "paper"]
-
-
-def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, list[str]]:
-    """(exit code, stderr lines) of ``shapefleet argv`` in this process."""
-    try:
-        code = cli.main(argv)
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert "Traceback" not in "\n".join(err)
-    return code, err
 
 
 def _no_world(*_args, **_kwargs):
     raise AssertionError("the world was built: the refusal must come before anything is allocated")
 
 
-def _paper_run() -> dict[str, int]:
+def _papercli_exit_and_stderr() -> dict[str, int]:
     """The round cap and grid points of `simulate --preset paper` (what its bound counts)."""
     rounds, grid_points = cli._rounds_and_grid(resolve_options(Options(preset="paper")))
     return {"rounds": rounds, "grid_points": grid_points}
@@ -39,7 +30,7 @@ def _paper_run() -> dict[str, int]:
 
 def _memory(monkeypatch: pytest.MonkeyPatch, robots: int) -> None:
     """This machine as one whose available memory holds exactly `robots` robots of the paper's run."""
-    need = sim.simulate_memory_mb(robots, "complete", "admm", **_paper_run()) / sim.SIMULATE_MEMORY_SHARE
+    need = sim.simulate_memory_mb(robots, "complete", "admm", **_papercli_exit_and_stderr()) / sim.SIMULATE_MEMORY_SHARE
     monkeypatch.setattr(fleet, "_available_memory_mb", lambda: need)
 
 
@@ -50,8 +41,8 @@ def test_a_fleet_past_the_memory_is_refused_before_the_world_is_built(sync, tmp_
     monkeypatch.setattr(cli, "build_world", _no_world)
     monkeypatch.setattr(fleet, "_available_memory_mb", lambda: 24000.0)  # the audit's machine, fixed
     out = tmp_path / "run"
-    code, err = _run(["simulate", *PAPER, "--robots", "100000", "--sync", sync, "--out", str(out)], capsys)
-    bound, why = sim.simulate_max_robots("complete", "admm", **_paper_run())
+    code, err = cli_exit_and_stderr(["simulate", *PAPER, "--robots", "100000", "--sync", sync, "--out", str(out)], capsys)
+    bound, why = sim.simulate_max_robots("complete", "admm", **_papercli_exit_and_stderr())
     assert code == 2 and len(err) == 1, err
     assert err[0].startswith("shapefleet: error: --robots: 100000 robots is more than simulate holds")
     assert f"({bound}: {why})" in err[0] and "24000 MB available" in err[0] and "--max-robots 100000" in err[0]
@@ -88,14 +79,14 @@ def test_max_robots_overrides_the_bound_and_the_run_goes_on(tmp_path, capsys, mo
     """On a machine that holds 4 robots, 5 are refused naming the bound 4; with --max-robots 5 the same
     run is made (the option launch reads too), and its result is the fleet's."""
     _memory(monkeypatch, 4)
-    code, err = _run(["simulate", *PAPER, "--robots", "5", "--out", str(tmp_path / "refused")], capsys)
+    code, err = cli_exit_and_stderr(["simulate", *PAPER, "--robots", "5", "--out", str(tmp_path / "refused")], capsys)
     assert code == 2 and len(err) == 1 and "--robots: 5 robots" in err[0] and "(4: " in err[0], err
     assert not (tmp_path / "refused").exists()
     out = tmp_path / "run"
-    code, err = _run(["simulate", *PAPER, "--robots", "5", "--max-robots", "5", "--out", str(out)], capsys)
+    code, err = cli_exit_and_stderr(["simulate", *PAPER, "--robots", "5", "--max-robots", "5", "--out", str(out)], capsys)
     result = json.loads((out / "result.json").read_text())
     assert code == 0 and result["converged"] and len(result["robots"]) == 5, err
-    code, err = _run(["simulate", *PAPER, "--robots", "6", "--max-robots", "5", "--out", str(tmp_path / "six")], capsys)
+    code, err = cli_exit_and_stderr(["simulate", *PAPER, "--robots", "6", "--max-robots", "5", "--out", str(tmp_path / "six")], capsys)
     assert code == 2 and "(5: --max-robots)" in err[0] and "--max-robots 6" in err[0]
 
 
@@ -106,7 +97,7 @@ def test_the_bound_counts_the_robots_of_a_data_file(tmp_path, capsys, monkeypatc
     data = tmp_path / "data.csv"
     rows = [f"{r},{x},{y},{label}" for r in range(4) for x, y, label in ((r, 0.0, -1), (r, 9.0, 1))]
     data.write_text("robot,x,y,label\n" + "\n".join(rows) + "\n")
-    code, err = _run(["simulate", *PAPER, "--data", str(data), "--out", str(tmp_path / "run")], capsys)
+    code, err = cli_exit_and_stderr(["simulate", *PAPER, "--data", str(data), "--out", str(tmp_path / "run")], capsys)
     assert code == 2 and "--robots: 4 robots" in err[0] and "(3: " in err[0], err
 
 
