@@ -171,7 +171,10 @@ def _rounds_and_grid(options: Options) -> tuple[int, int]:
     algorithm = options.algorithm
     if algorithm not in PARAMS_CLASSES:  # a user's fleet algorithm: admm's cap, the grid given
         algorithm = "admm"
-    params = PARAMS_CLASSES[algorithm].from_params(algorithm_params(options, algorithm, diameter=1))
+    try:
+        params = PARAMS_CLASSES[algorithm].from_params(algorithm_params(options, algorithm, diameter=1))
+    except ValueError:  # e.g. a --ct-period that is no whole number of steps: build_world says so, by its flag
+        params = PARAMS_CLASSES[algorithm]()
     if algorithm == "autogrid":
         return int(params.planned_rounds), int(params.max_points)
     rounds = int(params.rounds if algorithm == "ct-admm" else params.max_rounds)
