@@ -28,8 +28,9 @@ No I/O, no clock: the caller feeds every neighbour's frame of the current round 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -128,31 +129,39 @@ class ReducePlan:
 
     @classmethod
     def build(cls, graph: Mapping[int, Sequence[int]], robot: int, schedule: str = "gather") -> ReducePlan:
-        """The plan of `robot`, from every robot's neighbour list."""
+        """The plan of `robot`, from every robot's neighbour list.
+
+        The fleet-wide part (hop distances, spheres) is computed once per graph and shared by
+        every robot's plan built in the same process (:func:`_layout`): per robot it was all-pairs
+        breadth-first search and spheres found by scanning every robot per hop count, O(N^2 D)
+        per robot, a minute for a 200-robot ring (benchmarks/results/simulate_cost.md)."""
         if schedule not in SCHEDULES:
             raise ValueError(f"all-reduce schedule must be gather or tree, got {schedule!r}")
-        graph = {int(i): tuple(int(j) for j in n) for i, n in graph.items()}
-        if robot not in graph:
+        lay = _layout(_graph_key(graph))
+        if robot not in lay.index:
             raise ValueError(f"robot {robot} is not in the communication graph")
-        check_graph(graph)
-        ids = tuple(sorted(graph))
-        dist = {i: _bfs(graph, i)[0] for i in ids}
-        diameter = max(max(d.values()) for d in dist.values())
-        if schedule == "gather" or diameter <= 1:
-            rounds = max(diameter, 1)
-            spheres = {i: [tuple(k for k in ids if dist[i][k] == r) for r in range(rounds)] for i in ids}
-            slots = max(len(sp) for i in ids for sp in spheres[i])
+        ids, me = lay.ids, lay.index[robot]
+        if schedule == "gather" or lay.diameter <= 1:
+            rounds = max(lay.diameter, 1)
+            ranked = np.asarray(ids)
+            mine = lay.dist[me]
+            sends = tuple(tuple(ranked[mine == r].tolist()) for r in range(rounds))
+            near = np.asarray(sorted(lay.index[int(j)] for j in lay.graph[robot]), dtype=np.intp)
             learns = []
             for r in range(rounds):
-                row = []
-                for k in ids:
-                    if dist[robot][k] == r + 1:
-                        i = min(j for j in graph[robot] if dist[j][k] == r)
-                        row.append((k, i, spheres[i][r].index(k)))
-                learns.append(tuple(row))
-            return cls(robot, ids, "gather", slots, rounds, sends=tuple(spheres[robot]), learns=tuple(learns))
-        ecc = {i: max(dist[i].values()) for i in ids}
-        root = min(ids, key=lambda i: (ecc[i], i))
+                ks = np.flatnonzero(mine == r + 1)  # in id order
+                if not len(ks):
+                    learns.append(())
+                    continue
+                # the lowest-id neighbour i with k at r hops from it (neighbours in id order), and k's slot in
+                # i's frame: its place among the robots r hops from i, in id order
+                via = near[np.argmax(lay.dist[np.ix_(near, ks)] == r, axis=0)]
+                learns.append(tuple(zip(ranked[ks].tolist(), ranked[via].tolist(), lay.rank[via, ks].tolist())))
+            slots = int(lay.counts[:, :rounds].max())
+            return cls(robot, ids, "gather", slots, rounds, sends=sends, learns=tuple(learns))
+        graph = lay.graph
+        ecc = lay.dist.max(axis=1)
+        root = ids[int(np.argmin(ecc))]  # least eccentricity, ties -> lowest id (ids ascending)
         depth, parent = _bfs(graph, root)
         height = max(depth.values())
         children = tuple(sorted(j for j, p in parent.items() if p == robot))
@@ -160,6 +169,70 @@ class ReducePlan:
             robot, ids, "tree", 1, 2 * height,
             root=root, parent=parent[robot], children=children, depth=depth[robot], height=height,
         )
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What every robot's plan shares: the graph, robots by index (ids ascending), hop distances."""
+
+    graph: dict[int, tuple[int, ...]]
+    ids: tuple[int, ...]
+    index: dict[int, int]
+    dist: np.ndarray  # dist[a, b]: hops between robots ids[a] and ids[b]
+    rank: np.ndarray  # rank[a, b]: ids[b]'s place among the robots dist[a, b] hops from ids[a], in id order
+    counts: np.ndarray  # counts[a, r]: robots r hops from ids[a]
+    diameter: int
+
+
+def _graph_key(graph: Mapping[int, Sequence[int]]) -> tuple[tuple[int, tuple[int, ...]], ...]:
+    """The graph as a hashable key (neighbour tuples are kept as given: no per-robot copy of E entries)."""
+    return tuple(sorted((int(i), n if isinstance(n, tuple) else tuple(n)) for i, n in graph.items()))
+
+
+def hop_rows(graph: Mapping[int, Sequence[int]]) -> Iterator[tuple[int, np.ndarray]]:
+    """(robot, its hops to every robot in ascending id order, -1 where unreachable), robot by robot
+    in ascending id order: one breadth-first search each, vectorized over each shell (numpy)."""
+    ids = sorted(int(i) for i in graph)
+    index = {r: a for a, r in enumerate(ids)}
+    n = len(ids)
+    near = [np.fromiter((index[int(j)] for j in graph[i]), dtype=np.intp, count=len(graph[i])) for i in ids]
+    degree = np.fromiter((len(x) for x in near), dtype=np.intp, count=n)
+    starts = np.concatenate(([0], np.cumsum(degree)))
+    flat = np.concatenate(near) if n else np.zeros(0, dtype=np.intp)
+    for a in range(n):
+        row = np.full(n, -1, dtype=np.int32)
+        row[a] = 0
+        shell, hops = np.array([a]), 0
+        while len(shell):
+            hops += 1
+            lengths = degree[shell]
+            offsets = np.repeat(starts[shell] - np.concatenate(([0], np.cumsum(lengths)[:-1])), lengths)
+            fresh = np.zeros(n, dtype=bool)
+            fresh[flat[offsets + np.arange(int(lengths.sum()))]] = True
+            fresh &= row < 0
+            shell = np.flatnonzero(fresh)
+            row[shell] = hops
+        yield ids[a], row
+
+
+@lru_cache(maxsize=2)
+def _layout(key: tuple[tuple[int, tuple[int, ...]], ...]) -> _Layout:
+    """Hop distances between all robots (:func:`hop_rows`) and each robot's spheres in id order;
+    ValueError as :func:`check_graph`."""
+    graph = {i: tuple(int(j) for j in n) for i, n in key}
+    check_graph(graph)
+    ids = tuple(i for i, _ in key)
+    index = {r: a for a, r in enumerate(ids)}
+    n = len(ids)
+    dist = np.stack([row for _, row in hop_rows(graph)]) if n else np.zeros((0, 0), dtype=np.int32)
+    diameter = int(dist.max()) if n else 0
+    order = np.argsort(dist, axis=1, kind="stable")  # by hops, then by id (ids ascending)
+    counts = np.stack([np.bincount(row, minlength=diameter + 1) for row in dist]) if n else np.zeros((0, 1), int)
+    first = np.concatenate((np.zeros((n, 1), dtype=np.intp), np.cumsum(counts, axis=1)[:, :-1]), axis=1)
+    rank = np.empty((n, n), dtype=np.int32)
+    rows = np.arange(n)[:, None]
+    rank[rows, order] = np.arange(n)[None, :] - np.take_along_axis(first, np.take_along_axis(dist, order, 1), 1)
+    return _Layout(graph, ids, index, dist, rank, counts, diameter)
 
 
 def frame_slots(graph: Mapping[int, Sequence[int]], schedule: str = "gather") -> int:

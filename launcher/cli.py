@@ -143,6 +143,47 @@ def _robots_bound(args: argparse.Namespace) -> None:
                          f"({bound}: {why}); use fewer, or --max-robots {args.robots} to insist")
 
 
+def _simulate_bound(args: argparse.Namespace, options: Options) -> None:
+    """--robots within what the in-process fleet holds in this machine's memory
+    (launcher/simulate.py simulate_max_robots), unless --max-robots says more: checked before the
+    world is built, so a fleet too large is refused before anything big is allocated."""
+    from launcher.simulate import simulate_max_robots
+    from launcher.world import resolve_options
+
+    robots = options.robots if options.data is None else len(scenario.load_data_csv(options.data))
+    if args.max_robots is not None:
+        bound, why = args.max_robots, "--max-robots"
+    else:
+        resolved = resolve_options(options)
+        rounds, grid_points = _rounds_and_grid(resolved)
+        bound, why = simulate_max_robots(options.topology, resolved.algorithm, rounds=rounds, grid_points=grid_points)
+    if bound is not None and robots > bound:
+        raise UsageError(f"--robots: {robots} robots is more than simulate holds in this machine's memory "
+                         f"({bound}: {why}); use fewer, or --max-robots {robots} to insist")
+
+
+def _rounds_and_grid(options: Options) -> tuple[int, int]:
+    """The run's round cap (autogrid: its planned rounds) and grid points (autogrid: its budget),
+    from the options alone (the memory bound is checked before the world exists)."""
+    from agents.spec import PARAMS_CLASSES
+    from launcher.options import algorithm_params
+
+    algorithm = options.algorithm
+    if algorithm not in PARAMS_CLASSES:  # a user's fleet algorithm: admm's cap, the grid given
+        algorithm = "admm"
+    try:
+        params = PARAMS_CLASSES[algorithm].from_params(algorithm_params(options, algorithm, diameter=1))
+    except ValueError:  # e.g. a --ct-period that is no whole number of steps: build_world says so, by its flag
+        params = PARAMS_CLASSES[algorithm]()
+    if algorithm == "autogrid":
+        return int(params.planned_rounds), int(params.max_points)
+    rounds = int(params.rounds if algorithm == "ct-admm" else params.max_rounds)
+    if options.grid is None:
+        return rounds, 0
+    nx, ny = scenario.parse_grid(options.grid)
+    return rounds, nx * ny
+
+
 def _out_dir(args: argparse.Namespace, mode: str) -> Path:
     if args.out:
         out = Path(args.out)
@@ -398,7 +439,9 @@ def run_simulate(args: argparse.Namespace, *, quiet: bool = False) -> RunReport:
         return _simulate_free(args, quiet=quiet)
     crashes = _crash_plan(args)
     t0 = time.perf_counter()
-    out, world, spec, central = _prepare(args, "simulate", check=_crash_check(crashes))
+    options = _options(args)
+    _simulate_bound(args, options)
+    out, world, spec, central = _prepare(args, "simulate", options=options, check=_crash_check(crashes))
     if central is not None and not central.solved:
         _infeasible(out, world, spec, central)
     with Progress(
@@ -479,7 +522,9 @@ def _simulate_free(args: argparse.Namespace, *, quiet: bool = False) -> RunRepor
     from launcher.simulate import FleetFailure, simulate_free
 
     t0 = time.perf_counter()
-    out, world, spec, central = _prepare(args, "simulate", check=_free_check(args))
+    options = _options(args)
+    _simulate_bound(args, options)
+    out, world, spec, central = _prepare(args, "simulate", options=options, check=_free_check(args))
     if not central.solved:
         _infeasible(out, world, spec, central)
     console = Console(stderr=True, quiet=quiet)

@@ -505,9 +505,10 @@ OPTIONS: tuple[Option, ...] = (
            group=PROCESSES, commands=CRASH_COMMANDS, section="launch", target=None, show_default=False),
     Option("zenoh-port", INT, None, "the router's loopback port (default: a free one)", group=PROCESSES,
            commands=("launch",), section="launch", check=_port, target=None),
-    Option("max-robots", INT, None, "allow up to N robots (default: derived from this machine's "
-           "cores and memory)", group=PROCESSES, commands=("launch",), section="launch", metavar="N",
-           check=at_least(1), target=None),
+    Option("max-robots", INT, None, "allow up to N robots (default: derived from this machine's memory, and for "
+           "launch its cores; simulate: from the measured memory per robot of the topology and algorithm)",
+           group=PROCESSES, commands=("simulate", "launch"), section="launch", metavar="N", check=at_least(1),
+           target=None),
     Option("robots-per-process", STR, "auto", "robots run as asyncio tasks of one process, each with its own "
            "Zenoh session and key; auto: one process per robot when they fit the cores (or twice the cores, evenly), "
            "up to 4 robots in one process when they outnumber the cores, else one process per core "

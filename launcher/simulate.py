@@ -33,7 +33,7 @@ from agents.pdmm import FREE_ALGORITHMS, build_free_core  # noqa: F401 - the fre
 from agents.problem import InfeasibleError, SolverError
 from agents.spec import FleetSpec, build_core, restore_core
 from protocol.links import LinkLayer
-from protocol.session import BROADCAST, RobotSession
+from protocol.session import BROADCAST, DEDUP_WINDOW, RobotSession
 
 ProgressFn = Callable[[int, float], None]
 FAILED = ("solver_error", "diverged")
@@ -79,6 +79,94 @@ class _Crashes:
     def not_fired(self) -> None:
         for rid, plans in self.plans.items():
             self.log += [{"robot": rid, "planned_round": r, "fired": False} for r in plans]
+
+
+@dataclass(frozen=True)
+class MemoryFit:
+    """One algorithm's memory in `simulate`, per robot (fitted from above on measured peaks)."""
+
+    robot_mb: float  # each robot: its core, session, data, result row
+    # each robot and neighbour: keyed hashers (protocol/auth.py, ~1 kB), per-peer session state, the
+    # in-process link (N^2 of them on a complete graph), the frames' tags (one per receiver) ...
+    link_kb: float
+    # ... and per round, up to DEDUP_WINDOW rounds: the session's dedup window of that sender's frames
+    # (protocol/session.py _SeenFrames: two dicts of up to 256 entries, ~30 kB per robot and neighbour)
+    link_round_kb: float
+    round_kb: float  # each robot and round: the trace it keeps for result.json (a fixed part ...
+    round_kb_per_number: float  # ... and per number of the grid, M + 1: the values it records)
+
+
+#: `simulate`'s peak memory -- the whole command: world, exact reference, sessions, rounds, report --
+#: measured by benchmarks/simulate_scale.py (results/simulate_cost.md) and fitted from above:
+#:     MB = SIMULATE_BASE_MB + N (robot_mb + degree (link_kb + link_round_kb min(rounds, DEDUP_WINDOW)) / 1000
+#:                                 + rounds (round_kb + round_kb_per_number (M + 1)) / 1000)
+#: degree the neighbours per robot, rounds the run's cap (autogrid: its planned rounds), M the grid points
+#: (autogrid: its budget). On a complete graph the degree term grows as N^2: the bound's main term.
+SIMULATE_BASE_MB = 130.0
+SIMULATE_MEMORY = {
+    "admm": MemoryFit(robot_mb=1.2, link_kb=3.6, link_round_kb=0.12, round_kb=2.0, round_kb_per_number=0.055),
+    "ct-admm": MemoryFit(robot_mb=1.2, link_kb=3.6, link_round_kb=0.12, round_kb=2.0, round_kb_per_number=0.065),
+    "newton": MemoryFit(robot_mb=1.2, link_kb=3.6, link_round_kb=0.12, round_kb=2.5, round_kb_per_number=0.25),
+    "autogrid": MemoryFit(robot_mb=4.0, link_kb=3.6, link_round_kb=0.12, round_kb=2.0, round_kb_per_number=0.055),
+}
+#: the share of the available memory a run may take (as `launch`'s max_robots: half)
+SIMULATE_MEMORY_SHARE = 0.5
+
+
+def _memory_fit(algorithm: str) -> MemoryFit:
+    """The algorithm's fit; a user's fleet algorithm gets the dearest of each term."""
+    if algorithm in SIMULATE_MEMORY:
+        return SIMULATE_MEMORY[algorithm]
+    fits = SIMULATE_MEMORY.values()
+    return MemoryFit(*(max(getattr(f, name) for f in fits) for name in MemoryFit.__dataclass_fields__))
+
+
+def simulate_degree(topology: str, n_robots: int) -> int:
+    """Neighbours per robot the memory bound counts: a geometric graph as a complete one (at a fixed
+    --comm-range its degree grows with N, and the bound is checked before the graph is built)."""
+    return min(2, n_robots - 1) if topology in ("ring", "line") else max(n_robots - 1, 0)
+
+
+def simulate_memory_mb(n_robots: int, topology: str, algorithm: str, *, rounds: int, grid_points: int) -> float:
+    """The fitted peak MB of `simulate` with this many robots (SIMULATE_MEMORY's formula)."""
+    fit = _memory_fit(algorithm)
+    per_link_mb = (fit.link_kb + fit.link_round_kb * min(rounds, DEDUP_WINDOW)) / 1000.0
+    per_round_mb = (fit.round_kb + fit.round_kb_per_number * (grid_points + 1)) / 1000.0
+    per_robot = fit.robot_mb + per_link_mb * simulate_degree(topology, n_robots) + rounds * per_round_mb
+    return SIMULATE_BASE_MB + n_robots * per_robot
+
+
+def simulate_max_robots(topology: str, algorithm: str, *, rounds: int, grid_points: int,
+                        available_mb: float | None = None) -> tuple[int | None, str]:
+    """How many robots `simulate` holds in this machine's memory, and why (None: memory unknown).
+
+    The largest N (at least 1) whose fitted peak (``simulate_memory_mb``) is within
+    SIMULATE_MEMORY_SHARE of the available memory (/proc/meminfo's MemAvailable unless given)."""
+    if available_mb is None:
+        from launcher.fleet import _available_memory_mb  # (lazy: fleet imports this module)
+
+        available_mb = _available_memory_mb()
+    if available_mb is None:
+        return None, "available memory unknown"
+    budget = SIMULATE_MEMORY_SHARE * available_mb
+
+    def fits(n: int) -> bool:
+        return simulate_memory_mb(n, topology, algorithm, rounds=rounds, grid_points=grid_points) <= budget
+
+    low, high = 1, 2
+    while fits(high) and high < 2**40:
+        low, high = high, 2 * high
+    while high - low > 1:  # the fitted peak grows with N: the last N within the budget
+        mid = (low + high) // 2
+        low, high = (mid, high) if fits(mid) else (low, mid)
+    fit = _memory_fit(algorithm)
+    per_link = fit.link_kb + fit.link_round_kb * min(rounds, DEDUP_WINDOW)
+    links = f" + {per_link:.3g} kB per robot and neighbour ({'2' if topology in ('ring', 'line') else 'all the others'})"
+    per_round = fit.round_kb + fit.round_kb_per_number * (grid_points + 1)
+    why = (f"{SIMULATE_MEMORY_SHARE:g} x {available_mb:.0f} MB available, at {SIMULATE_BASE_MB:g} MB + {fit.robot_mb:g} MB "
+           f"per robot{links} + {per_round:.2g} kB per robot and round, {rounds} rounds: {algorithm}'s fit in "
+           "benchmarks/results/simulate_cost.md")
+    return low, why
 
 
 class DeadlockError(RuntimeError):

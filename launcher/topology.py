@@ -203,24 +203,27 @@ def neighbours(graph: nx.Graph | Mapping[int, Iterable[int]]) -> dict[int, tuple
     return {int(node): tuple(sorted(int(n) for n in adjacency[node])) for node in sorted(adjacency)}
 
 
-def diameter(graph: nx.Graph | Mapping[int, Iterable[int]]) -> int:
-    """Most hops between any two robots: how many rounds information needs to cross the fleet."""
+def diameter(graph: nx.Graph | Mapping[int, Iterable[int]], *, beyond: int | None = None) -> int:
+    """Most hops between any two robots: how many rounds information needs to cross the fleet.
+
+    ``beyond``: stop at the first robot whose eccentricity exceeds it and return that eccentricity
+    (then only "more than ``beyond``" is exact): a check against a limit refuses a wide sparse
+    graph after one breadth-first search instead of one per robot (N of them: minutes at 10^4)."""
+    from agents.allreduce import hop_rows  # one vectorized search per robot (geometric 400: 5.5 s -> 0.3 s)
+
     adjacency = _adjacency_of(graph)
     if not adjacency or len(components(adjacency)) > 1:
         raise TopologyError("the diameter of a disconnected graph is unbounded")
-    return max(_eccentricity(adjacency, start) for start in adjacency)
+    widest = 0
+    for _, hops in hop_rows(adjacency):
+        widest = max(widest, int(hops.max()))
+        if beyond is not None and widest > beyond:
+            break
+    return widest
 
 
-def _eccentricity(adjacency: Mapping[int, list[int]], start: int) -> int:
-    """Hops from `start` to the robot farthest from it (breadth-first)."""
-    hops = {start: 0}
-    frontier = [start]
-    while frontier:
-        nxt = []
-        for a in frontier:
-            for b in adjacency[a]:
-                if b not in hops:
-                    hops[b] = hops[a] + 1
-                    nxt.append(b)
-        frontier = nxt
-    return max(hops.values())
+def known_diameter(kind: str, n_robots: int) -> int | None:
+    """The diameter of `kind` over n robots where it needs no search (complete, ring, line), else None."""
+    if n_robots <= 1:
+        return 0
+    return {"complete": 1, "ring": n_robots // 2, "line": n_robots - 1}.get(kind)

@@ -138,6 +138,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             "by itself); give --grid too, or --preset paper"
         )
 
+    if opts.data is None and topology.known_diameter(opts.topology, opts.robots) is not None:
+        _checked_diameter(opts, opts.robots)  # a ring of 10^4 robots: refused before their data is drawn (20 s)
     shape, robots, lengths = _robots_and_lengths(opts)
     points = np.vstack([r.points for r in robots])
     bounds = given_bounds if given_bounds is not None else scenario.default_bounds(points, scale=lengths.scale)
@@ -150,8 +152,7 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
     elif opts.topology == "geometric":  # data from a file has no poses: use each robot's data centroid
         positions = np.array([r.points.mean(axis=0) for r in robots])
     neighbours = topology.links(opts.topology, ids, positions=positions, comm_range=lengths.comm_range)
-    diameter = max(1, topology.diameter(neighbours)) if len(ids) > 1 else 0
-    _check_diameter(opts, len(ids), diameter)
+    diameter = max(1, _checked_diameter(opts, len(ids), neighbours)) if len(ids) > 1 else 0
     params = algorithm_params(opts, opts.algorithm, diameter=diameter)
     if opts.polish and opts.algorithm == "admm":  # written only when asked: other fleets' files stay as they were
         params["polish"] = True
@@ -192,15 +193,23 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
     return World(shape, robots, grid, bounds, neighbours, lengths, where), spec
 
 
-def _check_diameter(opts: Options, n_robots: int, diameter: int) -> None:
-    """The round protocol's stop flags reach MAX_DIAMETER hops (autogrid's AUTOGRID_MAX_DIAMETER): a
-    sparser fleet could never agree to stop, so it is refused before anything runs."""
+def _checked_diameter(opts: Options, n_robots: int, neighbours: dict[int, tuple[int, ...]] | None = None) -> int:
+    """The graph's diameter, checked: the round protocol's stop flags reach MAX_DIAMETER hops
+    (autogrid's AUTOGRID_MAX_DIAMETER), a sparser fleet could never agree to stop, so it is refused
+    before anything runs -- ring, line and complete by their closed form (no graph needed), a
+    geometric graph at its first robot that is too far from another."""
     limit = AUTOGRID_MAX_DIAMETER if opts.algorithm == "autogrid" else MAX_DIAMETER
+    diameter = topology.known_diameter(opts.topology, n_robots)
+    exact = diameter is not None
+    if diameter is None:
+        assert neighbours is not None, "a geometric graph's diameter needs the graph"
+        diameter = topology.diameter(neighbours, beyond=limit)
     if diameter > limit:
         raise topology.TopologyError(
-            f"--topology {opts.topology}: the {n_robots} robots' graph has a diameter of {diameter} hops, more than "
-            f"the round protocol's stop flags reach ({limit}); use a denser topology (complete, or geometric with "
-            "a larger --comm-range) or fewer robots")
+            f"--topology {opts.topology}: the {n_robots} robots' graph has a diameter of {'' if exact else 'at least '}"
+            f"{diameter} hops, more than the round protocol's stop flags reach ({limit}); use a denser topology "
+            "(complete, or geometric with a larger --comm-range) or fewer robots")
+    return diameter
 
 
 def _check_polish(opts: Options, spec: FleetSpec) -> None:

@@ -251,7 +251,10 @@ class Link:
 
     def __init__(self, faults: LinkFaults, seed: int) -> None:
         self._faults = faults
-        self._rng = np.random.default_rng(seed)
+        # the generator is made at the first draw, from the same seed (the same stream): a link that
+        # takes no draws (below) has none -- ~1.2 kB each, N^2 links in a complete in-process fleet
+        self._seed = seed
+        self._rng: np.random.Generator | None = None
         # A link whose faults leave nothing to chance (no loss, duplicate, reorder or jitter)
         # delays every copy by exactly ``delay``: its draws could change nothing, so it takes
         # none (they cost ~1 us per frame, ~10 % of a 32-robot in-process fleet's time).
@@ -281,6 +284,8 @@ class Link:
         numpy call instead of one per frame; the stream, hence every frame's fate, is the same)."""
         i = self._drawn
         if i >= len(self._draws):
+            if self._rng is None:
+                self._rng = np.random.default_rng(self._seed)
             self._draws, i = self._rng.random(6 * DRAW_BATCH).tolist(), 0
         self._drawn = i + 6
         return self._draws[i : i + 6]

@@ -88,6 +88,19 @@ def max_function_error(spec, central, robots) -> float:
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def cli_exit_and_stderr(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, list[str]]:
+    """(exit code, stderr lines) of ``shapefleet argv`` run in this process; never a traceback."""
+    from launcher import cli
+
+    try:
+        code = cli.main(argv)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "Traceback" not in "\n".join(err)
+    return code, err
+
+
 def processes_with(marker: str) -> list[int]:
     """PIDs (other than ours) whose command line contains ``marker`` (e.g. a test's tmp_path)."""
     found = []

@@ -12,15 +12,12 @@ from agents.robot import CHECKPOINT_VERSION
 from launcher import cli
 from launcher.scenario import ScenarioError, load_data_csv
 
+from .conftest import cli_exit_and_stderr
+
 
 def _exit_and_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
     """(exit code, the last stderr line) of ``shapefleet argv`` run in this process."""
-    try:
-        code = cli.main(argv)
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert "Traceback" not in "\n".join(err)
+    code, err = cli_exit_and_stderr(argv, capsys)
     return code, err[-1] if err else ""
 
 
@@ -170,6 +167,21 @@ def test_robots_without_comparable_answers_are_said_so_not_disagree_by_inf() -> 
     v = agreement_verdict(rows, lambda a, b: float("inf"), tol=1e-3)
     assert v["converged"] is False and "robots 0 and 1 hold no comparable answers" in v["verdict"]
     assert "inf" not in v["verdict"]
+
+
+def test_a_geometric_fleet_wider_than_the_stop_flags_reach_exits_2_naming_topology(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """64 robots 10 apart on a line, linked within 12: a geometric path of 63 hops. Its check stops at
+    the first robot too far from another (robot 0, an end: 63 hops) and says "at least"."""
+    data = tmp_path / "line.csv"
+    rows = [f"{r},{10.0 * r},{dy},{label}" for r in range(64) for dy, label in ((0.0, -1), (1.0, 1))]
+    data.write_text("robot,x,y,label\n" + "\n".join(rows) + "\n")
+    out = tmp_path / "run"
+    code, line = _exit_and_line(["simulate", "--preset", "paper", "--data", str(data), "--topology", "geometric",
+                                 "--comm-range", "12", "--out", str(out)], capsys)
+    assert code == 2 and line.startswith("shapefleet: error: --topology geometric: the 64 robots' graph ")
+    assert "diameter of at least 63 hops" in line and "reach (62)" in line
+    assert not out.exists()
 
 
 @pytest.mark.parametrize(("words", "diameter", "limit"),

@@ -310,6 +310,40 @@ def test_gather_on_a_ring_needs_half_the_tree_rounds_and_two_slots():
     assert (tree.period, tree.slots) == (16, 1)
 
 
+def _plan_by_definition(graph, robot):
+    """The gather plan straight from its definition (networkx distances, spheres in id order, the
+    lowest-id neighbour a robot learns from): what the shared layout must reproduce."""
+    g = nx.Graph([(i, j) for i, near in graph.items() for j in near])
+    g.add_nodes_from(graph)
+    dist = dict(nx.all_pairs_shortest_path_length(g))
+    ids = tuple(sorted(graph))
+    rounds = max(max(max(d.values()) for d in dist.values()), 1)
+    sphere = {i: [tuple(k for k in ids if dist[i][k] == r) for r in range(rounds)] for i in ids}
+    learns = tuple(
+        tuple((k, i, sphere[i][r].index(k))
+              for k in ids if dist[robot][k] == r + 1
+              for i in [min(j for j in graph[robot] if dist[j][k] == r)])
+        for r in range(rounds))
+    slots = max(len(sp) for i in ids for sp in sphere[i])
+    return sphere[robot], learns, slots, rounds
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_gather_plan_matches_its_definition_on_random_graphs(seed):
+    """The plans come from one layout per graph (hop distances and ranks, shared by every robot's
+    build: a 200-robot ring took a minute to plan); on connected random graphs with scattered ids
+    and unsorted neighbour lists every robot's plan is the definition's."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 30))
+    g = nx.connected_watts_strogatz_graph(n, 2 + 2 * (seed % 2), 0.3, seed=seed) if n > 4 else nx.path_graph(n)
+    label = dict(zip(range(n), (rng.permutation(n) * 7 + 3).tolist()))
+    graph = {label[a]: tuple(rng.permutation([label[b] for b in g[a]]).tolist()) for a in g}
+    for robot in graph:
+        plan = ReducePlan.build(graph, robot, "gather")
+        sends, learns, slots, rounds = _plan_by_definition(graph, robot)
+        assert (plan.sends, plan.learns, plan.slots, plan.rounds) == (tuple(sends), learns, slots, rounds)
+
+
 def test_allreduce_refuses_a_disconnected_or_one_sided_graph():
     with pytest.raises(ValueError, match="not connected"):
         check_graph({0: (1,), 1: (0,), 2: ()})

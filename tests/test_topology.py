@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from launcher import scenario as sc
-from launcher.topology import TOPOLOGIES, TopologyError, build_topology, diameter, neighbours
+from launcher.topology import TOPOLOGIES, TopologyError, build_topology, diameter, known_diameter, neighbours
 
 
 def edges(graph: nx.Graph) -> set[frozenset[int]]:
@@ -47,6 +47,24 @@ def test_ring_and_line_follow_the_given_order() -> None:
     assert edges(graph) == {frozenset(e) for e in [(7, 2), (2, 5), (5, 0), (0, 7)]}
     assert neighbours(graph) == {0: (5, 7), 2: (5, 7), 5: (0, 2), 7: (0, 2)}
     assert list(neighbours(graph)) == [0, 2, 5, 7]
+
+
+@pytest.mark.parametrize("kind", ["complete", "ring", "line"])
+def test_known_diameter_is_the_searched_one(kind: str) -> None:
+    """build_world checks ring, line and complete fleets by their closed-form diameter (no graph, no
+    search): it is networkx's diameter of the graph built, for every size up to 40."""
+    for n in range(1, 41):
+        graph = build_topology(kind, range(n))
+        assert known_diameter(kind, n) == (nx.diameter(graph) if n > 1 else 0) == diameter(graph)
+    assert known_diameter("geometric", 10) is None
+
+
+def test_diameter_beyond_a_limit_stops_at_the_first_robot_past_it() -> None:
+    """``beyond``: the first eccentricity past the limit (a lower bound of the diameter, past the limit)
+    instead of the diameter; within the limit, the diameter itself."""
+    path = build_topology("line", [5, 0, 1, 2, 3, 4])  # robot 0 is second along the path: eccentricity 4
+    assert diameter(path) == 5 and diameter(path, beyond=10) == 5
+    assert diameter(path, beyond=3) == 4
 
 
 def test_diameter() -> None:
