@@ -130,6 +130,10 @@ def run_case(algorithm: str, topology: str, robots: int, *, rounds: int, limit_m
             os.kill(proc.pid, signal.SIGKILL)
             out, err = proc.communicate()
             timed_out = True
+        finally:  # Ctrl-C or SIGTERM (main turns it into SystemExit): the child goes too, by its PID
+            if proc.poll() is None:
+                os.kill(proc.pid, signal.SIGKILL)
+                proc.wait()
         wall = time.perf_counter() - t
     row = {"algorithm": algorithm, "topology": topology, "robots": robots, "flags": " ".join(extra),
            "wall_s": round(wall, 2)}
@@ -187,6 +191,7 @@ def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         _child(sys.argv[2:])
         return
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so run_case's finally stops its child
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--cases", nargs="*", default=DEFAULT_CASES,
                    help="ALGORITHM:TOPOLOGY:N,N,...[:--flag=value,...] (e.g. admm:ring:50:--grid=10x5)")

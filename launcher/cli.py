@@ -506,7 +506,8 @@ def _free_check(args: argparse.Namespace) -> Callable[[Any], None]:
         if args.crash:
             raise UsageError("--crash: crash injection is lockstep only (a free robot has no checkpoint to resume)")
         if spec.algorithm != "admm":
-            raise UsageError(f"--sync free: runs the relaxed ADMM on a fixed grid, not {spec.algorithm}; give "
+            raise UsageError(f"--sync free: runs on a fixed grid (the free hub ADMM on a complete graph, else the relaxed "
+                             f"ADMM), not {spec.algorithm}; give "
                              "--preset paper (or --grid and --sigma) and --algorithm admm or auto")
         if _free_algorithm(args) == "hub" and free_algorithm_for(spec) != "hub":
             raise UsageError("--free-algorithm hub: the free hub ADMM needs a complete graph (every robot a neighbour "

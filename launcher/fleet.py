@@ -429,9 +429,10 @@ def _start_router(zenoh_port: int | None, workdir: Path, lifetime_s: float, star
 #: of each starting an interpreter and importing numpy, the algorithms and Zenoh (~0.3 s of CPU each,
 #: issue 14); SHAPEFLEET_SPAWN_ROBOTS=1 spawns them (A/B comparisons)
 FORK_ROBOTS = os.environ.get("SHAPEFLEET_SPAWN_ROBOTS", "") == "" and hasattr(os, "fork")
-#: at most this many robot processes forked (two is what `auto` starts for 3 or 5+ robots on 2
-#: cores): a forked process keeps the launcher's command line, so a fleet whose robots are found
-#: by their ``--id`` (ps, tests/test_reliability.py's pause of robot 2 of 4) is spawned
+#: at most this many robot processes forked (two is what `auto` starts for 5+ robots on 2 cores;
+#: 3-4 robots run as one process, two with a crash plan): a forked process keeps the launcher's
+#: command line, so a fleet whose robots are found by their ``--id`` (ps, tests/test_reliability.py's
+#: pause of robot 2 of 4) is spawned
 FORK_MAX_PROCESSES = 2
 
 
@@ -930,9 +931,10 @@ def launch_fleet(
     ``router``: the endpoint of a router that already runs (loopback): connect the robots to it
     instead of starting one (several fleets can share a router; ``zenoh_port`` must be None).
     ``on_running(endpoint)``: called once the router is up and the robots were started.
-    ``robots_per_process``: robots run as asyncio tasks of one process (each with its own Zenoh
-    session, key and files), a number or "auto" (:func:`choose_robots_per_process`); a robot with a
-    crash plan always runs alone, so that its SIGKILL takes only it.
+    ``robots_per_process``: robots run as asyncio tasks of one process (sharing one Zenoh
+    session unless SHAPEFLEET_SESSION_PER_ROBOT is set, each with its own key and files), a number
+    or "auto" (:func:`choose_robots_per_process`); a robot with a crash plan always runs alone, so
+    that its SIGKILL takes only it.
     ``robot_argv``: the robot program (``-m module``) and its extra arguments (free sync:
     ``("-m", "agents.free_robot", "--period", "0.01")``).
     ``early_router``: a router the CLI started before its imports (launcher/router.py): used

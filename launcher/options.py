@@ -335,7 +335,7 @@ FAULTS = "network faults (netem vocabulary, injected per directed link)"
 FLEET = "fleet"
 PROCESSES = "crash injection (simulate: on the virtual clock; launch: SIGKILL)"
 TLS = "TLS (tls/ endpoints, docs/deploy.md)"
-SWEEP = "sweep grid (in-process, virtual time; the default world on the paper's 5x3 grid)"
+SWEEP = "sweep grid (the default world on the paper's 5x3 grid; in-process on virtual time, or --over zenoh)"
 
 _T = Timing()
 _FOLLOWS = ("times the object's scale: its bounding-box diagonal/5 rounded to 1, 2, 5, 10, 20...; "
@@ -416,11 +416,11 @@ OPTIONS: tuple[Option, ...] = (
            "fleet's proven bound on its error against the exact optimum <= CERTIFY x max(tol, 1e-3) (docs/algorithm.md, "
            f"\"A certified stop\"; default {param_default('admm', 'certify'):g}); 0: the stopping rule alone",
            group=ALGORITHM, section="algorithm", check=_finite_non_negative, show_default=False),
-    Option("ct-step", DURATION, FROM_PARAMS, "ct-admm: integration step of the flow (the paper's)",
+    Option("ct-step", DURATION, FROM_PARAMS, "ct-admm: integration step of the flow, the paper's",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "step"}),
-    Option("ct-period", DURATION, FROM_PARAMS, "ct-admm: communication period T_sp (the paper's)",
+    Option("ct-period", DURATION, FROM_PARAMS, "ct-admm: communication period T_sp, the paper's",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "period"}),
-    Option("ct-stop-time", DURATION, FROM_PARAMS, "ct-admm: stop time of the flow (the paper's)",
+    Option("ct-stop-time", DURATION, FROM_PARAMS, "ct-admm: stop time of the flow, the paper's",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "stop_time"}),
     Option("ct-tol", FLOAT, FROM_PARAMS, "ct-admm: stop earlier when every robot's residual is below",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "tol"}),
@@ -509,8 +509,8 @@ OPTIONS: tuple[Option, ...] = (
            "launch its cores; simulate: from the measured memory per robot of the topology and algorithm)",
            group=PROCESSES, commands=("simulate", "launch"), section="launch", metavar="N", check=at_least(1),
            target=None),
-    Option("robots-per-process", STR, "auto", "robots run as asyncio tasks of one process, each with its own "
-           "Zenoh session and key; auto: one process per robot when they fit the cores (or twice the cores, evenly), "
+    Option("robots-per-process", STR, "auto", "robots run as asyncio tasks of one process, sharing one "
+           "Zenoh session, each with its own key; auto: one process per robot when they fit the cores (or twice the cores, evenly), "
            "up to 4 robots in one process when they outnumber the cores, else one process per core "
            "(a robot with a --crash plan always runs alone)", group=PROCESSES, commands=("launch",),
            section="launch", metavar="N|auto", check=_robots_per_process, target=None),
