@@ -354,15 +354,16 @@ def test_one_robot_reports_its_exact_answer_as_converged(tmp_path):
 def test_line_of_three_whose_middle_robot_dies_is_not_converged(tmp_path):
     """Issue 18: a line 0-1-2 whose middle robot dies for good leaves two robots that cannot
     talk: each stops "isolated", the result names the partition, the exit code is 1. Robot 1 SIGKILLs
-    itself right after queueing its round-20 frame, which may or may not leave the process first, so its
-    neighbours drop it in round 19 or 20."""
+    itself right after queueing its round-20 frame: when that frame leaves the process first its
+    neighbours advance once more and drop it in round 21, when it does not they drop it in round 20,
+    and in 19 when the round-19 frame was still queued too (all three seen on this 2-core machine)."""
     out = tmp_path / "run"
     proc = _run("launch", *PAPER, "--topology", "line", "--crash", "1@20", "--no-restart", "--out", str(out), timeout=35)
     assert proc.returncode == 1, proc.stderr
     result = _result(out)
     assert result["converged"] is False and result["absent"] == [1]
     assert result["agreement"]["components"] == [[0], [2]] and result["agreement"]["connected"] is False
-    assert result["agreement"]["partition_since_round"] in (19, 20)
+    assert 19 <= result["agreement"]["partition_since_round"] <= 21
     assert {r["stopped"] for r in result["robots"]} == {"isolated"}
     assert "split into [0] | [2]" in result["verdict"] and "NOT converged" in proc.stderr
 
