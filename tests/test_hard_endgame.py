@@ -6,16 +6,13 @@ restored robot continues bit for bit. The outlines' rounds are measured in bench
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
-from agents.autogrid import ADMM
 from agents.problem import solve_central
 
-from .test_autogrid import _lockstep, _resume_from_checkpoints, make_cores, robots_of, run_fleet
-from .test_autogrid_illcond import _fleets, _params
+from .test_autogrid_illcond import _fleets
+from .test_soft_endgame import assert_endgame_restarts_bit_for_bit, fleets_with_and_without
 
 
 def _hard_error(core, robots) -> float:
@@ -32,9 +29,7 @@ def hard_fleet():
     """The default world (3 robots x 20 points, blob), which ends on a hard margin, with hub frames and
     room for the payload; with and without the hard end-game."""
     spec, robots, _ = _fleets()
-    params = _params(spec, hub_frames=True, validate_divisors=(4.0, 6.0, 8.0, 12.0))
-    return robots, params, run_fleet(make_cores(robots, params)), run_fleet(make_cores(robots, dataclasses.replace(
-        params, hard_endgame=False)))
+    return (robots, *fleets_with_and_without(spec, robots, "hard_endgame"))
 
 
 def test_autogrid_hard_answer_is_certified_exact_and_earlier(hard_fleet):
@@ -51,20 +46,7 @@ def test_autogrid_hard_answer_is_certified_exact_and_earlier(hard_fleet):
 
 
 def test_restart_inside_the_hard_endgame_resumes_bit_for_bit(hard_fleet):
-    """Restarted from checkpoints in a start round and in a round of a solve of the last hard solve's
-    end-game, the fleet ends with the same rounds and bits as without the restart."""
+    """Restarted from checkpoints in a start round and in a round of a solve of the hard end-game, the fleet
+    ends with the same rounds and bits as without the restart."""
     robots, params, ref, _ = hard_fleet
-    start = [r for p, r in ref[0].phases if p == ADMM][-1]
-    for wanted in ("start", "grow"):
-        cores = make_cores(robots, params)
-        _lockstep(cores, start + 1)
-        for _ in range(200):
-            if cores[0]._sub._polish.kind == wanted:
-                break
-            _lockstep(cores, 1)
-        assert cores[0].phase == ADMM and cores[0]._sub._polish.hard and cores[0]._sub._polish.kind == wanted
-        resumed = _resume_from_checkpoints(cores, robots, params)
-        for a, b in zip(ref, resumed):
-            assert a.round == b.round and a.grid_history == b.grid_history
-            assert np.array_equal(a.function()[1], b.function()[1]) and a.function()[2] == b.function()[2]
-
+    assert_endgame_restarts_bit_for_bit(robots, params, ref, hard=True)
