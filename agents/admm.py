@@ -77,6 +77,9 @@ class ADMMParams:
     # hub form, soft margin: the exact end-game by a block Krylov solve (agents/soft_endgame.py); autogrid's
     # soft answer solves turn it on, False keeps main's frames and bits
     soft_polish: bool = False
+    # with soft_polish, hard margins run the same end-game with B empty and no upper bound (C = inf);
+    # autogrid's hard answer solves turn it on, False keeps the hard frames' payload zeros (main's bits)
+    hard_endgame: bool = False
     # hub form, hard margin, no polish: a stop also needs the fleet's certified error bound
     # (agents/certificate.py) <= certify x max(tol, 1e-3); 0 = the rule alone (main's frames and bits)
     certify: float = 10.0
@@ -1228,8 +1231,10 @@ class ConsensusADMM(RoundCore):
             elif params.soft_polish:
                 from agents.soft_endgame import SoftEndgame  # (it builds on this module's exact sums)
 
-                self._polish = SoftEndgame(self._qp, self._hub.ids, robot_id, self._C or 0.0)
-                if self._C is None:  # hard margins: the frame keeps its layout, the end-game stays off
+                off = self._C is None and not params.hard_endgame
+                C = self._C if self._C is not None else math.inf  # hard margins: C = inf, B stays empty
+                self._polish = SoftEndgame(self._qp, self._hub.ids, robot_id, 0.0 if off else C)
+                if off:  # hard margins without hard_endgame: the frame keeps its layout, the end-game stays off
                     self._polish.stop()
                 else:  # its guesses read the step's multipliers
                     self._qp.keep_multipliers = True

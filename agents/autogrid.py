@@ -272,7 +272,9 @@ class AdaptiveGridCore(RoundCore):
             max_rounds=p.hard_rounds if mode == "hard" else p.soft_rounds,
             certify=0.0,  # the nested runs keep the rule alone (their frames have no room for the guard)
             settled_rate=True,  # ... so its rate is read within one stretch of Anderson (admm.settled)
-            soft_polish=mode == "soft" and self._endgame_fits(),  # the soft end-game (agents/soft_endgame.py)
+            # the exact end-game (agents/soft_endgame.py): soft answer solves, and hard ones with hard_endgame
+            soft_polish=(mode == "soft" or p.hard_endgame) and self._endgame_fits(),
+            hard_endgame=mode == "hard" and p.hard_endgame,
         )
         C = None if mode == "hard" else (p.C if p.C is not None else p.soft_C)
         self._sub = WarmADMM(

@@ -84,6 +84,8 @@ class AutoGridParams:
     # with hub_frames, a soft answer solve runs the exact end-game (agents/soft_endgame.py) where its
     # payload fits the frame (grids up to ~(dim - 2 max_points) / 4 points); False: main's soft solves
     soft_polish: bool = True
+    # ... and so does a hard answer solve (the same end-game with B empty: C = inf); False: main's hard solves
+    hard_endgame: bool = True
     early_drop: bool = True  # end the sweep once a perfect candidate decides it (autogrid_sweep.py)
     # which candidate wins a tie of held-out errors: "smaller" sigma (the default: it follows the
     # outline more closely) or "larger" (issue 15: with narrow refined kernels, narrow_ratio > 1,

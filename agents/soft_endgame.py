@@ -29,6 +29,11 @@ fleet stops, as with the hard polish (`agents.admm._Polish`). A solved but viola
 fleet's single worst row (PDAS, one row a correction: all at once diverged in the replays); after CAP
 corrections, a fresh guess. Pure: no I/O, no clock; the ADMM runs on meanwhile, so a failed attempt
 costs bytes, not rounds.
+
+Hard margins (`ADMMParams.hard_endgame`, C = inf) are the same problem with B empty: the guess labels N
+below GUESS x the robot's own largest step multiplier, g = 0, and the verdict has no upper bound (E
+multipliers >= 0; the worst violation compares raw multipliers with margin violations). Autogrid's hard
+answer solves run it (docs/autogrid.md, "Hard answer solves end exactly too").
 """
 
 from __future__ import annotations
@@ -77,6 +82,7 @@ class SoftEndgame(_Endgame):
         self.ids = ids
         self.me = me
         self.C = float(C)
+        self.hard = math.isinf(self.C)  # a hard margin (C = inf): B stays empty, E multipliers only >= 0
         self.dim = self.rows.shape[1]
         self.labels = np.zeros(len(self.rows), dtype=np.int8)
         self.kind = "wait"  # wait (no multipliers yet), start, grow, done, off
@@ -114,8 +120,11 @@ class SoftEndgame(_Endgame):
             self._next(np.zeros(payload_size(self.dim)), "wait")
             return
         labels = np.full(len(self.rows), E_ROW, dtype=np.int8)
-        labels[lam >= (1.0 - GUESS) * self.C] = B_ROW
-        labels[lam <= GUESS * self.C] = N_ROW
+        if self.hard:  # no bound: N below GUESS x its own largest multiplier
+            labels[lam <= GUESS * max(float(lam.max(initial=0.0)), 0.0)] = N_ROW
+        else:
+            labels[lam >= (1.0 - GUESS) * self.C] = B_ROW
+            labels[lam <= GUESS * self.C] = N_ROW
         self.labels = labels
         self.attempts += 1
         self.corrections = 0
@@ -133,7 +142,8 @@ class SoftEndgame(_Endgame):
         self.U = np.column_stack([w, w * A[:, -1]]) if len(A) else np.zeros((0, 2))
         out = np.zeros(payload_size(self.dim))
         self._put_block(out, A, self.U.sum(axis=0))
-        out[-self.dim :] = self.C * self.rows[self.labels == B_ROW].sum(axis=0)
+        if not self.hard:  # (hard: B is empty, g = 0)
+            out[-self.dim :] = self.C * self.rows[self.labels == B_ROW].sum(axis=0)
         self._next(out, "start")
 
     def _put_block(self, out: np.ndarray, A: np.ndarray, scalars: np.ndarray) -> None:
@@ -236,7 +246,7 @@ class SoftEndgame(_Endgame):
         residual = float(np.abs(r).max()) if len(r) else 0.0
         worst, self.move = 0.0, None
         for i, a in zip(e_rows, alpha):
-            for value, label in ((-a / C, N_ROW), ((a - C) / C, B_ROW)):
+            for value, label in ((-a, N_ROW),) if self.hard else ((-a / C, N_ROW), ((a - C) / C, B_ROW)):
                 if value > worst:
                     worst, self.move = value, (int(i), label)
         for label, sign, new in ((B_ROW, 1.0, E_ROW), (N_ROW, -1.0, E_ROW)):

@@ -64,9 +64,15 @@ def soft_fleet():
     """tests/test_autogrid_illcond.py's fleet that ends soft, with hub frames and room for the payload (four
     sigma candidates widen the frame: the end-game runs only where its payload fits, `_endgame_fits`)."""
     spec, _, ill = _fleets(same_robot=True)
+    return (ill, *fleets_with_and_without(spec, ill, "soft_polish"))
+
+
+def fleets_with_and_without(spec, robots, flag: str):
+    """Params with hub frames and room for the end-game's payload (four sigma candidates widen the frame),
+    and the fleet run with them and with `flag` off."""
     params = _params(spec, hub_frames=True, validate_divisors=(4.0, 6.0, 8.0, 12.0))
-    return ill, params, run_fleet(make_cores(ill, params)), run_fleet(make_cores(ill, dataclasses.replace(
-        params, soft_polish=False)))
+    off = dataclasses.replace(params, **{flag: False})
+    return params, run_fleet(make_cores(robots, params)), run_fleet(make_cores(robots, off))
 
 
 def test_autogrid_soft_answer_is_certified_and_earlier(soft_fleet):
@@ -85,16 +91,23 @@ def test_restart_inside_the_endgame_resumes_bit_for_bit(soft_fleet):
     """Restarted from checkpoints in a start round and in a round of a solve, the fleet ends with the same
     rounds and bits as without the restart."""
     ill, params, ref, _ = soft_fleet
+    assert_endgame_restarts_bit_for_bit(ill, params, ref, hard=False)
+
+
+def assert_endgame_restarts_bit_for_bit(robots, params, ref, *, hard: bool) -> None:
+    """Restart the fleet from checkpoints taken in a start round and in a round of a solve of the last answer
+    solve's end-game (a hard one when `hard`); it must end with `ref`'s rounds, history and bits."""
     start = [r for p, r in ref[0].phases if p == ADMM][-1]
     for wanted in ("start", "grow"):
-        cores = make_cores(ill, params)
+        cores = make_cores(robots, params)
         _lockstep(cores, start + 1)
         for _ in range(200):
             if cores[0]._sub._polish.kind == wanted:
                 break
             _lockstep(cores, 1)
-        assert cores[0].phase == ADMM and cores[0]._sub._polish.kind == wanted
-        resumed = _resume_from_checkpoints(cores, ill, params)
+        pol = cores[0]._sub._polish
+        assert cores[0].phase == ADMM and pol.kind == wanted and pol.hard == hard
+        resumed = _resume_from_checkpoints(cores, robots, params)
         for a, b in zip(ref, resumed):
             assert a.round == b.round and a.grid_history == b.grid_history
             assert np.array_equal(a.function()[1], b.function()[1]) and a.function()[2] == b.function()[2]
