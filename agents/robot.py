@@ -113,8 +113,9 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: 3 since branch illcond: an autogrid robot's frame slots -3/-2 (VOTE) and -3/-1 (hard ADMM) carry the
 #: conditioning test (docs/autogrid.md); a version-2 checkpoint there would resume with zeros in them
 #: 4 since branch softwarm: the hub state's `age` (the settled stop rule) and autogrid's carried soft duals
-#: 5 since branch softkrylov: a soft answer solve's end-game state (agents/soft_endgame.py) and its payload in
-#: the frame slots after w; a version-4 robot would resume that solve without it (other frames, other bits)
+#: 5 since branches softkrylov and hardend (one release): an answer solve's end-game state, soft or hard
+#: (agents/soft_endgame.py), and its payload in the frame slots after w; a version-4 robot would resume
+#: that solve without it (other frames, other bits)
 CHECKPOINT_VERSION = 5
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
