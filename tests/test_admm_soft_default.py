@@ -7,9 +7,9 @@ from __future__ import annotations
 
 from agents.admm import hub_frame_dim
 from agents.soft_endgame import payload_size
-from agents.spec import build_core
+from agents.spec import build_core, restore_core
 
-from .conftest import make_run, run_to_end
+from .conftest import make_run, run_to_end, step_all
 
 
 def _run(**kwargs):
@@ -55,3 +55,16 @@ def test_hard_margins_and_sparse_graphs_are_unchanged():
     default_dim = ring.dim
     ring.params["soft_polish"] = False
     assert not ring._hub_form(ring.algorithm_params) and ring.dim == default_dim
+
+
+def test_a_restart_inside_the_endgame_resumes_bit_for_bit():
+    """Every robot restored from its checkpoint in a round of a solve ends with the same rounds and bits."""
+    spec, ref, _error = _run(C=10.0)
+    cores = [build_core(spec, i) for i in spec.robot_ids]
+    while cores[0]._polish.kind != "grow" or cores[0]._polish.attempts < 2:  # (the first attempt fails here)
+        step_all(cores)
+    resumed = [restore_core(spec, c.robot_id, c.checkpoint()) for c in cores]
+    assert resumed[0]._polish.kind == "grow" and resumed[0]._polish.result is None
+    run_to_end(resumed)
+    assert resumed[0]._polish.result is not None
+    assert all(a.round == b.round and a.values.tobytes() == b.values.tobytes() for a, b in zip(ref, resumed))
