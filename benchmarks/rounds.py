@@ -17,7 +17,7 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
     .venv/bin/python benchmarks/rounds.py --complete-large  # complete fleets of 16-48 robots, the hub's
                                                             # stall switch (~8 minutes)
     .venv/bin/python benchmarks/rounds.py --endgame  # complete fleets, the exact end-game off and on,
-                                                     # hard and soft margins (~2 minutes)
+                                                     # hard and soft margins (~3 minutes)
     .venv/bin/python benchmarks/rounds.py --stall-stretches  # where a stalled fleet's rounds go: its
                                                              # Anderson and plain stretches (~3 minutes)
 """
@@ -205,11 +205,21 @@ ENDGAME_FLEETS = [
     ("8 robots, C 1", {"robots": 8, "C": 1.0}),
     ("8 robots, C 10", {"robots": 8, "C": 10.0}),
     ("16 robots, C 10", {"robots": 16, "C": 10.0}),
+    ("24 robots, C 10", {"robots": 24, "C": 10.0}),
+    ("24 robots, seed 1, C 10", {"robots": 24, "seed": 1, "C": 10.0}),
+    ("32 robots, geometric (complete), C 10", {"robots": 32, "topology": "geometric", "C": 10.0}),
 ]
 #: the end-game off (main before branch admmend: the certified guard on hard margins) and on (soft margins:
 #: agents/soft_endgame.py, the default since admmend; hard margins: with hard_endgame, B empty)
 ENDGAME_OFF = {"soft_polish": False}
 ENDGAME_ON = {"soft_polish": True, "hard_endgame": True}
+
+
+ENDGAME_INTRO = (
+    "`.venv/bin/python benchmarks/rounds.py --endgame`, in process (no network). Off: `soft_polish` false (main "
+    "before branch admmend; hard margins stop under the certified guard). On: `soft_polish` and `hard_endgame` "
+    "(agents/soft_endgame.py). Error: max over robots against the exact central QP. Certified: the end-game "
+    "ended the run. Default now: soft margins on, hard margins off (rounds.md, top section).")
 
 
 def endgame_table(max_rounds: int) -> list[str]:
@@ -358,7 +368,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.endgame:
         write_results("rounds-endgame.md", "# Decentralized ADMM: the exact end-game on complete fleets\n\n"
-                      + "\n".join(endgame_table(args.max_rounds)) + "\n")
+                      + ENDGAME_INTRO + "\n\n" + "\n".join(endgame_table(args.max_rounds)) + "\n")
         return
     if args.stall_stretches:
         stretch_table(args.max_rounds)
