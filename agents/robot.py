@@ -116,7 +116,9 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: 5 since branches softkrylov and hardend (one release): an answer solve's end-game state, soft or hard
 #: (agents/soft_endgame.py), and its payload in the frame slots after w; a version-4 robot would resume
 #: that solve without it (other frames, other bits)
-CHECKPOINT_VERSION = 5
+#: 6 since branch admmend: plain admm on a complete graph with a soft margin runs the soft end-game by default
+#: (its state where the certificate's stood); a version-5 checkpoint of such a fleet would resume without it
+CHECKPOINT_VERSION = 6
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

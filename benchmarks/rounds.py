@@ -16,6 +16,8 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
                                                         # the relay hub, or with --edge the edge form
     .venv/bin/python benchmarks/rounds.py --complete-large  # complete fleets of 16-48 robots, the hub's
                                                             # stall switch (~8 minutes)
+    .venv/bin/python benchmarks/rounds.py --endgame  # complete fleets, the exact end-game off and on,
+                                                     # hard and soft margins (~3 minutes)
     .venv/bin/python benchmarks/rounds.py --stall-stretches  # where a stalled fleet's rounds go: its
                                                              # Anderson and plain stretches (~3 minutes)
 """
@@ -68,9 +70,10 @@ def form_name(core: object) -> str:
     return "hub + Anderson" if getattr(core, "_hub", None) is not None else "edge"
 
 
-def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
+def measure(kwargs: dict, max_rounds: int, *, relay: bool = True, params: dict | None = None) -> dict:
     world, spec = build_world(Options(fleet_id="bench", preset="paper", max_rounds=max_rounds, **kwargs))
     spec.params["relay"] = relay  # False: sparse fleets run the edge form
+    spec.params.update(params or {})  # ADMMParams fields, as a fleet file's params (e.g. the end-game's flags)
     central = solve_central(spec.basis, world.points, world.labels, spec.C)
     b = spec.basis
     assert central.solved and b.rank == b.size, f"reference truncated: rank {b.rank} of {b.size}"
@@ -109,6 +112,8 @@ def measure(kwargs: dict, max_rounds: int, *, relay: bool = True) -> dict:
         "switched": switched,
         "rank": f"{b.rank}/{b.size}",
         "bytes": sum(sent.values()) / len(sent),
+        # the exact end-game (soft_polish) ended the run: every robot certified its rows
+        "certified": all(getattr(getattr(c, "_polish", None), "result", None) is not None for c in cores),
     }
 
 
@@ -179,6 +184,62 @@ STRETCH_FLEETS = [
 #: a margin row counts as active in a robot's local solve when rows @ v <= 1 + ACTIVE_EPS (the QP is
 #: solved to 1e-10; rows well inside the margin sit at >= 1 + 1e-3)
 ACTIVE_EPS = 1e-7
+
+
+# -- the exact end-game on complete fleets (issue 10): soft margins by default, hard margins measured ------
+#: (label, Options keywords): complete fleets, hard margins and soft ones (--C)
+ENDGAME_FLEETS = [
+    ("paper setting: 3 robots, blob", {}),
+    ("3 robots, bean", {"shape": "bean"}),
+    ("3 robots, star", {"shape": "star"}),
+    ("3 robots, crescent", {"shape": "crescent"}),
+    ("8 robots", {"robots": 8}),
+    ("16 robots", {"robots": 16}),
+    ("16 robots, bean", {"robots": 16, "shape": "bean"}),
+    ("paper setting, C 1", {"C": 1.0}),
+    ("paper setting, C 10", {"C": 10.0}),
+    ("paper setting, C 100", {"C": 100.0}),
+    ("3 robots, bean, C 10", {"shape": "bean", "C": 10.0}),
+    ("3 robots, star, C 10", {"shape": "star", "C": 10.0}),
+    ("3 robots, crescent, C 10", {"shape": "crescent", "C": 10.0}),
+    ("8 robots, C 1", {"robots": 8, "C": 1.0}),
+    ("8 robots, C 10", {"robots": 8, "C": 10.0}),
+    ("16 robots, C 10", {"robots": 16, "C": 10.0}),
+    ("24 robots, C 10", {"robots": 24, "C": 10.0}),
+    ("24 robots, seed 1, C 10", {"robots": 24, "seed": 1, "C": 10.0}),
+    ("32 robots, geometric (complete), C 10", {"robots": 32, "topology": "geometric", "C": 10.0}),
+]
+#: the end-game off (main before branch admmend: the certified guard on hard margins) and on (soft margins:
+#: agents/soft_endgame.py, the default since admmend; hard margins: with hard_endgame, B empty)
+ENDGAME_OFF = {"soft_polish": False}
+ENDGAME_ON = {"soft_polish": True, "hard_endgame": True}
+
+
+ENDGAME_INTRO = (
+    "`.venv/bin/python benchmarks/rounds.py --endgame`, in process (no network). Off: `soft_polish` false (main "
+    "before branch admmend; hard margins stop under the certified guard). On: `soft_polish` and `hard_endgame` "
+    "(agents/soft_endgame.py). Error: max over robots against the exact central QP. Certified: the end-game "
+    "ended the run. Default now: soft margins on, hard margins off (rounds.md, top section).")
+
+
+def endgame_table(max_rounds: int) -> list[str]:
+    """Rounds at stop, error against the exact central QP and bytes per robot of complete fleets with the
+    exact end-game off and on; 'certified': the end-game ended the run (every robot certified its rows)."""
+    lines = [
+        "| fleet (complete) | margin | rounds at stop off -> on | error at stop off -> on | certified (on) "
+        "| bytes per robot off -> on | default now |",
+        "|---|:---:|---:|---:|:---:|---:|:---:|",
+    ]
+    for name, kwargs in ENDGAME_FLEETS:
+        off = measure(dict(kwargs), max_rounds, params=ENDGAME_OFF)
+        on = measure(dict(kwargs), max_rounds, params=ENDGAME_ON)
+        soft = "C" in kwargs
+        flag = lambda r: "" if r["converged"] else " (not converged)"  # noqa: E731
+        add_row(lines, (
+            f"| {name} | {'soft' if soft else 'hard'} | {off['stop']}{flag(off)} -> {on['stop']}{flag(on)} | "
+            f"{off['error']:.1e} -> {on['error']:.1e} | {'yes' if on['certified'] else '**no**'} | "
+            f"{off['bytes']:.0f} -> {on['bytes']:.0f} | {'on' if soft else 'off'} |"))
+    return lines
 
 
 def fleet_probe(kwargs: dict, max_rounds: int, params: dict | None = None) -> tuple[list, Callable[..., Any],
@@ -302,7 +363,13 @@ def main() -> None:
                     help="only the complete fleets of 16-48 robots (the hub's stall switch), rounds-complete.md")
     ap.add_argument("--stall-stretches", action="store_true",
                     help="only the stalled fleets' Anderson and plain stretches (printed, not written)")
+    ap.add_argument("--endgame", action="store_true",
+                    help="only complete fleets with the exact end-game off and on, hard and soft margins, rounds-endgame.md")
     args = ap.parse_args()
+    if args.endgame:
+        write_results("rounds-endgame.md", "# Decentralized ADMM: the exact end-game on complete fleets\n\n"
+                      + ENDGAME_INTRO + "\n\n" + "\n".join(endgame_table(args.max_rounds)) + "\n")
+        return
     if args.stall_stretches:
         stretch_table(args.max_rounds)
         return
