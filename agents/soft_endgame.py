@@ -31,9 +31,12 @@ corrections, a fresh guess. Pure: no I/O, no clock; the ADMM runs on meanwhile, 
 costs bytes, not rounds.
 
 Hard margins (`ADMMParams.hard_endgame`, C = inf) are the same problem with B empty: the guess labels N
-below GUESS x the robot's own largest step multiplier, g = 0, and the verdict has no upper bound (E
-multipliers >= 0; the worst violation compares raw multipliers with margin violations). Autogrid's hard
-answer solves run it (docs/autogrid.md, "Hard answer solves end exactly too").
+below GUESS x the robot's own largest step multiplier, and also every row its own step leaves off the
+margin (|a_i' v - 1| > GUESS at the step's solution v: complementarity says such a multiplier is the
+solver's residue -- on 8 robots one robot's step left all 20 rows 0.5-4 off the margin with multipliers
+1e-5 x its largest, 33-42 E rows for 16 unknowns, and the end-game never certified); g = 0, and the
+verdict has no upper bound (E multipliers >= 0; the worst violation compares raw multipliers with margin
+violations). Autogrid's hard answer solves run it (docs/autogrid.md, "Hard answer solves end exactly too").
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ REFINE = 3
 #: a robot's verdict: E margins equal 1, B margins at most 1, N margins at least 1, within EQ (the hard polish's)
 EQ = POLISH_EQ
 #: the guess from a robot's own step multipliers: at the bound when >= (1 - GUESS) C, off when <= GUESS C
+#: (hard: off when <= GUESS x its largest, or when its margin at the step is off 1 by more than GUESS)
 GUESS = 1e-6
 #: a new Krylov vector is dropped when orthogonalisation leaves less than DROP of its image's norm
 DROP = 1e-8
@@ -113,8 +117,9 @@ class SoftEndgame(_Endgame):
     def _size(self) -> int:
         return payload_size(self.dim)
 
-    def guess(self) -> None:
-        """A fresh attempt from this robot's own step multipliers (none yet: wait)."""
+    def guess(self, v_own: np.ndarray | None = None) -> None:
+        """A fresh attempt from this robot's own step multipliers and (hard) the step's solution v_own
+        (none yet: wait)."""
         lam = self.qp.multipliers
         if lam is None or len(lam) != len(self.rows):
             self._next(np.zeros(payload_size(self.dim)), "wait")
@@ -122,6 +127,8 @@ class SoftEndgame(_Endgame):
         labels = np.full(len(self.rows), E_ROW, dtype=np.int8)
         if self.hard:  # no bound: N below GUESS x its own largest multiplier
             labels[lam <= GUESS * max(float(lam.max(initial=0.0)), 0.0)] = N_ROW
+            if v_own is not None:  # and off the margin at its own step: complementarity fails, residue
+                labels[np.abs(self.rows @ v_own - 1.0) > GUESS] = N_ROW
         else:
             labels[lam >= (1.0 - GUESS) * self.C] = B_ROW
             labels[lam <= GUESS * self.C] = N_ROW
@@ -160,10 +167,10 @@ class SoftEndgame(_Endgame):
         if self._idle():
             return self.result
         if self.kind == "wait":
-            self.guess()
+            self.guess(v_own)
             return None
         if not np.all(np.isfinite(payloads)):  # a bad payload fails the attempt on every copy alike
-            self.guess()
+            self.guess(v_own)
             return None
         d = self.dim
         sums = _pairwise_sum(np.ascontiguousarray(payloads))
@@ -182,14 +189,14 @@ class SoftEndgame(_Endgame):
             residual = float(payloads[:, 2].max())
             self.refined = self.refined + 1 if self.sent == 0 else 0
             if residual <= EQ or self.solve_rounds >= SOLVE_ROUNDS or self.refined > REFINE:
-                self._correct(payloads)  # solved (or as far as it goes) and violated: move a row
+                self._correct(payloads, v_own)  # solved (or as far as it goes) and violated: move a row
                 return None
             self.Pr = sums[-d:][: self.S.shape[1]].copy()
             ur = [float(sums[3 + j]) for j in range(self.sent)]
             first = False
         added = self._grow(images, ur)
         if added is None:  # the reduced system is singular on this set: a fresh guess
-            self.guess()
+            self.guess(v_own)
             return None
         self._verdict(added, first)
         return None
@@ -268,13 +275,13 @@ class SoftEndgame(_Endgame):
         self.solve_rounds += 1
         self._next(out, "grow")
 
-    def _correct(self, payloads: np.ndarray) -> None:
+    def _correct(self, payloads: np.ndarray, v_own: np.ndarray) -> None:
         """The fleet's single worst row changes sides (its owner moves it); after CAP corrections, or
         with nothing to move, a fresh guess."""
         worst = payloads[:, 1]
         k = int(np.argmax(worst))  # ties: the lowest id
         if not worst[k] > 0.0 or self.corrections >= CAP:
-            self.guess()
+            self.guess(v_own)
             return
         self.corrections += 1
         if self.ids[k] == self.me and self.move is not None:

@@ -50,3 +50,26 @@ def test_restart_inside_the_hard_endgame_resumes_bit_for_bit(hard_fleet):
     ends with the same rounds and bits as without the restart."""
     robots, params, ref, _ = hard_fleet
     assert_endgame_restarts_bit_for_bit(robots, params, ref, hard=True)
+
+
+def test_plain_admm_eight_robots_hard_endgame_certifies_the_exact_optimum():
+    """Plain admm on a complete graph of 8 robots, hard margin, with the end-game: one robot's step leaves
+    all its rows off the margin with tiny positive multipliers; guessing them all on the margin (33-42 E
+    rows for 16 unknowns) never certified. The guess drops rows off the margin at the robot's own step,
+    and the fleet stops at the exact optimum, the same bits on every robot."""
+    from agents.spec import build_core
+    from launcher.world import Options, build_world
+
+    from .conftest import run_to_end
+
+    world, spec = build_world(Options(fleet_id="test", preset="paper", robots=8, max_rounds=1000))
+    spec.params.update({"soft_polish": True, "hard_endgame": True})
+    central = solve_central(spec.basis, world.points, world.labels, spec.C)
+    cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+    run_to_end(cores, limit=1000)
+    assert all(c.converged for c in cores)
+    assert all(c._polish is not None and c._polish.result is not None for c in cores)  # certified
+    assert all(np.array_equal(c.values, cores[0].values) for c in cores)
+    b = cores[0].values
+    error = spec.basis.function_error(spec.basis.c_from_x(b[:-1]), b[-1], central.c, central.gamma)
+    assert error < 1e-9
