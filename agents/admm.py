@@ -1044,13 +1044,17 @@ class _Endgame:
         self.prev_payload, self.payload, self.kind = self.payload, payload, kind
 
     def stop(self) -> None:
-        """No (more) attempts (a margin it does not certify, or a robot dropped): the payload stays zeros."""
-        self._next(np.zeros(self._size()), "off")
+        """No (more) attempts (a margin it does not certify, or a robot dropped): zeros from the next
+        round's payload on. This round's frame keeps its payload: a drop comes after the frame went
+        out, and a resent copy that differed from it would be rejected as equivocation (the survivors
+        of a permanent loss then isolated each other)."""
+        self.kind = "off"
 
     def _idle(self) -> bool:
-        """True (and the same payload again) once stopped or done: `step` returns `result` then."""
+        """True once stopped (zeros from now on) or done (the same payload again): `step` returns
+        `result` then."""
         if self.kind in ("off", "done"):
-            self._next(self.payload, self.kind)
+            self._next(np.zeros(self._size()) if self.kind == "off" else self.payload, self.kind)
             return True
         return False
 
