@@ -1338,6 +1338,8 @@ class ConsensusADMM(RoundCore):
             self._hub.drop(j)
             if self._polish is not None:  # the polish does not follow a drop: it stops for good
                 self._polish.stop()
+            if self._C is not None:  # soft: the survivors' problem weighs |x|^2 by 1 / (robots left)
+                self._qp = self._build_qp()
             return
         del self._edges[j]
         self._qp = self._build_qp()
@@ -1509,7 +1511,9 @@ class ConsensusADMM(RoundCore):
         return MarginQP(
             self._features,
             self._labels,
-            x_weight=1.0 / self._n_robots,
+            # every robot its share of 1/2 |x|^2: of the fleet the hub still holds (a complete graph
+            # knows who left; a soft margin's answer depends on it), else of the fleet it started with
+            x_weight=1.0 / (len(self._hub.ids) if self._hub is not None else self._n_robots),
             prox_weight=self._prox_weight(),
             C=self._C,
         )

@@ -66,21 +66,16 @@ def test_simulate_permanent_loss_survivors_solve_their_data(run):
     assert 2.5 <= out.virtual_s < 6.0
 
 
-SOFT_BIAS = pytest.mark.xfail(strict=True, reason=(
-    "known defect (issue-worthy): every robot's local QP weighs |x|^2 by 1 / N of the fleet it started with; "
-    "after a permanent loss the survivors solve the soft problem with C x N / N_alive (0.33 off here); the run "
-    "says so: NOT converged, 'settled on a biased point'. Hard margins do not depend on that weight"))
-
-
 @pytest.mark.parametrize("options, params", [
-    pytest.param({"C": 10.0}, {}, id="soft", marks=SOFT_BIAS),
+    pytest.param({"C": 10.0}, {}, id="soft"),
     pytest.param({}, {"soft_polish": True, "hard_endgame": True}, id="hard"),
     pytest.param({"polish": True}, {}, id="gram-polish")])
 def test_a_permanent_loss_during_an_end_game_leaves_survivors_that_finish(options, params):
     """A drop stops every end-game beside the hub (agents/soft_endgame.py: the soft default of --C on a
     complete graph; the hard one; --polish). It used to rewrite the payload of the round's frame that
     was already out: the survivors rejected each other's resent copies as equivocation (1250 frames)
-    and both stopped isolated at round 42. Now they finish on the exact answer of their own data."""
+    and both stopped isolated at round 42. Now they finish on the exact answer of their own data (the
+    soft one too: a drop reweighs every survivor's share of |x|^2, which was 0.33 off before)."""
     world, spec, _ = make_run(fleet_id="crash-endgame", timing=TIMING, **options)
     spec = dataclasses.replace(spec, params={**spec.params, **params})
     out = simulate_fleet(spec, crashes=[CrashPlan(1, 40)], restart=False)
@@ -92,14 +87,17 @@ def test_a_permanent_loss_during_an_end_game_leaves_survivors_that_finish(option
     assert max_function_error(spec, ref, out.robots) < 1e-3
 
 
-def test_a_permanent_loss_in_the_soft_end_game_is_survived_without_equivocation():
-    """The soft default's drop (the part of the test above that holds today): both survivors finish,
-    no frame rejected, answers within tol of each other."""
-    _, spec, _ = make_run(fleet_id="crash-endgame", timing=TIMING, C=10.0)
+@pytest.mark.xfail(strict=True, reason=(
+    "known defect, its own work: on a sparse graph a robot cannot know how many robots are left, so its local "
+    "QP keeps weighing |x|^2 by 1 / N of the starting fleet; after a permanent loss the survivors solve the soft "
+    "problem with C x N / N_alive (0.19 off on this 4-ring). The run says so: NOT converged, exit 1, 'settled on "
+    "a biased point'. Complete graphs reweigh on a drop (test above); hard margins do not depend on the weight"))
+def test_a_sparse_soft_fleet_after_a_permanent_loss_solves_its_survivors_problem():
+    world, spec, _ = make_run(fleet_id="crash-ring-soft", timing=TIMING, robots=4, topology="ring", C=10.0)
     out = simulate_fleet(spec, crashes=[CrashPlan(1, 40)], restart=False)
-    assert all(r["stopped"] == "finished" and r["frames_rejected"] == 0 for r in out.robots)
-    a, b = (np.array([*r["x"], r["gamma"]]) for r in out.robots)
-    assert np.linalg.norm(a - b) <= spec.params["tol"] * np.linalg.norm(a)
+    kept = [r for r in world.robots if r.id != 1]
+    ref = solve_central(spec.basis, np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept]), spec.C)
+    assert max_function_error(spec, ref, out.robots) < 1e-3
 
 
 def test_without_restarts_a_sparse_fleet_runs_the_edge_form_and_its_survivors_finish():
