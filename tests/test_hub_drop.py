@@ -196,8 +196,9 @@ def _autogrid_crash_in_sweep(hub_frames: bool, divisors=(8.0, 12.0), folds: int 
 
 def sweep_errors(world, params, tasks) -> list[tuple[bool, float]]:
     """(stopped by its rule, function error vs the exact solve of the survivors' training data)
-    per sweep task. After a drop the members keep x_weight 1 / N (N = 4 at the start), so the
-    soft-margin problem they solve has C x N / (N - 1): the reference uses that C."""
+    per sweep task. A drop reweighs the members' x_weight to 1 / (robots left), so they solve the
+    soft margin at soft_C itself (before: x_weight stayed 1 / N, N = 4 at the start, and they solved
+    it at C x N / (N - 1))."""
     from agents.autogrid_sweep import held_mask
 
     data = [r for r in world.robots if r.id != 3]
@@ -206,7 +207,7 @@ def sweep_errors(world, params, tasks) -> list[tuple[bool, float]]:
         held = [held_mask(holdout_units(r.points, r.labels), t.fold, params) for r in data]
         pts = np.vstack([r.points[~h] for r, h in zip(data, held)])
         lab = np.concatenate([r.labels[~h] for r, h in zip(data, held)])
-        ref = solve_central(t.basis, pts, lab, C=params.soft_C * 4 / 3)
+        ref = solve_central(t.basis, pts, lab, C=params.soft_C)
         assert ref.solved
         v = t.sub.values
         out.append((t.sub.converged, t.basis.function_error(t.basis.c_from_x(v[:-1]), v[-1], ref.c, ref.gamma)))
