@@ -1050,13 +1050,17 @@ class _Endgame:
         of a permanent loss then isolated each other)."""
         self.kind = "off"
 
-    def _idle(self) -> bool:
-        """True once stopped (zeros from now on) or done (the same payload again): `step` returns
-        `result` then."""
-        if self.kind in ("off", "done"):
+    def step(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
+        """Fold in the round's payloads (a row per robot in id order); the certified optimum once
+        every robot's verdict was ok, else None (and the next payload is set)."""
+        if self.kind in ("off", "done"):  # stopped: zeros from now on; done: the same payload again
             self._next(np.zeros(self._size()) if self.kind == "off" else self.payload, self.kind)
-            return True
-        return False
+            return self.result
+        return self._fold(payloads, v_own)
+
+    def _fold(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
+        """`step` while attempts run."""
+        raise NotImplementedError
 
 
 class _Polish(_Endgame):
@@ -1108,11 +1112,7 @@ class _Polish(_Endgame):
     def _size(self) -> int:
         return polish_payload_size(self.dim)
 
-    def step(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
-        """Fold in the round's payloads (a row per robot in id order); the certified optimum once
-        every robot's verdict was ok, else None (and the next payload is set)."""
-        if self._idle():
-            return self.result
+    def _fold(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
         if self.kind == "sum":
             self._solve(payloads)
             return None

@@ -161,11 +161,7 @@ class SoftEndgame(_Endgame):
             out[_SCALARS + j * d : _SCALARS + (j + 1) * d] = A.T @ self.U[:, j]
 
     # -- one round ---------------------------------------------------------------------------------
-    def step(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
-        """Fold in the round's payloads (a row per robot in id order); the certified optimum once
-        every robot's verdict was ok, else None (and the next payload is set)."""
-        if self._idle():
-            return self.result
+    def _fold(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
         if self.kind == "wait":
             self.guess(v_own)
             return None
