@@ -17,7 +17,7 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
     .venv/bin/python benchmarks/rounds.py --complete-large  # complete fleets of 16-48 robots, the hub's
                                                             # stall switch (~8 minutes)
     .venv/bin/python benchmarks/rounds.py --endgame  # complete fleets, the exact end-game off and on,
-                                                     # hard and soft margins (~3 minutes)
+                                                     # hard and soft margins (~6 minutes)
     .venv/bin/python benchmarks/rounds.py --stall-stretches  # where a stalled fleet's rounds go: its
                                                              # Anderson and plain stretches (~3 minutes)
 """
@@ -196,6 +196,12 @@ ENDGAME_FLEETS = [
     ("8 robots", {"robots": 8}),
     ("16 robots", {"robots": 16}),
     ("16 robots, bean", {"robots": 16, "shape": "bean"}),
+    ("24 robots", {"robots": 24}),
+    ("24 robots, seed 1", {"robots": 24, "seed": 1}),
+    ("32 robots, geometric (complete)", {"robots": 32, "topology": "geometric"}),
+    ("32 robots, geometric (complete), seed 1", {"robots": 32, "topology": "geometric", "seed": 1}),
+    ("32 robots, geometric (complete), bean", {"robots": 32, "topology": "geometric", "shape": "bean"}),
+    ("48 robots, geometric (complete)", {"robots": 48, "topology": "geometric"}),
     ("paper setting, C 1", {"C": 1.0}),
     ("paper setting, C 10", {"C": 10.0}),
     ("paper setting, C 100", {"C": 100.0}),
@@ -210,7 +216,9 @@ ENDGAME_FLEETS = [
     ("32 robots, geometric (complete), C 10", {"robots": 32, "topology": "geometric", "C": 10.0}),
 ]
 #: the end-game off (main before branch admmend: the certified guard on hard margins) and on (soft margins:
-#: agents/soft_endgame.py, the default since admmend; hard margins: with hard_endgame, B empty)
+#: agents/soft_endgame.py, the default since admmend; hard margins: with hard_endgame, B empty -- not the
+#: default: every complete hard fleet here certifies and stops earlier, but a robot lost for good makes the
+#: survivors reject each other's resent frame as equivocation, rounds.md top section)
 ENDGAME_OFF = {"soft_polish": False}
 ENDGAME_ON = {"soft_polish": True, "hard_endgame": True}
 
