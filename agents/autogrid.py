@@ -290,8 +290,9 @@ class AdaptiveGridCore(RoundCore):
             self._values[-3] = self._ill_norm2
 
     def _endgame_fits(self) -> bool:
-        """True when a soft answer solve runs the exact end-game (AutoGridParams.soft_polish): hub
-        frames, and its payload fits between w and the frame's last three slots on this grid."""
+        """True when an answer solve may run the exact end-game (AutoGridParams.soft_polish; hard ones
+        also need hard_endgame): hub frames, and its payload fits between w and the frame's last three
+        slots on this grid."""
         p = self.params
         return p.soft_polish and p.hub_frames and 2 * p.max_points + 1 + endgame_payload_size(len(self.grid) + 1) <= p.dim - 3
 

@@ -335,9 +335,10 @@ def soft_endgame_default(params: ADMMParams, C: float | None, given: Any, hub: b
     """True when an admm fleet runs the soft end-game (agents/soft_endgame.py) without asking: the hub
     form (a complete graph), a soft margin, the fleet file silent on ``soft_polish``, no hard ``polish``.
     It paid on every soft complete fleet measured (paper preset --C 10: 163 -> 64 rounds, certified
-    exact; benchmarks/results/rounds.md, top); hard margins keep the certified guard (their end-game did
-    not certify on 8 and 16 robots). Sparse fleets are unchanged (the flag would drop the relay hub's
-    guard slot from their frames)."""
+    exact; benchmarks/results/rounds.md, top); hard margins keep the certified guard (their end-game,
+    with the off-margin guess, certifies and gains on every complete fleet measured, 3-48 robots, but
+    is not switched on yet: rounds.md). Sparse fleets are unchanged (the flag would drop the relay
+    hub's guard slot from their frames)."""
     return hub and C is not None and "soft_polish" not in given and not params.polish and not params.soft_polish
 
 

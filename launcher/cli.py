@@ -131,35 +131,37 @@ def _options(args: argparse.Namespace, **extra: Any) -> Options:
         raise UsageError(str(exc)) from None
 
 
+def _refuse_past_bound(args: argparse.Namespace, robots: int, what: str,
+                       derived: Callable[[], tuple[int | None, str]]) -> None:
+    """--robots within a bound, --max-robots's when given, else ``derived()``'s (bound, why): both
+    shells refuse a fleet too large the same way (exit 2, naming the flag and the override)."""
+    bound, why = (args.max_robots, "--max-robots") if args.max_robots is not None else derived()
+    if bound is not None and robots > bound:
+        raise UsageError(f"--robots: {robots} robots is more than {what} ({bound}: {why}); "
+                         f"use fewer, or --max-robots {robots} to insist")
+
+
 def _robots_bound(args: argparse.Namespace) -> None:
-    """--robots within what this machine runs as processes (launch), unless --max-robots says more."""
+    """--robots within what this machine runs as processes (launch)."""
     from launcher.fleet import max_robots
 
-    bound, why = max_robots(args.robots_per_process)
-    if args.max_robots is not None:
-        bound, why = args.max_robots, "--max-robots"
-    if args.robots > bound:
-        raise UsageError(f"--robots: {args.robots} robots is more than this machine runs at once "
-                         f"({bound}: {why}); use fewer, or --max-robots {args.robots} to insist")
+    _refuse_past_bound(args, args.robots, "this machine runs at once", lambda: max_robots(args.robots_per_process))
 
 
 def _simulate_bound(args: argparse.Namespace, options: Options) -> None:
     """--robots within what the in-process fleet holds in this machine's memory
-    (launcher/simulate.py simulate_max_robots), unless --max-robots says more: checked before the
-    world is built, so a fleet too large is refused before anything big is allocated."""
+    (launcher/simulate.py simulate_max_robots): checked before the world is built, so a fleet too
+    large is refused before anything big is allocated."""
     from launcher.simulate import simulate_max_robots
     from launcher.world import resolve_options
 
-    robots = options.robots if options.data is None else len(scenario.load_data_csv(options.data))
-    if args.max_robots is not None:
-        bound, why = args.max_robots, "--max-robots"
-    else:
+    def derived() -> tuple[int | None, str]:
         resolved = resolve_options(options)
         rounds, grid_points = _rounds_and_grid(resolved)
-        bound, why = simulate_max_robots(options.topology, resolved.algorithm, rounds=rounds, grid_points=grid_points)
-    if bound is not None and robots > bound:
-        raise UsageError(f"--robots: {robots} robots is more than simulate holds in this machine's memory "
-                         f"({bound}: {why}); use fewer, or --max-robots {robots} to insist")
+        return simulate_max_robots(options.topology, resolved.algorithm, rounds=rounds, grid_points=grid_points)
+
+    robots = options.robots if options.data is None else len(scenario.load_data_csv(options.data))
+    _refuse_past_bound(args, robots, "simulate holds in this machine's memory", derived)
 
 
 def _rounds_and_grid(options: Options) -> tuple[int, int]:
