@@ -723,10 +723,12 @@ class FrameDecoder:
         if need is not None:
             if type(need) not in _OPTIONAL_TYPES["need"] or not _INT_TYPE.issuperset(map(type, need)):
                 raise _Reject("field-type", "'need' is not an array of ints")
-        gone, pgone = frame.get("gone", ()), frame.get("pgone", ())
-        for name, ids in (("gone", gone), ("pgone", pgone)):
-            if type(ids) is not tuple or not _INT_TYPE.issuperset(map(type, ids)):
-                raise _Reject("field-type", f"{name!r} is not an array of ints")
+        gone = pgone = ()
+        if "gone" in frame or "pgone" in frame:  # (only after a loss: most frames skip this)
+            gone, pgone = frame.get("gone", ()), frame.get("pgone", ())
+            for name, ids in (("gone", gone), ("pgone", pgone)):
+                if type(ids) is not tuple or not _INT_TYPE.issuperset(map(type, ids)):
+                    raise _Reject("field-type", f"{name!r} is not an array of ints")
 
         if frame["fleet"] != self.fleet:
             raise _Reject("fleet", f"frame of fleet {frame['fleet'][:80]!r}, not {self.fleet!r}")

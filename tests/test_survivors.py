@@ -66,6 +66,24 @@ def test_the_frame_says_who_was_dropped_only_when_someone_was(ring):
     assert isinstance(refused, Rejected) and refused.reason == "gone" and mine.counts == {"gone": 1}
 
 
+def test_a_round_sent_twice_with_other_lists_is_equivocation(ring):
+    """The list is the sender's word as much as its values: a second frame of the same round that says
+    otherwise is refused, and so is one whose `pgone` contradicts the round before."""
+    _, spec = ring
+    auth = spec.frame_auth(0)
+    decoder = FrameDecoder(spec.fleet, spec.robot_ids, spec.dim, spec.config_tag, auth=spec.frame_auth(3))
+    x = np.arange(spec.dim, dtype=float)
+    send = lambda upd, seq: decoder.decode(  # noqa: E731
+        encode_state(upd, fleet=spec.fleet, seq=seq, config_tag=spec.config_tag, auth=auth), expected_sender=0)
+    assert isinstance(send(StateUpdate(0, 5, x, 0, x, 0), 1), Decoded)
+    assert send(StateUpdate(0, 5, x, 0, x, 0, gone=(1,)), 2).reason == "equivocation"
+    assert isinstance(send(StateUpdate(0, 6, x, 0, x, 0, gone=(1,)), 3), Decoded)  # round 5 said nobody: pgone ()
+    assert send(StateUpdate(0, 6, x, 0, x, 0, gone=(1, 2)), 4).reason == "equivocation"
+    assert isinstance(send(StateUpdate(0, 7, x, 0, x, 0, gone=(1,), prev_gone=(1,)), 5), Decoded)
+    assert send(StateUpdate(0, 8, x, 0, x, 0, gone=(1,)), 6).reason == "equivocation"  # round 7 said (1,), not ()
+    assert decoder.counts == {"equivocation": 3}
+
+
 @pytest.mark.parametrize("gone, prev_gone, why", [
     ((0,), (), "own sender"), ((2, 1), (), "not strictly ascending"), ((1,), (2,), "not a subset"),
     ((1, 1), (), "not strictly ascending")])
