@@ -1214,6 +1214,10 @@ class ConsensusADMM(RoundCore):
             }
         self._prev_mean: np.ndarray | None = None
         self._step_q: tuple[np.ndarray | None, np.ndarray] = (None, np.zeros((0, 0)))  # (`_shared_step`)
+        # the edge form with a soft margin learns who was dropped for good fleet-wide (agents/rounds.py)
+        # and weighs |x|^2 by 1 / (robots left): its answer depends on it. The hub form sees every drop
+        # itself; a hard margin's answer does not depend on the weight (its frames stay as they were)
+        self.floods_gone = self._hub is None and self._C is not None
         self._qp = self._build_qp()
         self._residuals: list[float] = []  # the last 2 * RATE_WINDOW, for the error estimate
         self._held = 0  # hub form on the plain map: rounds in a row its stop test has passed
@@ -1333,7 +1337,8 @@ class ConsensusADMM(RoundCore):
 
     def _forget_edge(self, j: int) -> None:
         """Removing the edge with its dual keeps sum_l lambda = 0 over the remaining robots, so
-        they converge to the solution of *their* data rather than a biased point."""
+        they converge to the solution of *their* data rather than a biased point (with a soft
+        margin once every survivor weighs |x|^2 by 1 / (robots left): `_gone_changed`)."""
         if self._hub is not None:
             self._hub.drop(j)
             if self._polish is not None:  # the polish does not follow a drop: it stops for good
@@ -1343,6 +1348,13 @@ class ConsensusADMM(RoundCore):
             return
         del self._edges[j]
         self._qp = self._build_qp()
+
+    def _gone_changed(self) -> None:
+        """Edge form, soft margin: the fleet lost robots for good (`gone`): this robot's share of
+        1/2 |x|^2 becomes 1 / (robots left), so the survivors' fixed point is their own problem's;
+        the stop flags reach across the survivors' graph, however wide it became."""
+        self._qp = self._build_qp()
+        self._widen_stop(self._n_robots - len(self.gone))
 
     def _hub_step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
         """A complete graph: everyone's values are here, so run the fleet's accelerated hub ADMM."""
@@ -1513,7 +1525,8 @@ class ConsensusADMM(RoundCore):
             self._labels,
             # every robot its share of 1/2 |x|^2: of the fleet the hub still holds (a complete graph
             # knows who left; a soft margin's answer depends on it), else of the fleet it started with
-            x_weight=1.0 / (len(self._hub.ids) if self._hub is not None else self._n_robots),
+            # less the robots it knows to be dropped for good (none unless `floods_gone`)
+            x_weight=1.0 / (len(self._hub.ids) if self._hub is not None else self._n_robots - len(self.gone)),
             prox_weight=self._prox_weight(),
             C=self._C,
         )

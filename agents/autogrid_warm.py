@@ -45,6 +45,9 @@ class WarmADMM(ConsensusADMM):
         # each copy computes every w itself: exact only while the copies agree
         kwargs.setdefault("hub_frames", False)
         super().__init__(*args, **kwargs)
+        # autogrid's frames carry the sub-machine's vectors only, never who was dropped for good: its
+        # robots cannot count the survivors on a sparse graph (|x|^2 stays weighed by 1 / N)
+        self.floods_gone = False
         # the hub form's scaled duals carried in (every robot holds the same rows, bit for bit): the hub
         # starts at z = mean w, u_l = w_l - z + (U_l - mean U) (`_Hub.start`); sum_l u_l = 0 stays, so the
         # fixed point -- the exact optimum -- does not depend on them, only where the iteration starts

@@ -136,7 +136,11 @@ class ContinuousTimeADMM(RoundCore):
         self._n_robots = n_robots
         # per-robot bound on the margin duals: C of the centralized problem, rescaled because
         # every robot carries beta/2 |x|^2 and the fleet's objective is N beta/2 |x|^2
+        self._C = C
         self._u_min = -math.inf if C is None else -float(C) * n_robots * params.beta
+        # with a soft margin the bound depends on how many robots are left: learn who was dropped
+        # for good fleet-wide (agents/rounds.py) and rescale (`_gone_changed`)
+        self.floods_gone = C is not None
         self._sign = {j: (1.0 if robot_id < j else -1.0) for j in self.neighbours}
         self._lam = {j: np.zeros(self.dim) for j in self.neighbours}  # low end's consensus dual
         self._y = np.zeros(len(self._A))
@@ -182,6 +186,14 @@ class ContinuousTimeADMM(RoundCore):
         del self._lam[j]
         del self._sign[j]
         self._build_metric()
+
+    def _gone_changed(self) -> None:
+        """Soft margin: robots were dropped for good (`gone`): the survivors carry (N - lost) beta/2
+        |x|^2, so the duals' bound is C (N - lost) beta -- else they solve C x N / N_alive; and the stop
+        flags reach across the survivors' graph."""
+        left = self._n_robots - len(self.gone)
+        self._u_min = -float(self._C) * left * self.params.beta
+        self._widen_stop(left)
 
     def _save_state(self) -> dict[str, Any]:
         return {

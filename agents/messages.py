@@ -48,6 +48,22 @@ def check_robot_id(robot: Any) -> int:
     return robot
 
 
+def gone_problem(sender: int, gone: Any, prev_gone: Any) -> str | None:
+    """Why a message's lists of robots dropped for good cannot be believed, or None: each must be
+    a tuple of robot ids in strictly ascending order without the sender (a robot that sends is not
+    gone), and ``prev_gone`` a subset of ``gone`` (what a robot knows to be gone only grows)."""
+    for name, ids in (("gone", gone), ("prev_gone", prev_gone)):
+        if type(ids) is not tuple or not all(type(j) is int and 0 <= j <= MAX_ROBOT_ID for j in ids):
+            return f"{name} must be a tuple of robot ids"
+        if any(a >= b for a, b in zip(ids, ids[1:])):
+            return f"{name} {list(ids)[:8]} is not strictly ascending"
+        if sender in ids:
+            return f"{name} names its own sender {sender}"
+    if not set(prev_gone).issubset(gone):
+        return f"prev_gone {list(prev_gone)[:8]} is not a subset of gone {list(gone)[:8]}"
+    return None
+
+
 @dataclass(frozen=True, eq=False)
 class StateUpdate:
     """One robot's consensus vector for one round, as the algorithm core sees it.
@@ -64,6 +80,8 @@ class StateUpdate:
     flags: int
     prev_values: np.ndarray | None
     prev_flags: int = 0
+    gone: tuple[int, ...] = ()
+    prev_gone: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         check_robot_id(self.sender)
@@ -72,9 +90,15 @@ class StateUpdate:
         check_int("prev_flags", self.prev_flags, MAX_FLAGS)
         values = as_vector("values", self.values)
         object.__setattr__(self, "values", values)
+        if self.gone or self.prev_gone:
+            why = gone_problem(self.sender, self.gone, self.prev_gone)
+            if why is not None:
+                raise ValueError(why)
         if self.prev_values is None:
             if self.prev_flags:
                 raise ValueError("prev_flags must be 0 when prev_values is None")
+            if self.prev_gone:
+                raise ValueError("prev_gone must be empty when prev_values is None")
             return
         if self.round == 0:
             raise ValueError("prev_values must be None at round 0 (there is no round -1)")
@@ -88,11 +112,13 @@ class StateUpdate:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, StateUpdate):
             return NotImplemented
-        if (self.sender, self.round, self.flags, self.prev_flags) != (
+        if (self.sender, self.round, self.flags, self.prev_flags, self.gone, self.prev_gone) != (
             other.sender,
             other.round,
             other.flags,
             other.prev_flags,
+            other.gone,
+            other.prev_gone,
         ):
             return False
         if not np.array_equal(self.values, other.values):

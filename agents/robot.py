@@ -118,7 +118,10 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: that solve without it (other frames, other bits)
 #: 6 since branch admmend: plain admm on a complete graph with a soft margin runs the soft end-game by default
 #: (its state where the certificate's stood); a version-5 checkpoint of such a fleet would resume without it
-CHECKPOINT_VERSION = 6
+#: 8 since branch survivors (7: branch hardon's): a round core's checkpoint holds the robots it knows to be
+#: dropped for good (`gone`, `prev_gone`) and its inbox the ones each neighbour sent; a version-7 survivor of
+#: a sparse soft fleet would resume without them (another weight of |x|^2, other frames)
+CHECKPOINT_VERSION = 8
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

@@ -12,6 +12,17 @@ diameter) is thus the AND over *all* robots of bit 0 from D rounds earlier: ever
 same value in the same round, so all stop together. A core whose test is itself the fleet's verdict,
 the same bits on every robot (`fleet_wide_verdict`: the relay hub), stops in the round it passes.
 
+Robots dropped for good (`floods_gone`): a robot on a sparse graph learns only that its own
+neighbours died, yet a soft margin's answer depends on how many robots are left (each weighs
+|x|^2 by 1 / N_alive). A core that sets `floods_gone` sends with each round the sorted ids it knows
+to be dropped for good (`gone`: its own drops and those heard; round k-1's piggybacked as
+`prev_gone`) and, stepping from round k, adds every neighbour's round-k set to its own: the news
+crosses one hop a round (everyone knows within the survivors' diameter), the same bits in both
+shells. In the round its set grows, the subclass's `_gone_changed` reweighs and the robot's stop
+test counts as failed: the flags cannot stop a robot before the news reached it unless every robot
+had passed its test before anyone applied the news (see docs/algorithm.md, "A robot that dies for
+good").
+
 Subclasses implement the mathematics in `_step` (one round) and say what else a checkpoint holds;
 they never see frames, inboxes or flags.
 """
@@ -26,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from agents.messages import StateUpdate
-from agents.params import check_diameter
+from agents.params import MAX_DIAMETER, check_diameter
 from agents.problem import InfeasibleError, SolverError
 
 _TINY = 1e-12
@@ -157,22 +168,26 @@ class _Inbox:
 
     values: dict[int, dict[int, np.ndarray]] = field(default_factory=dict)
     flags: dict[int, dict[int, int]] = field(default_factory=dict)
+    # the robots each sender said were dropped for good with that round's values (only non-empty ones)
+    gone: dict[int, dict[int, tuple[int, ...]]] = field(default_factory=dict)
 
-    def put(self, rnd: int, sender: int, values: np.ndarray, flags: int) -> None:
+    def put(self, rnd: int, sender: int, values: np.ndarray, flags: int, gone: tuple[int, ...] = ()) -> None:
         per = self.values.get(rnd)
         if per is None:  # a round's two tables are made together
             per = self.values[rnd] = {}
             self.flags[rnd] = {}
         per[sender] = values
         self.flags[rnd][sender] = flags
+        if gone:
+            self.gone.setdefault(rnd, {})[sender] = gone
 
     def forget_before(self, rnd: int) -> None:
-        for table in (self.values, self.flags):
+        for table in (self.values, self.flags, self.gone):
             for old in [r for r in table if r < rnd]:
                 del table[old]
 
     def forget_sender(self, sender: int) -> None:
-        for table in (self.values, self.flags):
+        for table in (self.values, self.flags, self.gone):
             for per_round in table.values():
                 per_round.pop(sender, None)
 
@@ -191,6 +206,9 @@ class RoundCore:
     #: flooding it for D more rounds would only repeat what every robot already knows: a robot whose test
     #: passes sets every flag bit and stops in that round, and so does every other robot
     fleet_wide_verdict = False
+    #: True where the core sends and gathers the robots dropped for good (`gone`) and reweighs on news
+    #: (`_gone_changed`): see the module doc. False: frames never carry them, nothing changes
+    floods_gone = False
 
     def __init__(
         self,
@@ -222,6 +240,8 @@ class RoundCore:
         self._prev_values: np.ndarray | None = None
         self._flags = 0
         self._prev_flags = 0
+        self.gone: tuple[int, ...] = ()  # robots known to be dropped for good, as sent with this round
+        self._prev_gone: tuple[int, ...] = ()  # ... and with the round before
 
     # -- the interface the shells drive -------------------------------------------------------
     def outgoing(self) -> StateUpdate:
@@ -233,6 +253,8 @@ class RoundCore:
             flags=self._flags,
             prev_values=None if self._prev_values is None else self._prev_values.copy(),
             prev_flags=self._prev_flags,
+            gone=self.gone,
+            prev_gone=self._prev_gone if self._prev_values is not None else (),
         )
 
     def receive(self, update: StateUpdate) -> None:
@@ -244,9 +266,9 @@ class RoundCore:
             raise ValueError(f"robot {j} sent {update.values.shape[0]} values, expected {self.frame_dim}")
         ahead = update.round - self.round  # which of our rounds (this one, the next) it serves
         if ahead == 0 or ahead == 1:
-            self._inbox.put(update.round, j, update.values, update.flags)
+            self._inbox.put(update.round, j, update.values, update.flags, update.gone)
         if update.prev_values is not None and (ahead == 1 or ahead == 2):
-            self._inbox.put(update.round - 1, j, update.prev_values, update.prev_flags)
+            self._inbox.put(update.round - 1, j, update.prev_values, update.prev_flags, update.prev_gone)
 
     def missing(self) -> tuple[int, ...]:
         """Neighbours whose value for the current round has not arrived."""
@@ -275,7 +297,9 @@ class RoundCore:
         """Consume every neighbour's round-k values; compute round k+1."""
         theirs, their_flags = self._take_round()
         mine = self._values
+        news = self.floods_gone and self._gather_gone()
         new_values, below = self._step(mine, theirs)
+        below = below and not news  # (the round the news came: its step ran on the new weights)
         combined = self._flags
         for f in their_flags.values():
             combined &= f
@@ -290,6 +314,30 @@ class RoundCore:
         if self._flags >> self._diameter & 1 or self.round >= self._round_cap:
             self.finished = True
         return self.outgoing()
+
+    def _gather_gone(self) -> bool:
+        """Round k -> k+1 with `floods_gone`: the robots dropped for good as this robot knows them now
+        -- what it knew, its own drops, every neighbour's set sent with round k -- become the set it
+        sends with round k+1; where that grew, the subclass reweighs before the step. True if it grew."""
+        known = set(self.gone)
+        known.update(self.dropped)
+        for ids in self._inbox.gone.get(self.round, {}).values():
+            known.update(ids)
+        known.discard(self.robot_id)  # (a frame naming the receiver never gets here: the decoder refuses it)
+        now = tuple(sorted(known))
+        self._prev_gone = self.gone
+        if now == self.gone:
+            return False
+        self.gone = now
+        self._gone_changed()
+        return True
+
+    def _widen_stop(self, robots_left: int) -> None:
+        """After a loss the survivors' graph may be wider than the diameter the flags were sized for
+        (a 6-ring without robot 1 is a path of diameter 4 > 3: its ends stopped rounds apart, and
+        the others dropped the one that stopped). A connected graph of n robots has a diameter
+        <= n - 1, so the stop waits for that many hops (at most MAX_DIAMETER): a few rounds more."""
+        self._diameter = max(self._diameter, min(MAX_DIAMETER, robots_left - 1))
 
     def drop_neighbour(self, j: int) -> None:
         """Continue without a neighbour that died for good (the subclass drops its edge state)."""
@@ -342,8 +390,10 @@ class RoundCore:
             "values": to_bytes(self._values),
             "prev_values": to_bytes(self._prev_values),
             "dropped": list(self.dropped),
+            "gone": list(self.gone),
+            "prev_gone": list(self._prev_gone),
             "inbox": [
-                [rnd, j, to_bytes(v), self._inbox.flags[rnd][j]]
+                [rnd, j, to_bytes(v), self._inbox.flags[rnd][j], list(self._inbox.gone.get(rnd, {}).get(j, ()))]
                 for rnd, per in self._inbox.values.items()
                 for j, v in per.items()
             ],
@@ -354,6 +404,8 @@ class RoundCore:
         """Resume from `checkpoint()` output (the same robot, data and parameters)."""
         if state.get("algorithm") != self.algorithm or state.get("robot") != self.robot_id:
             raise ValueError("checkpoint belongs to another robot or algorithm")
+        self.gone = tuple(int(j) for j in state["gone"])  # (before the drops: they rebuild on it)
+        self._prev_gone = tuple(int(j) for j in state["prev_gone"])
         for j in state["dropped"]:
             self.drop_neighbour(int(j))
         self.round = int(state["round"])
@@ -364,9 +416,11 @@ class RoundCore:
         self._values = from_bytes(state["values"])
         self._prev_values = from_bytes(state["prev_values"])
         self._inbox = _Inbox()
-        for rnd, j, v, flags in state["inbox"]:
-            self._inbox.put(int(rnd), int(j), from_bytes(v), int(flags))
+        for rnd, j, v, flags, gone in state["inbox"]:
+            self._inbox.put(int(rnd), int(j), from_bytes(v), int(flags), tuple(int(i) for i in gone))
         self._load_state(state["state"])
+        if self.gone:
+            self._gone_changed()
         self.trace = {}
         self._record()
 
@@ -377,6 +431,11 @@ class RoundCore:
 
     def _forget_edge(self, j: int) -> None:
         """Drop the state of the edge to a neighbour that died for good."""
+        raise NotImplementedError
+
+    def _gone_changed(self) -> None:
+        """`floods_gone`: `gone` grew (or a restore set it) -- reweigh for the robots left. Called
+        before the round's step, and after `restore`."""
         raise NotImplementedError
 
     def _save_state(self) -> dict[str, Any]:

@@ -23,7 +23,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from agents.messages import MAX_FLAGS, MAX_ROBOT_ID, MAX_ROUND, StateUpdate, check_int
+from agents.messages import MAX_FLAGS, MAX_ROBOT_ID, MAX_ROUND, StateUpdate, check_int, gone_problem
 from protocol.auth import TAG_BYTES, FrameAuth
 from protocol.keys import validate_fleet_id, validate_robot_id
 
@@ -57,6 +57,10 @@ REJECTION_REASONS: tuple[str, ...] = (
     "vector-length",    # x or prev is not 8 * dim bytes
     "non-finite",       # x or prev holds NaN or +-inf
     "need",             # the optional "need" list names a robot that is not a known sender, twice, or unsorted
+    # the optional "gone" / "pgone" lists (robots dropped for good) name a robot that is not a known
+    # sender, the sender itself or, per receiver, the receiver; are unsorted; or pgone is not a subset
+    # of gone or comes without prev
+    "gone",
     # only with authentication (FrameDecoder(auth=...)); "auth" is checked right after unpacking
     # the envelope (before any field of the frame is trusted), "equivocation" last
     "auth",             # no envelope, no tag for this receiver, or a tag that does not verify
@@ -84,9 +88,13 @@ _FIELD_TYPES: dict[str, tuple[type, ...]] = {
 # Optional fields: absent means "not said" (a frame without one is as valid as before).
 # "need": the robots whose value of this frame's round the sender still lacks, sorted ascending
 # (protocol/session.py: a neighbour answers a repeat with a fast resend only if it is named).
-_OPTIONAL_TYPES: dict[str, tuple[type, ...]] = {"need": (tuple,)}
+# "gone" / "pgone": the robots the sender knows to have been dropped for good when it computed x /
+# prev (StateUpdate.gone, prev_gone; agents/rounds.py floods them), sorted ascending; absent when
+# empty, so a fleet that never loses a robot sends the frames it always sent.
+_OPTIONAL_TYPES: dict[str, tuple[type, ...]] = {"need": (tuple,), "gone": (tuple,), "pgone": (tuple,)}
 _FIELDS = frozenset(_FIELD_TYPES)
-_FIELDS_NEED = _FIELDS | frozenset(_OPTIONAL_TYPES)
+_FIELDS_NEED = _FIELDS | {"need"}
+_FIELDS_ALL = _FIELDS | frozenset(_OPTIONAL_TYPES)
 MAX_NEED = 1024  # msgpack's array limit of the decoder; a longer list is left out ("not said")
 
 
@@ -105,6 +113,11 @@ class Decoded:
     update: StateUpdate
     seq: int
     need: tuple[int, ...] | None = None
+
+    def names_gone(self, robot: int) -> bool:
+        """Whether the frame says ``robot`` was dropped for good (its "gone" or "pgone")."""
+        update = self.update
+        return robot in update.gone or robot in update.prev_gone
 
 
 @dataclass(frozen=True)
@@ -199,6 +212,12 @@ def encode_state(
     }
     if need is not None and len(need) <= MAX_NEED:
         frame["need"] = _robot_ids(need)
+    if update.gone:  # (StateUpdate checked them: sorted ids, never the sender; pgone within gone)
+        if len(update.gone) > MAX_NEED:
+            raise ValueError(f"gone names {len(update.gone)} robots, more than a frame holds ({MAX_NEED})")
+        frame["gone"] = list(update.gone)
+        if update.prev_gone:
+            frame["pgone"] = list(update.prev_gone)
     data = _pack(frame)
     if auth is None:
         if prime is not None:
@@ -230,6 +249,7 @@ def _prime(decoder: FrameDecoder, frame: dict[str, Any], body: bytes, seq: int,
     x, prev, need, sender = frame["x"], frame["prev"], frame.get("need"), frame["from"]
     parsed = _body_of(sender, frame["round"], seq, frame["flags"], x, prev, frame["pflags"],
                       None if need is None else tuple(need), _read_only(x), None if prev is None else _read_only(prev),
+                      tuple(frame.get("gone", ())), tuple(frame.get("pgone", ())),
                       valid=True)
     if envelope is None:
         _MEMO.put((decoder._profile, sender, body), parsed, len(body))
@@ -364,13 +384,18 @@ class _Body:
     the frame's immutable bytes, so no receiver can change what another one holds), and the
     equivocation claims (flags, raw x) / (pflags, raw prev), built once instead of per receiver."""
 
-    __slots__ = ("sender", "round", "decoded", "claim", "prev_claim")
+    __slots__ = ("sender", "round", "decoded", "claim", "prev_claim", "gone")
 
     def __init__(self, decoded: Decoded, x: bytes, prev: bytes | None) -> None:
         update = decoded.update
         self.sender, self.round, self.decoded = update.sender, update.round, decoded
-        self.claim = (update.flags, x)
-        self.prev_claim = None if prev is None else (update.prev_flags, prev)
+        # (the robots dropped for good are part of a round's claim once there are any: a frame is
+        # the sender's word on both; none, the claims stay what they were)
+        gone, pgone = update.gone, update.prev_gone
+        self.gone = frozenset(gone) if gone else None  # (pgone is within gone: checked)
+        self.claim = (update.flags, x) if not gone else (update.flags, x, gone)
+        self.prev_claim = None if prev is None else (update.prev_flags, prev) if not pgone else (
+            update.prev_flags, prev, pgone)
 
 
 class _ParseMemo:
@@ -434,14 +459,14 @@ _compare_digest = hmac.compare_digest
 
 def _body_of(sender: int, rnd: int, seq: int, flags: int, x: bytes, prev: bytes | None, pflags: int,
              need: tuple[int, ...] | None, values: np.ndarray, prev_values: np.ndarray | None,
-             *, valid: bool = False) -> _Body:
+             gone: tuple[int, ...] = (), pgone: tuple[int, ...] = (), *, valid: bool = False) -> _Body:
     """The shared parse of a checked frame body (its fields, the vectors as read-only arrays).
     ``valid``: the fields are those of a StateUpdate that passed its checks (encode_state's prime),
     so they are not checked again where the vectors are already native float64 (little-endian hosts)."""
     if valid and _NATIVE_F8:
         update = object.__new__(StateUpdate)  # (a frozen dataclass: its fields set as __init__ would)
         update.__dict__.update(sender=sender, round=rnd, values=values, flags=flags, prev_values=prev_values,
-                               prev_flags=pflags)
+                               prev_flags=pflags, gone=gone, prev_gone=pgone)
         decoded = object.__new__(Decoded)  # (likewise: a frozen dataclass's __init__ is ~0.4 us of setattrs)
         decoded.__dict__.update(update=update, seq=seq, need=need)
         return _Body(decoded, x, prev)
@@ -452,6 +477,8 @@ def _body_of(sender: int, rnd: int, seq: int, flags: int, x: bytes, prev: bytes 
         flags=flags,
         prev_values=prev_values,
         prev_flags=pflags,
+        gone=gone,
+        prev_gone=pgone,
     )
     if update.values is not values:  # (a big-endian machine: as_vector made a native copy)
         for arr in (update.values, update.prev_values):
@@ -492,6 +519,7 @@ class FrameDecoder:
         dim: int,
         config_tag: bytes,
         auth: FrameAuth | None = None,
+        receiver: int | None = None,
     ) -> None:
         self.fleet = validate_fleet_id(fleet)
         self.known_senders = frozenset(validate_robot_id(s) for s in known_senders)
@@ -511,6 +539,9 @@ class FrameDecoder:
         self._in = None if auth is None else auth.incoming(self.known_senders)
         self._me = None if auth is None else auth.me
         self._keys = None if auth is None else auth.keys
+        # the robot these frames are for (default: the keys' owner): a frame saying it was dropped
+        # for good is refused ("gone") -- it is here, so the sender's problem is not the fleet's
+        self.receiver = receiver if receiver is not None else self._me
 
     def decode(self, data: bytes, *, expected_sender: int | None = None) -> Decoded | Rejected:
         """Check ``data`` completely; never raises.
@@ -549,6 +580,8 @@ class FrameDecoder:
                     if valid:
                         _MEMO.hits += 1
                         try:
+                            if body.gone is not None:
+                                self._check_receiver(body)
                             self._check_equivocation(body)
                         except _Reject as r:
                             self.counts[r.reason] += 1
@@ -574,13 +607,23 @@ class FrameDecoder:
         if size > MAX_FRAME_BYTES:
             raise _Reject("too-large", f"{size} bytes > {MAX_FRAME_BYTES}")
         if self.auth is None:
-            return self._parsed_frame(data, expected_sender).decoded
+            body = self._parsed_frame(data, expected_sender)
+            if body.gone is not None:
+                self._check_receiver(body)
+            return body.decoded
         env = self._open_envelope(data, expected_sender)
         body = env.parsed.get(self._profile)
         if body is None:  # the first receiver of this frame here: parse (or the memo's rejection)
             body = env.parsed[self._profile] = self._parsed_frame(env.body, env.sender)
+        if body.gone is not None:
+            self._check_receiver(body)
         self._check_equivocation(body)
         return body.decoded
+
+    def _check_receiver(self, body: _Body) -> None:
+        """Refuse a frame that says this receiver was dropped for good (per receiver: the parse is shared)."""
+        if self.receiver is not None and body.gone is not None and self.receiver in body.gone:
+            raise _Reject("gone", f"sender {body.sender} says robot {self.receiver}, the receiver, was dropped for good")
 
     def _open_envelope(self, data: Any, expected_sender: int | None) -> _Envelope:
         """The authenticated frame's envelope (shared, see _Envelope); "auth" unless the tag to
@@ -663,7 +706,8 @@ class FrameDecoder:
         need) with the vectors as raw little-endian bytes, then the vectors as read-only arrays."""
         frame = self._unpack(data)
         self._check_version_and_kind(frame)
-        if frame.keys() != _FIELDS and frame.keys() != _FIELDS_NEED:  # (exactly a frame's fields: neither)
+        keys = frame.keys()
+        if keys != _FIELDS_NEED and keys != _FIELDS and not (_FIELDS <= keys <= _FIELDS_ALL):  # (the common two first)
             unknown = [k for k in frame if k not in _FIELD_TYPES and k not in _OPTIONAL_TYPES]
             if unknown:
                 raise _Reject("unknown-field", f"unknown field(s) {sorted(map(repr, unknown))}")
@@ -679,6 +723,12 @@ class FrameDecoder:
         if need is not None:
             if type(need) not in _OPTIONAL_TYPES["need"] or not _INT_TYPE.issuperset(map(type, need)):
                 raise _Reject("field-type", "'need' is not an array of ints")
+        gone = pgone = ()
+        if "gone" in frame or "pgone" in frame:  # (only after a loss: most frames skip this)
+            gone, pgone = frame.get("gone", ()), frame.get("pgone", ())
+            for name, ids in (("gone", gone), ("pgone", pgone)):
+                if type(ids) is not tuple or not _INT_TYPE.issuperset(map(type, ids)):
+                    raise _Reject("field-type", f"{name!r} is not an array of ints")
 
         if frame["fleet"] != self.fleet:
             raise _Reject("fleet", f"frame of fleet {frame['fleet'][:80]!r}, not {self.fleet!r}")
@@ -710,8 +760,25 @@ class FrameDecoder:
             known = self.known_senders
             if not known.issuperset(need) or not all(map(operator.lt, need, need[1:])):
                 raise _Reject("need", f"'need' {list(need)[:8]!r} names an unknown robot, or is not sorted")
+        if gone or pgone:
+            self._check_gone(sender, gone, pgone, frame["prev"] is not None)
         return (sender, frame["round"], frame["seq"], frame["flags"], frame["x"], frame["prev"], frame["pflags"],
-                need, values, prev_values)
+                need, values, prev_values, gone, pgone)
+
+    def _check_gone(self, sender: int, gone: tuple[int, ...], pgone: tuple[int, ...], has_prev: bool) -> None:
+        """The robots a frame says were dropped for good must be fleet members (known senders), in
+        ascending order, never the sender; pgone within gone and only beside prev (`gone_problem`)."""
+        if not gone:
+            raise _Reject("gone", "'pgone' without 'gone' (what a robot knows to be gone only grows)")
+        if pgone and not has_prev:
+            raise _Reject("gone", "'pgone' without 'prev'")
+        unknown = [j for j in (*gone, *pgone) if j not in self.known_senders]
+        if unknown:
+            raise _Reject("gone", f"'gone' names robot(s) {unknown[:8]} outside the fleet")
+        why = gone_problem(sender, gone, pgone)
+        if why is not None:
+            raise _Reject("gone", why.replace("prev_gone", "pgone"))
+
 
     @classmethod
     def _unpack(cls, data: bytes | bytearray | memoryview) -> dict[str, Any]:

@@ -182,7 +182,7 @@ class RobotSession:
         self.fleet = fleet
         self._tag = bytes(config_tag)
         self._auth = auth
-        self.decoder = FrameDecoder(fleet, senders, dim, config_tag, auth=auth)
+        self.decoder = FrameDecoder(fleet, senders, dim, config_tag, auth=auth, receiver=self.me)
         self.t0 = now
         self._restore_counters(resume or {})
         # why frames were sent again (not part of the row: benchmarks read it from the profile)

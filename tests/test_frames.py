@@ -307,6 +307,17 @@ REJECTION_CASES: dict[str, tuple[str, object]] = {
     "field-type/need/int": ("field-type", pack(valid_map(need=2))),
     "field-type/need/bool": ("field-type", pack(valid_map(need=[True]))),
     "field-type/need/nil-item": ("field-type", pack(valid_map(need=[None]))),
+    # the robots dropped for good (agents/rounds.py floods them): fleet members, never the sender, sorted
+    "gone/unknown": ("gone", pack(valid_map(gone=[0, 3]))),
+    "gone/sender": ("gone", pack(valid_map(gone=[1]))),
+    "gone/unsorted": ("gone", pack(valid_map(gone=[2, 0]))),
+    "gone/twice": ("gone", pack(valid_map(gone=[0, 0]))),
+    "gone/pgone-not-within-gone": ("gone", pack(valid_map(gone=[0], pgone=[2]))),
+    "gone/pgone-without-gone": ("gone", pack(valid_map(pgone=[0]))),
+    "gone/pgone-without-prev": ("gone", pack(valid_map(gone=[0], pgone=[0], prev=None, pflags=0))),
+    "field-type/gone/int": ("field-type", pack(valid_map(gone=2))),
+    "field-type/gone/bool": ("field-type", pack(valid_map(gone=[True]))),
+    "field-type/pgone/nil-item": ("field-type", pack(valid_map(gone=[0], pgone=[None]))),
 }
 for _name in ("v", "kind", "fleet", "from", "round", "seq", "cfg", "x", "flags", "prev",
               "pflags"):
