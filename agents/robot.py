@@ -118,7 +118,9 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: that solve without it (other frames, other bits)
 #: 6 since branch admmend: plain admm on a complete graph with a soft margin runs the soft end-game by default
 #: (its state where the certificate's stood); a version-5 checkpoint of such a fleet would resume without it
-CHECKPOINT_VERSION = 6
+#: 7 since branch hardon: likewise for hard margins (the hard end-game by default); a version-6 checkpoint
+#: of such a fleet would resume with the certified guard's state
+CHECKPOINT_VERSION = 7
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the
