@@ -14,17 +14,7 @@ from agents.soft_endgame import payload_size
 from agents.spec import build_core
 
 from .conftest import make_run, run_to_end
-
-
-def _run(**kwargs):
-    """The fleet of make_run(**kwargs) run to its end in process: (spec, cores, max error against the exact
-    central QP)."""
-    _world, spec, central = make_run(**kwargs)
-    cores = [build_core(spec, i) for i in spec.robot_ids]
-    run_to_end(cores)
-    b = spec.basis
-    error = max(b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores)
-    return spec, cores, error
+from .test_admm_soft_default import _run  # (the fleet run to its end, with its error against the exact QP)
 
 
 def test_paper_preset_hard_ends_certified_exact_and_earlier_than_the_certified_guard():
