@@ -30,7 +30,8 @@ sends w_l = h_l + u_l from its own copy beside v_l -- so copies that came to dif
 dropping a dead robot in different rounds) still share one map and its exact fixed point; they
 take plain steps until they agree again. `anderson = 0` keeps the edge form everywhere. On hard
 margins the hub's stop is guarded by a proven bound on the error (agents/certificate.py, `certify`):
-the rule proposes, the bound must agree.
+the rule proposes, the bound must agree (where the fleet file names `certify`: a complete fleet silent on it
+runs the exact end-game, agents/soft_endgame.py, by default; agents/spec.py `endgame_default`).
 
 No I/O, no clock: frames in (`receive`), frames out (`outgoing`, `advance`).
 """
@@ -78,7 +79,8 @@ class ADMMParams:
     # soft answer solves turn it on, False keeps main's frames and bits
     soft_polish: bool = False
     # with soft_polish, hard margins run the same end-game with B empty and no upper bound (C = inf);
-    # autogrid's hard answer solves turn it on, False keeps the hard frames' payload zeros (main's bits)
+    # autogrid's hard answer solves and complete admm fleets by default (agents/spec.py) turn it on, False
+    # keeps the hard frames' payload zeros (main's bits)
     hard_endgame: bool = False
     # hub form, hard margin, no polish: a stop also needs the fleet's certified error bound
     # (agents/certificate.py) <= certify x max(tol, 1e-3); 0 = the rule alone (main's frames and bits)

@@ -118,6 +118,8 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: that solve without it (other frames, other bits)
 #: 6 since branch admmend: plain admm on a complete graph with a soft margin runs the soft end-game by default
 #: (its state where the certificate's stood); a version-5 checkpoint of such a fleet would resume without it
+#: 7 since branch hardon: likewise for hard margins (the hard end-game by default); a version-6 checkpoint
+#: of such a fleet would resume with the certified guard's state
 #: 8 since branch survivors (7: branch hardon's): a round core's checkpoint holds the robots it knows to be
 #: dropped for good (`gone`, `prev_gone`) and its inbox the ones each neighbour sent; a version-7 survivor of
 #: a sparse soft fleet would resume without them (another weight of |x|^2, other frames)

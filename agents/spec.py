@@ -154,8 +154,8 @@ class FleetSpec:
         if self.custom:  # a user's fleet algorithm: its own params_class, read as strictly
             return params_from(load_algorithm(self.algorithm).params_class, self.params, self.algorithm)
         params = PARAMS_CLASSES[self.algorithm].from_params(self.params)
-        if self.algorithm == "admm" and soft_endgame_default(params, self.C, self.params, self._hub_form(params)):
-            return replace(params, soft_polish=True)
+        if self.algorithm == "admm" and endgame_default(params, self.C, self.params, self._hub_form(params)):
+            return replace(params, soft_polish=True, hard_endgame=params.hard_endgame or self.C is None)
         return params
 
     def _hub_form(self, params: ADMMParams) -> bool:
@@ -331,15 +331,19 @@ class FleetSpec:
             raise ValueError(f"{path}: not a valid fleet file ({exc})") from None
 
 
-def soft_endgame_default(params: ADMMParams, C: float | None, given: Any, hub: bool) -> bool:
-    """True when an admm fleet runs the soft end-game (agents/soft_endgame.py) without asking: the hub
-    form (a complete graph), a soft margin, the fleet file silent on ``soft_polish``, no hard ``polish``.
-    It paid on every soft complete fleet measured (paper preset --C 10: 163 -> 64 rounds, certified
-    exact; benchmarks/results/rounds.md, top); hard margins keep the certified guard (their end-game,
-    with the off-margin guess, certifies and gains on every complete fleet measured, 3-48 robots, but
-    is not switched on yet: rounds.md). Sparse fleets are unchanged (the flag would drop the relay
-    hub's guard slot from their frames)."""
-    return hub and C is not None and "soft_polish" not in given and not params.polish and not params.soft_polish
+def endgame_default(params: ADMMParams, C: float | None, given: Any, hub: bool) -> bool:
+    """True when an admm fleet runs the exact end-game (agents/soft_endgame.py) without asking: the hub
+    form (a complete graph), the fleet file silent on ``soft_polish``, no hard ``polish``; soft margins
+    always, hard margins (``hard_endgame``) unless the fleet file names ``certify`` (``--certify``: the
+    certified guard it asked for, or with 0 the rule alone) or sets ``hard_endgame`` false. It paid on
+    every complete fleet measured, 3-48 robots, certified exact (soft: paper preset --C 10 163 -> 64
+    rounds; hard: 120 -> 107, 32 robots 2219 -> 1022; benchmarks/results/rounds.md, top). Sparse fleets
+    are unchanged (the flag would drop the relay hub's guard slot from their frames)."""
+    if not hub or "soft_polish" in given or params.polish or params.soft_polish:
+        return False
+    if C is not None:
+        return True
+    return "certify" not in given and ("hard_endgame" not in given or params.hard_endgame)
 
 
 Core = ConsensusADMM | RelayHubADMM | ContinuousTimeADMM | AdaptiveGridCore | DistributedNewton  # or a user's RoundCore

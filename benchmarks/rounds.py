@@ -18,6 +18,10 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
                                                             # stall switch (~8 minutes)
     .venv/bin/python benchmarks/rounds.py --endgame  # complete fleets, the exact end-game off and on,
                                                      # hard and soft margins (~6 minutes)
+    .venv/bin/python benchmarks/rounds.py --defaults --json OUT  # the same fleets (and two sparse
+                                                     # controls) on the default path only: run it on two
+                                                     # trees for a before/after of a default's change
+    (--jobs 2: fleets in two processes, for --endgame and --defaults)
     .venv/bin/python benchmarks/rounds.py --stall-stretches  # where a stalled fleet's rounds go: its
                                                              # Anderson and plain stretches (~3 minutes)
 """
@@ -25,8 +29,10 @@ eigenvalues (GridBasis.rank == M, checked below): the exact QP optimum, nothing 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from functools import partial
 from typing import Any
 from pathlib import Path
 
@@ -215,10 +221,9 @@ ENDGAME_FLEETS = [
     ("24 robots, seed 1, C 10", {"robots": 24, "seed": 1, "C": 10.0}),
     ("32 robots, geometric (complete), C 10", {"robots": 32, "topology": "geometric", "C": 10.0}),
 ]
-#: the end-game off (main before branch admmend: the certified guard on hard margins) and on (soft margins:
-#: agents/soft_endgame.py, the default since admmend; hard margins: with hard_endgame, B empty -- not the
-#: default: every complete hard fleet here certifies and stops earlier, but a robot lost for good makes the
-#: survivors reject each other's resent frame as equivocation, rounds.md top section)
+#: the end-game off (main before branch admmend: the certified guard on hard margins) and on (agents/soft_endgame.py;
+#: hard margins with hard_endgame, B empty): the default on every complete fleet, soft margins since admmend,
+#: hard margins since hardon (agents/spec.py `endgame_default`; rounds.md top section)
 ENDGAME_OFF = {"soft_polish": False}
 ENDGAME_ON = {"soft_polish": True, "hard_endgame": True}
 
@@ -227,10 +232,28 @@ ENDGAME_INTRO = (
     "`.venv/bin/python benchmarks/rounds.py --endgame`, in process (no network). Off: `soft_polish` false (main "
     "before branch admmend; hard margins stop under the certified guard). On: `soft_polish` and `hard_endgame` "
     "(agents/soft_endgame.py). Error: max over robots against the exact central QP. Certified: the end-game "
-    "ended the run. Default now: soft margins on, hard margins off (rounds.md, top section).")
+    "ended the run. Default now: on for every complete fleet, soft margins since admmend, hard margins since "
+    "hardon (rounds.md, top section).")
 
 
-def endgame_table(max_rounds: int) -> list[str]:
+def _measured(tasks: list[tuple[dict, dict]], max_rounds: int, jobs: int) -> Iterator[dict]:
+    """`measure` of each (Options keywords, params) in order, in ``jobs`` processes (rounds are deterministic:
+    the figures are the same for any ``jobs``)."""
+    if jobs <= 1:
+        yield from (measure(dict(kwargs), max_rounds, params=params) for kwargs, params in tasks)
+        return
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        yield from pool.map(partial(_measure_task, max_rounds), tasks)
+
+
+def _measure_task(max_rounds: int, task: tuple[dict, dict]) -> dict:
+    kwargs, params = task
+    return measure(dict(kwargs), max_rounds, params=params)
+
+
+def endgame_table(max_rounds: int, jobs: int = 1) -> list[str]:
     """Rounds at stop, error against the exact central QP and bytes per robot of complete fleets with the
     exact end-game off and on; 'certified': the end-game ended the run (every robot certified its rows)."""
     lines = [
@@ -238,16 +261,33 @@ def endgame_table(max_rounds: int) -> list[str]:
         "| bytes per robot off -> on | default now |",
         "|---|:---:|---:|---:|:---:|---:|:---:|",
     ]
+    tasks = [(kwargs, params) for _name, kwargs in ENDGAME_FLEETS for params in (ENDGAME_OFF, ENDGAME_ON)]
+    results = _measured(tasks, max_rounds, jobs)
     for name, kwargs in ENDGAME_FLEETS:
-        off = measure(dict(kwargs), max_rounds, params=ENDGAME_OFF)
-        on = measure(dict(kwargs), max_rounds, params=ENDGAME_ON)
+        off, on = next(results), next(results)
         soft = "C" in kwargs
         flag = lambda r: "" if r["converged"] else " (not converged)"  # noqa: E731
         add_row(lines, (
             f"| {name} | {'soft' if soft else 'hard'} | {off['stop']}{flag(off)} -> {on['stop']}{flag(on)} | "
             f"{off['error']:.1e} -> {on['error']:.1e} | {'yes' if on['certified'] else '**no**'} | "
-            f"{off['bytes']:.0f} -> {on['bytes']:.0f} | {'on' if soft else 'off'} |"))
+            f"{off['bytes']:.0f} -> {on['bytes']:.0f} | on |"))
     return lines
+
+
+#: sparse controls for --defaults: the relay hub, whose default a complete fleet's end-game must not move
+DEFAULT_SPARSE = [("4 robots, ring", {"robots": 4, "topology": "ring"}), ("8 robots, ring", {"robots": 8, "topology": "ring"})]
+
+
+def default_rows(max_rounds: int, jobs: int = 1) -> list[dict]:
+    """The complete fleets of --endgame and two sparse controls on the default path (the fleet file's params
+    as the launcher writes them): what a change of a default moves, run on the trees before and after it."""
+    fleets = ENDGAME_FLEETS + DEFAULT_SPARSE
+    rows = []
+    for (name, _kwargs), r in zip(fleets, _measured([(kwargs, {}) for _name, kwargs in fleets], max_rounds, jobs)):
+        rows.append({"fleet": name, **r})
+        print(f"| {name} | {r['first']} | {r['stop']} | {'yes' if r['converged'] else 'no'} | {r['error']:.1e} | "
+              f"{'yes' if r['certified'] else 'no'} | {r['bytes']:.0f} |", flush=True)
+    return rows
 
 
 def fleet_probe(kwargs: dict, max_rounds: int, params: dict | None = None) -> tuple[list, Callable[..., Any],
@@ -373,10 +413,19 @@ def main() -> None:
                     help="only the stalled fleets' Anderson and plain stretches (printed, not written)")
     ap.add_argument("--endgame", action="store_true",
                     help="only complete fleets with the exact end-game off and on, hard and soft margins, rounds-endgame.md")
+    ap.add_argument("--defaults", action="store_true",
+                    help="only the complete fleets of --endgame and two sparse ones on the default path (printed)")
+    ap.add_argument("--json", type=Path, help="with --defaults: also write the rows to this JSON file")
+    ap.add_argument("--jobs", type=int, default=1, help="with --endgame or --defaults: fleets measured in parallel")
     args = ap.parse_args()
     if args.endgame:
         write_results("rounds-endgame.md", "# Decentralized ADMM: the exact end-game on complete fleets\n\n"
-                      + ENDGAME_INTRO + "\n\n" + "\n".join(endgame_table(args.max_rounds)) + "\n")
+                      + ENDGAME_INTRO + "\n\n" + "\n".join(endgame_table(args.max_rounds, args.jobs)) + "\n")
+        return
+    if args.defaults:
+        rows = default_rows(args.max_rounds, args.jobs)
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1))
         return
     if args.stall_stretches:
         stretch_table(args.max_rounds)

@@ -412,9 +412,10 @@ OPTIONS: tuple[Option, ...] = (
            "active-set end-game (docs/algorithm.md, \"An exact end-game\"): the run ends at the KKT-certified optimum, "
            "2-5x fewer rounds; its frames carry sums of each robot's active feature rows' outer products, as newton's",
            group=ALGORITHM, section="algorithm", show_default=False),
-    Option("certify", FLOAT, None, "admm on a complete graph (the hub form), hard margin: a stop also needs the "
-           "fleet's proven bound on its error against the exact optimum <= CERTIFY x max(tol, 1e-3) (docs/algorithm.md, "
-           f"\"A certified stop\"; default {param_default('admm', 'certify'):g}); 0: the stopping rule alone",
+    Option("certify", FLOAT, None, "admm, hard margin: a stop also needs the fleet's proven bound on its error "
+           "against the exact optimum <= CERTIFY x max(tol, 1e-3) (docs/algorithm.md, \"A certified stop\"; default "
+           f"{param_default('admm', 'certify'):g} on the relay hub); 0: the stopping rule alone. A complete graph runs "
+           "the exact end-game by default instead; giving --certify there keeps this guard",
            group=ALGORITHM, section="algorithm", check=_finite_non_negative, show_default=False),
     Option("ct-step", DURATION, FROM_PARAMS, "ct-admm: integration step of the flow, the paper's",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "step"}),

@@ -1,7 +1,7 @@
 """Plain admm on a complete graph with a soft margin runs the soft end-game (agents/soft_endgame.py) by
-default (agents/spec.py, `soft_endgame_default`): the run ends at the certified exact soft optimum, earlier
-than the ADMM's own stop, and a fleet file that names ``soft_polish`` keeps its choice. Hard margins keep the
-certified guard (their end-game did not certify on 8 and 16 robots: benchmarks/results/rounds.md, top)."""
+default (agents/spec.py, `endgame_default`): the run ends at the certified exact soft optimum, earlier
+than the ADMM's own stop, and a fleet file that names ``soft_polish`` keeps its choice. Hard margins run
+the hard end-game by default since branch hardon (tests/test_admm_hard_default.py)."""
 
 from __future__ import annotations
 
@@ -45,9 +45,7 @@ def test_a_fleet_file_naming_soft_polish_keeps_its_choice_and_stops_later():
     assert cores[0].round < plain[0].round  # the end-game ends the run before the ADMM's own stop
 
 
-def test_hard_margins_and_sparse_graphs_are_unchanged():
-    _w, hard, _c = make_run()
-    assert not hard.algorithm_params.soft_polish and hard.algorithm_params.certify > 0  # the certified guard
+def test_the_hard_polish_and_sparse_graphs_are_unchanged():
     _w, polished, _c = make_run(C=10.0)
     polished.params["polish"] = True  # a fleet file asking for the hard polish: no clash with the soft default
     assert polished.algorithm_params.polish and not polished.algorithm_params.soft_polish

@@ -81,6 +81,11 @@ def test_a_huge_finite_payload_overflows_to_no_certificate_never_an_error(k):
                 assert cert.bound(np.array([1e300, -1e300, 1e300])) == math.inf
 
 
+#: as `--certify 10`: the guard asked for (a complete hard fleet silent on it runs the exact end-game since
+#: branch hardon, agents/spec.py `endgame_default`)
+GUARDED = {"certify": 10.0}
+
+
 def _errors(spec, central, cores) -> list[float]:
     b = spec.basis
     return [b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores]
@@ -90,7 +95,7 @@ def _errors(spec, central, cores) -> list[float]:
 def test_the_bound_holds_every_round_against_the_central_solve(kwargs, monkeypatch):
     monkeypatch.setattr(admm, "CERTIFY_EVERY_ROUND", True)  # (else only rounds whose rule passed)
     monkeypatch.setattr(admm, "CERTIFY_ARM", math.inf)  # (else the payloads only near the rule's stop)
-    _, spec, central = make_run(tol=1e-14, max_rounds=160, **kwargs)
+    _, spec, central = make_run(tol=1e-14, max_rounds=160, **GUARDED, **kwargs)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     bounded = assert_bound_holds_every_round(spec, central, cores, 160, _errors)
     assert bounded > 100 * len(cores)  # the certificate exists on most rounds (not a vacuous loop)
@@ -157,8 +162,8 @@ def test_certify_zero_keeps_the_frames_and_the_iterates(monkeypatch):
 
 @pytest.mark.parametrize("at", [60, 118])  # (after round 118 the checkpoint holds an armed payload; stop at 120)
 def test_a_checkpoint_resumes_bit_for_bit_with_the_guard_on(at):
-    _, spec, central = make_run()
-    assert spec.algorithm_params.certify == 10.0  # the default
+    _, spec, central = make_run(**GUARDED)
+    assert spec.algorithm_params.certify == 10.0 and not spec.algorithm_params.soft_polish  # as asked
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     for _ in range(at):
         step_all(cores)
@@ -174,7 +179,7 @@ def test_a_forged_payload_neither_crashes_a_robot_nor_lets_it_stop(monkeypatch):
     or negative reaches a core in process, in the round where the honest payloads let it stop (the
     rule patched to pass every round): the round runs, the certificate is absent, no stop by it."""
     monkeypatch.setattr(admm, "error_estimate", lambda *a, **k: 0.0)
-    _, spec, _ = make_run()
+    _, spec, _ = make_run(**GUARDED)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     k = 0
     while not cores[0]._flags & 1:  # the first round whose guard passes
@@ -228,7 +233,7 @@ def test_no_stop_without_a_certificate_when_the_rule_passes_before_arming(monkey
     frames without a payload: no certificate, no stop there -- the vote comes a round later, from
     payloads of every robot. Never armed but in the cap's last round: no stop before it (the rule
     passes from round 119 on)."""
-    _, spec, central = make_run()
+    _, spec, central = make_run(**GUARDED)
     _, first_default, votes_default = _guarded_rounds(spec, 400)
     assert first_default == 119 and votes_default[0] == 119  # the paper preset's stop (round 120), as branch guard
     # armed only once the rule has passed (a round late): its first passing round finds no payload
@@ -258,7 +263,8 @@ def test_the_certify_flag_reaches_the_fleet_file_only_when_given():
     _w, spec = build_world(Options(fleet_id="c", preset="paper", certify=1.0))
     assert spec.params["certify"] == 1.0 and spec.algorithm_params.certify == 1.0
     _w, spec = build_world(Options(fleet_id="c", preset="paper"))
-    assert "certify" not in spec.params and spec.algorithm_params.certify == 10.0  # files stay as they were
+    assert "certify" not in spec.params  # files stay as they were (complete and hard: the end-game instead)
+    assert spec.algorithm_params.soft_polish and spec.algorithm_params.hard_endgame
     _w, spec = build_world(Options(fleet_id="c", preset="paper", certify=0.0, topology="ring", robots=6))
     assert spec.params["certify"] == 0.0  # 0 is accepted anywhere admm runs: the rule alone
 

@@ -11,6 +11,7 @@ import pytest
 
 from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.certificate import PAYLOAD
+from agents.soft_endgame import payload_size
 from agents.spec import ALGORITHMS, FleetSpec, build_core
 
 from .conftest import make_run
@@ -79,9 +80,12 @@ def test_fixed_grid_algorithms_need_grid_and_sigma(auto):
     with pytest.raises(ValueError, match="admm needs a grid and a sigma"):
         dataclasses.replace(spec, algorithm="admm")
     _, paper, _ = make_run()
-    # the paper's fleet is complete: the hub form's frames carry [v; w], 2 x (15 + 1) floats, and the
-    # certified guard's 6 (agents/certificate.py)
-    assert paper.algorithm == "admm" and paper.sigma == 1.0 and paper.dim == 32 + 6
+    # the paper's fleet is complete: the hub form's frames carry [v; w], 2 x (15 + 1) floats, and the exact
+    # end-game's payload (agents/soft_endgame.py, the default on complete fleets); asking for the certified
+    # guard, its 6 floats instead (agents/certificate.py)
+    assert paper.algorithm == "admm" and paper.sigma == 1.0 and paper.dim == 32 + payload_size(16)
+    paper.params["certify"] = 10.0
+    assert paper.dim == 32 + PAYLOAD
     _, ring, _ = make_run(robots=4, topology="ring")
     # the relay hub sends a relayed a per robot and, with the certified guard (certify 10, the default),
     # its 6 certificate floats (agents/relay_hub.py)
