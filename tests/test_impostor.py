@@ -34,6 +34,7 @@ from agents.spec import Timing  # noqa: E402
 from launcher.fleet import launch_fleet, stop_process  # noqa: E402
 from launcher.simulate import simulate_fleet  # noqa: E402
 from protocol.keys import state_key  # noqa: E402
+from protocol.links import LinkFaults  # noqa: E402
 from protocol.zenoh_config import free_loopback_port, robot_config, router_endpoint, to_zenoh_config  # noqa: E402
 from tests.conftest import bounded_and_clean, make_run, max_function_error, start_router  # noqa: E402
 from tests.test_launch import _assert_gone  # noqa: E402
@@ -171,9 +172,11 @@ def test_impostor_republishing_robot_1_changes_nothing(tmp_path, scale):
 
 
 def test_a_second_fleet_with_the_same_id_is_refused_and_changes_nothing(tmp_path):
-    """Same fleet id, same robot ids, same router, same time: only the launch (the secret) differs."""
+    """Same fleet id, same robot ids, same router, same time: only the launch (the secret) differs.
+    Fleet a's links delay every frame 30 ms, so its ~110 rounds last over 3 s: b's robots, started
+    alongside, run while a's do (undelayed, a ended in ~0.2 s and the twins could miss each other)."""
     specs = {
-        "a": make_run(tol=1e-3, fleet_id="twin", timing=TIMING),
+        "a": make_run(tol=1e-3, fleet_id="twin", timing=TIMING, faults=LinkFaults(delay=0.030)),
         "b": make_run(tol=1e-3, seed=3, points=15, fleet_id="twin", timing=TIMING),
     }
     assert specs["a"][1].secret != specs["b"][1].secret
