@@ -118,7 +118,9 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: that solve without it (other frames, other bits)
 #: 6 since branch admmend: plain admm on a complete graph with a soft margin runs the soft end-game by default
 #: (its state where the certificate's stood); a version-5 checkpoint of such a fleet would resume without it
-CHECKPOINT_VERSION = 6
+#: 9 since branch ringend (7 and 8: branches hardon and survivors, in parallel): a relay fleet with a hard margin
+#: pauses its ADMM for end-game attempts (agents/relay_hub.py); its state and frame length changed
+CHECKPOINT_VERSION = 9
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

@@ -194,7 +194,8 @@ class FleetSpec:
         if self.algorithm == "admm" and self._hub_form(self.algorithm_params):
             return hub_frame_dim(self.algorithm_params, len(self.grid) + 1)  # [v; w] (+ the polish's payload)
         if self.algorithm == "admm" and relay_form(self.algorithm_params, self.graph, len(self.grid) + 1):
-            return relay_frame_dim(self.algorithm_params, self.n_robots, len(self.grid) + 1)  # [a; payload] per robot
+            return relay_frame_dim(self.algorithm_params, self.n_robots, len(self.grid) + 1,  # [a; payload] per robot
+                                   self.graph, self.C is None)  # (or the end-game's all-reduce, if larger)
         return len(self.grid) + 1
 
     @cached_property

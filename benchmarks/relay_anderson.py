@@ -333,34 +333,12 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
 
 #: a margin row counts as active in a step when within this of tight (the emulation's truth; piqp: ~1e-10)
 ACTIVE_TOL = 1e-7
-#: W_l below this fraction of its two terms is the step solver's noise: no active row (`step_normals`). piqp's
-#: steps on the 16-ring leave W_l up to 3.5e-7 of its terms with no row within 5e-2 of its margin (a multiplier
-#: 2e-4 on a row at margin 1.056), and rows with multipliers up to 1.7e-5 above their margin
-NORMAL_FLOOR = 1e-5
-#: the piece test's threshold on |W . (x - x_prev)| relative to |W| |x| (`piece_changed`)
-PIECE_TOL = 1e-6
-
-
 def step_normals(copy: relay_hub.RelayHubADMM, X: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Every robot's W_l = (P + 1/N on x) x_l - P t_l, row by row: by its step's KKT conditions A_l' lam_l,
-    the combination of robot l's active margin rows by their multipliers (lam >= 0) -- what every copy can
-    compute from the relayed a_l (x_l = (a_l + t_l) / 2) and its own t_l, no row leaving the robot. A W_l
-    at the solver's noise (below NORMAL_FLOOR of its terms) is zero: no active row."""
-    W = copy._pdiag * X - copy._P * T
-    scale = np.linalg.norm(copy._pdiag * X, axis=1) + np.linalg.norm(copy._P * T, axis=1)
-    return np.where((np.linalg.norm(W, axis=1) <= NORMAL_FLOOR * scale)[:, None], 0.0, W)
+    """`relay_hub.step_normals` with a copy's step diagonal and P (the end-game's piece test, moved there)."""
+    return relay_hub.step_normals(copy._pdiag, copy._P, X, T)
 
 
-def piece_changed(X_prev: np.ndarray, W_prev: np.ndarray, X: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """Per robot: True when its two consecutive steps lie on different affine pieces of its step map, seen
-    from held values only. On one piece (active set A_W) the step is the projection, in the metric of
-    (P + 1/N on x), of P t / (P + 1/N on x) onto the face {A_W v = 1}: both W's are combinations of the
-    face's rows, so W . (x - x_prev) = W_prev . (x - x_prev) = 0; a row that enters or leaves breaks one
-    of them by its margin gap. Relative to |W| |x| (PIECE_TOL): piqp's answers are exact to ~1e-10."""
-    dX = X - X_prev
-    num = np.maximum(np.abs(np.sum(W * dX, axis=1)), np.abs(np.sum(W_prev * dX, axis=1)))
-    scale = np.maximum(np.linalg.norm(W, axis=1), np.linalg.norm(W_prev, axis=1)) * np.linalg.norm(X, axis=1)
-    return num > PIECE_TOL * np.maximum(scale, 1e-300)
+piece_changed = relay_hub.piece_changed
 
 
 def step_cuts(X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -559,11 +537,11 @@ def main() -> None:
     if args.seeds is not None:
         fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
     if args.emulate_delay is not None:
-        global NORMAL_FLOOR
-        NORMAL_FLOOR = NORMAL_FLOOR if args.normal_floor is None else args.normal_floor  # (the pool's workers fork)
+        if args.normal_floor is not None:  # (the pool's workers fork)
+            relay_hub.NORMAL_FLOOR = args.normal_floor
         emulated = {"identify": args.identify, "signal": args.signal, "cool": args.cool, "cut_model": args.cut_model,
                     "handoff": args.handoff}
-        print(f"variant: {emulated}, NORMAL_FLOOR {NORMAL_FLOOR:g}")
+        print(f"variant: {emulated}, NORMAL_FLOOR {relay_hub.NORMAL_FLOOR:g}")
         print("| fleet | its D | emulated D | rounds to 1e-3 | restarts | active-set changes | last change | "
               "piece test: seen / missed / false | model: steps, potential's first < 1e-3 |")
         print("|---|---:|---:|---:|---:|---:|---:|---|---|")
