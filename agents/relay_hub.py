@@ -62,6 +62,19 @@ on x) x_l - P t_l, x_l = (a_l + t_l) / 2; the stop also needs its bound over the
 admm.certify_threshold. Any feasible point whose margins every robot reported and any multipliers
 >= 0 bound the error (docs/algorithm.md), so any point every copy holds will do.
 
+Exact end-game (RELAY_ENDGAME, hard margins; branch ringend): the frames are full, so an end-game step cannot
+ride beside the ADMM; the fleet pauses it instead. Every copy watches every robot's step (W_l = A_l' lam_l from
+held values, `step_normals`): once no robot's step changed its piece (`piece_changed`) for RELAY_ENDGAME_QUIET
+fleet steps and the stop tests' estimate is below RELAY_ENDGAME_ESTIMATE, every robot -- in the same round, from
+the same bits -- keeps its step's multipliers, guesses its rows' active set and starts an attempt of
+agents/soft_endgame.py's block Krylov end-game (C = inf). Each end-game step is one gather of every robot's
+payload (payload_size(M + 1) = 70 floats on the paper grid; `relay_endgame_plan`: 2 per frame, D rounds on a
+ring, shells of 4 in two rounds on the 16-geo fleet) in the frames of the paused rounds, padded to the fleet's one
+frame length; every robot folds the same rows in id order. All robots certify their rows: every robot holds the
+exact optimum bit for bit and the fleet stops (the verdict is every copy's). The attempt's first fresh guess
+ends it: the ADMM resumes from the round it paused at, its state and the a's in flight untouched (`_lround`:
+the protocol's round less the paused ones), and the next attempt waits RELAY_ENDGAME_GAP ADMM rounds.
+
 A robot that dies for good cannot be dropped consistently (its relays are gone and the delays of
 every path through it change): the relay robots then stop, not converged, with that reason; the
 edge form (`relay = False` in the fleet's params) keeps its survivors' answer. No I/O, no clock.

@@ -9,6 +9,10 @@ is judged by its rounds and errors (no A/B needed), its CPU beside them (noisy: 
     .venv/bin/python benchmarks/relay_anderson.py --memory "min(100, n * dim // 2)" --reg 1e-3
     .venv/bin/python benchmarks/relay_anderson.py --fleets 8-ring 16-ring --jobs 2
     .venv/bin/python benchmarks/relay_anderson.py --fleets 4-ring 6-ring 8-ring --seeds 0 1 2 3 4 --warm-qp on
+    .venv/bin/python benchmarks/relay_anderson.py --jobs 2 --seeds 0 1 2 --endgame off   # the ADMM alone (before ringend)
+
+--endgame sets RELAY_ENDGAME (the paused exact end-game, branch ringend; on by default for hard margins); the
+table's last column gives its attempts, paused rounds and whether it certified.
 
 --warm-qp sets RELAY_WARM_QP (the exact warm-started local QP where the guard decides), --seeds runs
 every chosen fleet at each seed (the hold's safety check), --no-frame-budget lets the guard's payload
@@ -100,7 +104,8 @@ def stop_check_fleets() -> dict[str, dict[str, Any]]:
 
 #: the relay module's constants a variant may replace
 _DEFAULTS = {key: getattr(relay_hub, key) for key in ("RELAY_REG", "RELAY_SAFEGUARD", "RELAY_RELAX", "RELAY_HOLD",
-                                                      "RELAY_HOLD_CERTIFIED", "RELAY_FAST_HOLD", "RELAY_WARM_QP")}
+                                                      "RELAY_HOLD_CERTIFIED", "RELAY_FAST_HOLD", "RELAY_WARM_QP",
+                                                      "RELAY_ENDGAME")}
 
 
 def configure(variant: dict[str, Any]) -> None:
@@ -278,6 +283,7 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
         admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = True, math.inf
     if trace:  # never stop; the guard's bound every round (the path is the same: admm.CERTIFY_EVERY_ROUND)
         relay_hub.RELAY_HOLD = relay_hub.RELAY_HOLD_CERTIFIED = relay_hub.RELAY_FAST_HOLD = 10**9  # every test
+        relay_hub.RELAY_ENDGAME = False  # (the ADMM's own path: no end-game ends the trace)
         admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = True, math.inf
     restarts = [0]
     forget = relay_hub.RelayHubADMM._forget
@@ -325,7 +331,10 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
     cpu = time.process_time() - started
     rounds = cores[0].round
     bounds = [c.error_bound() for c in cores]
+    core = cores[0]
     return {"fleet": label, "first": first, "stop": rounds, "error": error(),
+            "endgame": "-" if core._endgame is None else
+                       f"{core._attempts} / {core._paused} / {'yes' if core._mode == 'certified' else 'no'}",
             "converged": all(c.converged for c in cores), "restarts": restarts[0],
             "memory": cores[0]._memory, "D": cores[0].delay, "cpu": cpu, "ms_round": 1e3 * cpu / max(rounds, 1),
             "bound": None if None in bounds else max(bounds), "checked": checked, "unsafe": unsafe}
@@ -492,6 +501,8 @@ def main() -> None:
     ap.add_argument("--hold-certified", type=int, default=None, help="the hold where the certified guard decides")
     ap.add_argument("--warm-qp", choices=("on", "off"), default=None,
                     help="RELAY_WARM_QP: the exact warm-started local QP where the certified guard decides")
+    ap.add_argument("--endgame", choices=("on", "off"), default=None,
+                    help="RELAY_ENDGAME: the paused exact end-game (hard margins); off: the ADMM alone")
     ap.add_argument("--no-frame-budget", action="store_true",
                     help="what-if: the guard's payload wherever a frame's MAX_DIM allows (the 16-robot fleets), "
                          "beyond the frame budget of FRAME_BUDGET x (M + 1) floats")
@@ -556,12 +567,14 @@ def main() -> None:
                "RELAY_RELAX": args.relax, "RELAY_HOLD": args.hold,
                "RELAY_HOLD_CERTIFIED": args.hold_certified,
                "RELAY_WARM_QP": None if args.warm_qp is None else args.warm_qp == "on",
+               "RELAY_ENDGAME": None if args.endgame is None else args.endgame == "on",
                "no_frame_budget": args.no_frame_budget, "trace": args.trace, "trace_tols": args.trace_tols,
                "certify": args.certify, "check": args.check}
     tol = ADMMParams().tol
     print(f"variant: {variant}", flush=True)
     print("| fleet | D | memory | rounds to 1e-3 | rounds at stop | converged | error at stop | restarts | "
-          "CPU s | CPU ms per round | bound at stop | bound < error |", flush=True)
+          "CPU s | CPU ms per round | bound at stop | bound < error | end-game: attempts / paused / certified |",
+          flush=True)
     tasks = [(args.label + f, kw, variant, args.max_rounds) for f, kw in fleets.items()]
     total, worst, checked, unsafe = 0, 0.0, 0, 0
     with multiprocessing.Pool(args.jobs) as pool:
@@ -574,7 +587,7 @@ def main() -> None:
             check = f"{r['unsafe']} of {r['checked']}" if args.check else "-"
             print(f"| {r['fleet']} | {r['D']} | {r['memory']} | {r['first']} | {r['stop']} | "
                   f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e}{flag} | {r['restarts']} | "
-                  f"{r['cpu']:.1f} | {r['ms_round']:.1f} | {bound} | {check} |", flush=True)
+                  f"{r['cpu']:.1f} | {r['ms_round']:.1f} | {bound} | {check} | {r.get('endgame', '-')} |", flush=True)
     print(f"total rounds at stop {total}; largest error at a stop {worst:.1e} (tol {tol:g})"
           + (f"; bound below the true error on {unsafe} of {checked} robot-rounds" if args.check else ""), flush=True)
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 
-import msgpack
 import networkx as nx
 import numpy as np
 import pytest
@@ -17,9 +16,10 @@ from agents.admm import FRAME_BUDGET
 from agents.allreduce import AllReduce, ReducePlan, _layout, _graph_key
 from agents.relay_hub import RelayHubADMM
 from agents.soft_endgame import payload_size
-from agents.spec import build_core, restore_core
+from agents.spec import build_core
 
 from .conftest import make_run, max_function_error, run_to_end, step_all
+from .test_admm import restored_twin, step_with_twin
 
 
 def _fleet(**kwargs):
@@ -84,14 +84,9 @@ def test_a_checkpoint_inside_an_attempt_resumes_bit_for_bit():
     while cores[0]._mode != "endgame":
         step_all(cores)
     step_all(cores)  # one round into the gather (D = 2: its last round next)
-    saved = msgpack.unpackb(msgpack.packb(cores[1].checkpoint()), strict_map_key=False)
-    twin = restore_core(spec, cores[1].robot_id, saved)
+    twin = restored_twin(spec, cores[1])
     while not cores[0].finished:
-        assert twin.outgoing() == cores[1].outgoing()
-        for u in [c.outgoing() for c in cores]:
-            twin.receive(u)
-        step_all(cores)
-        twin.advance()
+        step_with_twin(cores, twin, cores[1])
     assert twin.finished and twin.converged and twin.values.tobytes() == cores[1].values.tobytes()
 
 
