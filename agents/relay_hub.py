@@ -152,8 +152,9 @@ RELAY_WARM_QP = False
 #: pauses its ADMM for an attempt of agents/soft_endgame.py's block Krylov end-game (C = inf), one exact
 #: all-reduce of every robot's payload per end-game step (a gather of `relay_endgame_rounds` rounds), and
 #: either certifies the exact optimum (the fleet stops) or resumes the ADMM where it paused. Measured on
-#: the relay fleets x seeds 0-2 (branch ringend, benchmarks/relay_endgame.py): every attempt of the rule
-#: below certified on its first try, 16-ring 1918 -> 861 rounds at stop on this AVX-512 machine
+#: the six relay fleets x seeds 0-5 (branch ringend; benchmarks/relay_anderson.py --endgame on|off, the rule
+#: chosen on seeds 0-2 with benchmarks/relay_endgame.py's attempts): every run certified, 35 of 36 earlier
+#: (6-ring seed 5 398 -> 438), 33058 -> 19101 rounds, 16-ring 1918 -> 861 on an AVX-512 machine
 RELAY_ENDGAME = True
 #: an attempt starts when no robot's step changed its piece (active set, `piece_changed`: every copy sees it
 #: from held values) for this many fleet steps in a row ...

@@ -173,7 +173,7 @@ class FleetSpec:
             return "needs a hard margin (the end-game certifies margins held); drop --C"
         if not self._hub_form(self.algorithm_params):
             return (f"needs a complete graph (the hub form); this graph of {self.n_robots} robots is not complete, "
-                    "and the relay hub has no end-game yet (docs/algorithm.md)")
+                    "(the relay hub of sparse fleets runs its own exact end-game, hard margins: docs/algorithm.md)")
         dim = len(self.grid) + 1
         if dim > polish_max_dim():
             frame = hub_frame_dim(replace(self.algorithm_params, polish=True), dim)
