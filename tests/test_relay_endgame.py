@@ -132,15 +132,18 @@ def test_a_chunked_gather_delivers_every_contribution_in_id_order(seed):
 
 @pytest.mark.integration
 def test_launch_equals_simulate_on_the_8_ring_with_a_crash_inside_an_attempt(tmp_path):
-    """Over Zenoh, the 8-ring of the paper preset pauses for an attempt and certifies; robot 3 killed in the
-    middle of the attempt and restarted from its checkpoint: every robot's iterates are simulate's, bit for bit."""
+    """Over Zenoh with lossy links, the 8-ring of the paper preset pauses for an attempt and certifies; robot 3
+    killed in the middle of the attempt and restarted from its checkpoint: every robot's iterates are simulate's,
+    bit for bit."""
     from launcher.fleet import CrashPlan
+    from protocol.links import LinkFaults
 
     from .conftest import bounded_and_clean
     from .test_launch import _assert_same_iterates, _launch, _run, _simulate
 
     with bounded_and_clean(str(tmp_path), 120, "relay-endgame-launch"):
-        _world, spec, central = _run(preset="paper", robots=8, topology="ring", fleet_id="launch-relay-endgame")
+        _world, spec, central = _run(preset="paper", robots=8, topology="ring", fleet_id="launch-relay-endgame",
+                                     faults=LinkFaults(loss=0.1, delay=0.002, jitter=0.001))
         want = _simulate(spec)
         assert all(w["converged"] for w in want.values())
         # the attempt's rounds in simulate: the cores' paused rounds before the stop
