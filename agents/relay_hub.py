@@ -148,9 +148,9 @@ RELAY_HOLD_CERTIFIED = 5
 #: 4-ring, 5-line, 6-ring, 8-ring seeds 0-4 9320 -> 9869, the 36 runs of --stop-check 31 -> 29 stops
 #: (cross ring 6 s0 and star ring 6 s2 then hit the 5000 cap); the 16-robot fleets have no guard
 RELAY_WARM_QP = False
-#: the exact end-game on a paused relay (hard margins; docs/algorithm.md "The relay's end-game"): the fleet
-#: pauses its ADMM for an attempt of agents/soft_endgame.py's block Krylov end-game (C = inf), one exact
-#: all-reduce of every robot's payload per end-game step (a gather of `relay_endgame_rounds` rounds), and
+#: the exact end-game on a paused relay (hard margins; docs/algorithm.md, the relay hub, "The paused end-game"):
+#: the fleet pauses its ADMM for an attempt of agents/soft_endgame.py's block Krylov end-game (C = inf), one
+#: exact all-reduce of every robot's payload per end-game step (a gather, `relay_endgame_plan`), and
 #: either certifies the exact optimum (the fleet stops) or resumes the ADMM where it paused. Measured on
 #: the six relay fleets x seeds 0-5 (branch ringend; benchmarks/relay_anderson.py --endgame on|off, the rule
 #: chosen on seeds 0-2 with benchmarks/relay_endgame.py's attempts): every run certified, 35 of 36 earlier
