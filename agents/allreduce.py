@@ -8,7 +8,7 @@ robot computes the same plan without talking. Two schedules:
   the robots r + 1 hops from *it*. After D rounds (D = the diameter) every robot holds an exact
   copy of every contribution and combines them in robot-id order. A complete graph is D = 1:
   one round, one contribution per frame. Frames carry `slots` contributions, the largest shell
-  of any robot (2 on a ring).
+  of any robot (2 on a ring); with `max_slots` a larger shell is sent over several rounds.
 * tree: BFS tree from the centre (least eccentricity, ties -> lowest id), neighbours visited
   in id order. Convergecast up (a robot at depth d publishes its subtree's partial sum at
   offset h - d, h the tree height), broadcast down (it publishes the total at offset h + d):
@@ -128,8 +128,11 @@ class ReducePlan:
         return f"gather ({self.rounds} rounds, {self.slots} contributions per frame)"
 
     @classmethod
-    def build(cls, graph: Mapping[int, Sequence[int]], robot: int, schedule: str = "gather") -> ReducePlan:
-        """The plan of `robot`, from every robot's neighbour list.
+    def build(cls, graph: Mapping[int, Sequence[int]], robot: int, schedule: str = "gather",
+              max_slots: int | None = None) -> ReducePlan:
+        """The plan of `robot`, from every robot's neighbour list. `max_slots` (gather): at most that many
+        contributions per frame -- a shell larger than that (on any robot) is sent over several rounds,
+        `max_slots` at a time in id order (the relay hub's end-game: frames within the frame budget).
 
         The fleet-wide part (hop distances, spheres) is computed once per graph and shared by
         every robot's plan built in the same process (:func:`_layout`): per robot it was all-pairs
@@ -142,23 +145,26 @@ class ReducePlan:
             raise ValueError(f"robot {robot} is not in the communication graph")
         ids, me = lay.ids, lay.index[robot]
         if schedule == "gather" or lay.diameter <= 1:
-            rounds = max(lay.diameter, 1)
+            shells = max(lay.diameter, 1)
+            widest = int(lay.counts[:, :shells].max())
+            cap = widest if max_slots is None else max(1, min(int(max_slots), widest))
+            parts = [-(-int(lay.counts[:, r].max()) // cap) for r in range(shells)]  # rounds per shell (>= 1)
             ranked = np.asarray(ids)
             mine = lay.dist[me]
-            sends = tuple(tuple(ranked[mine == r].tolist()) for r in range(rounds))
-            near = np.asarray(sorted(lay.index[int(j)] for j in lay.graph[robot]), dtype=np.intp)
-            learns = []
-            for r in range(rounds):
+            sends, learns = [], []
+            for r in range(shells):
+                shell = ranked[mine == r].tolist()  # in id order
+                sends += [tuple(shell[p * cap : (p + 1) * cap]) for p in range(parts[r])]
                 ks = np.flatnonzero(mine == r + 1)  # in id order
-                if not len(ks):
-                    learns.append(())
-                    continue
-                # the lowest-id neighbour i with k at r hops from it (neighbours in id order), and k's slot in
-                # i's frame: its place among the robots r hops from i, in id order
-                via = near[np.argmax(lay.dist[np.ix_(near, ks)] == r, axis=0)]
-                learns.append(tuple(zip(ranked[ks].tolist(), ranked[via].tolist(), lay.rank[via, ks].tolist())))
-            slots = int(lay.counts[:, :rounds].max())
-            return cls(robot, ids, "gather", slots, rounds, sends=sends, learns=tuple(learns))
+                part_learns: list[list[tuple[int, int, int]]] = [[] for _ in range(parts[r])]
+                if len(ks):
+                    # the lowest-id neighbour i with k at r hops from it (neighbours in id order), and k's place
+                    # among the robots r hops from i, in id order: round place // cap of the shell, slot place % cap
+                    via = near_of(lay, robot)[np.argmax(lay.dist[np.ix_(near_of(lay, robot), ks)] == r, axis=0)]
+                    for k, i, place in zip(ranked[ks].tolist(), ranked[via].tolist(), lay.rank[via, ks].tolist()):
+                        part_learns[place // cap].append((k, i, place % cap))
+                learns += [tuple(part) for part in part_learns]
+            return cls(robot, ids, "gather", cap, len(sends), sends=tuple(sends), learns=tuple(learns))
         graph = lay.graph
         ecc = lay.dist.max(axis=1)
         root = ids[int(np.argmin(ecc))]  # least eccentricity, ties -> lowest id (ids ascending)
@@ -182,6 +188,11 @@ class _Layout:
     rank: np.ndarray  # rank[a, b]: ids[b]'s place among the robots dist[a, b] hops from ids[a], in id order
     counts: np.ndarray  # counts[a, r]: robots r hops from ids[a]
     diameter: int
+
+
+def near_of(lay: _Layout, robot: int) -> np.ndarray:
+    """A robot's neighbours as layout indices, ascending."""
+    return np.asarray(sorted(lay.index[int(j)] for j in lay.graph[robot]), dtype=np.intp)
 
 
 def _graph_key(graph: Mapping[int, Sequence[int]]) -> tuple[tuple[int, tuple[int, ...]], ...]:
@@ -235,9 +246,9 @@ def _layout(key: tuple[tuple[int, tuple[int, ...]], ...]) -> _Layout:
     return _Layout(graph, ids, index, dist, rank, counts, diameter)
 
 
-def frame_slots(graph: Mapping[int, Sequence[int]], schedule: str = "gather") -> int:
+def frame_slots(graph: Mapping[int, Sequence[int]], schedule: str = "gather", max_slots: int | None = None) -> int:
     """Contributions per frame of `schedule` on this graph (the fleet's frame length / payload)."""
-    return ReducePlan.build(graph, min(graph), schedule).slots
+    return ReducePlan.build(graph, min(graph), schedule, max_slots).slots
 
 
 class AllReduce:
@@ -289,6 +300,13 @@ class AllReduce:
                 self.known[k] = np.array(theirs[i][slot * n : (slot + 1) * n], dtype=float, copy=True)
         self.offset += 1
         return self._frame(self.offset, theirs)
+
+    def contributions(self) -> np.ndarray:
+        """Gather, once done: every robot's contribution, a row each in id order (exact copies, the same
+        on every robot) -- for a caller that needs more than their combination (the relay's end-game)."""
+        if self.plan.schedule != "gather" or not self.done:
+            raise RuntimeError("contributions are known after a completed gather")
+        return np.array([self.known[k] for k in self.plan.ids])
 
     def _pad(self, parts: Sequence[np.ndarray]) -> np.ndarray:
         out = np.zeros(self.frame_size)

@@ -62,6 +62,19 @@ on x) x_l - P t_l, x_l = (a_l + t_l) / 2; the stop also needs its bound over the
 admm.certify_threshold. Any feasible point whose margins every robot reported and any multipliers
 >= 0 bound the error (docs/algorithm.md), so any point every copy holds will do.
 
+Exact end-game (RELAY_ENDGAME, hard margins; branch ringend): the frames are full, so an end-game step cannot
+ride beside the ADMM; the fleet pauses it instead. Every copy watches every robot's step (W_l = A_l' lam_l from
+held values, `step_normals`): once no robot's step changed its piece (`piece_changed`) for RELAY_ENDGAME_QUIET
+fleet steps and the stop tests' estimate is below RELAY_ENDGAME_ESTIMATE, every robot -- in the same round, from
+the same bits -- keeps its step's multipliers, guesses its rows' active set and starts an attempt of
+agents/soft_endgame.py's block Krylov end-game (C = inf). Each end-game step is one gather of every robot's
+payload (payload_size(M + 1) = 70 floats on the paper grid; `relay_endgame_plan`: 2 per frame, D rounds on a
+ring, shells of 4 in two rounds on the 16-geo fleet) in the frames of the paused rounds, padded to the fleet's one
+frame length; every robot folds the same rows in id order. All robots certify their rows: every robot holds the
+exact optimum bit for bit and the fleet stops (the verdict is every copy's). The attempt's first fresh guess
+ends it: the ADMM resumes from the round it paused at, its state and the a's in flight untouched (`_lround`:
+the protocol's round less the paused ones), and the next attempt waits RELAY_ENDGAME_GAP ADMM rounds.
+
 A robot that dies for good cannot be dropped consistently (its relays are gone and the delays of
 every path through it change): the relay robots then stop, not converged, with that reason; the
 edge form (`relay = False` in the fleet's params) keeps its survivors' answer. No I/O, no clock.
@@ -82,10 +95,11 @@ from agents import certificate as cert_math
 from agents.admm import (FRAME_BUDGET, RATE_WINDOW, ADMMParams, _digest, _pairwise_sum, _solve_spd, certify_slot,
                          certify_threshold, error_estimate, shared_step)
 from agents.certificate import Certificate, fleet_certificate
-from agents.allreduce import _bfs, check_graph
+from agents.allreduce import AllReduce, ReducePlan, _bfs, check_graph
 from agents.messages import StateUpdate
 from agents.problem import MarginQP, SolverError
 from agents.rounds import RobotShare, RoundCore, from_bytes, relative_gaps, to_bytes
+from agents.soft_endgame import SoftEndgame, payload_size
 from protocol.frames import MAX_DIM
 
 #: the frame budget: N vectors of M + 1 floats, at most FRAME_BUDGET (M + 1)
@@ -134,6 +148,27 @@ RELAY_HOLD_CERTIFIED = 5
 #: 4-ring, 5-line, 6-ring, 8-ring seeds 0-4 9320 -> 9869, the 36 runs of --stop-check 31 -> 29 stops
 #: (cross ring 6 s0 and star ring 6 s2 then hit the 5000 cap); the 16-robot fleets have no guard
 RELAY_WARM_QP = False
+#: the exact end-game on a paused relay (hard margins; docs/algorithm.md, the relay hub, "The paused end-game"):
+#: the fleet pauses its ADMM for an attempt of agents/soft_endgame.py's block Krylov end-game (C = inf), one
+#: exact all-reduce of every robot's payload per end-game step (a gather, `relay_endgame_plan`), and
+#: either certifies the exact optimum (the fleet stops) or resumes the ADMM where it paused. Measured on
+#: the six relay fleets x seeds 0-5 (branch ringend; benchmarks/relay_anderson.py --endgame on|off, the rule
+#: chosen on seeds 0-2 with benchmarks/relay_endgame.py's attempts): every run certified, 35 of 36 earlier
+#: (6-ring seed 5 398 -> 438), 33058 -> 19101 rounds, 16-ring 1918 -> 861 on an AVX-512 machine
+RELAY_ENDGAME = True
+#: an attempt starts when no robot's step changed its piece (active set, `piece_changed`: every copy sees it
+#: from held values) for this many fleet steps in a row ...
+RELAY_ENDGAME_QUIET = 40
+#: ... and the stop tests' smallest estimate (`RelayHubADMM.estimate`) is below this (it excludes the
+#: rounds just after an Anderson restart, estimate inf, where the copy's piece test compares new steps)
+RELAY_ENDGAME_ESTIMATE = 3.0
+#: ADMM rounds after an attempt that did not certify before the next may start
+RELAY_ENDGAME_GAP = 100
+#: W_l below this fraction of its two terms is the step solver's noise: no active row (`step_normals`).
+#: piqp's steps on the 16-ring leave W_l up to 3.5e-7 of its terms with no row within 5e-2 of its margin
+NORMAL_FLOOR = 1e-5
+#: the piece test's threshold on |W . (x - x_prev)| relative to |W| |x| (`piece_changed`)
+PIECE_TOL = 1e-6
 
 
 #: fleet steps taken lately in this process, by the digest of a copy's token and the step's inputs:
@@ -174,6 +209,47 @@ def relay_memory(params: ADMMParams, n: int, dim: int, delay: int) -> int:
     return RELAY_MEMORY
 
 
+def step_normals(pdiag: np.ndarray, P: np.ndarray, X: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Every robot's W_l = (P + 1/N on x) x_l - P t_l, row by row (`pdiag`: P + 1/N on x): by its step's KKT
+    conditions A_l' lam_l, the combination of robot l's active margin rows by their multipliers -- what every
+    copy computes from the relayed a_l (x_l = (a_l + t_l) / 2) and its own t_l, no row leaving the robot. A
+    W_l at the solver's noise (below NORMAL_FLOOR of its terms) is zero: no active row."""
+    W = pdiag * X - P * T
+    scale = np.linalg.norm(pdiag * X, axis=1) + np.linalg.norm(P * T, axis=1)
+    return np.where((np.linalg.norm(W, axis=1) <= NORMAL_FLOOR * scale)[:, None], 0.0, W)
+
+
+def piece_changed(X_prev: np.ndarray, W_prev: np.ndarray, X: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Per robot: True when its two consecutive steps lie on different affine pieces of its step map, seen
+    from held values only. On one piece (active set A_W) the step is the projection, in the metric of
+    (P + 1/N on x), of P t / (P + 1/N on x) onto the face {A_W v = 1}: both W's are combinations of the
+    face's rows, so W . (x - x_prev) = W_prev . (x - x_prev) = 0; a row that enters or leaves breaks one
+    of them by its margin gap. Relative to |W| |x| (PIECE_TOL): piqp's answers are exact to ~1e-10."""
+    dX = X - X_prev
+    num = np.maximum(np.abs(np.sum(W * dX, axis=1)), np.abs(np.sum(W_prev * dX, axis=1)))
+    scale = np.maximum(np.linalg.norm(W, axis=1), np.linalg.norm(W_prev, axis=1)) * np.linalg.norm(X, axis=1)
+    return num > PIECE_TOL * np.maximum(scale, 1e-300)
+
+
+def relay_endgame_plan(graph: Mapping[int, Sequence[int]], robot: int, dim: int) -> ReducePlan | None:
+    """The end-game's all-reduce on a relay fleet: a gather of every robot's payload (payload_size(dim)
+    floats), at most as many per frame as the frame budget (FRAME_BUDGET x dim) and MAX_DIM allow -- and of
+    those, the fewest that keep its fewest rounds (16-geo: 2 per frame, 7 rounds, as with 3). None when not
+    one payload fits."""
+    size = payload_size(dim)
+    cap = min(FRAME_BUDGET * dim, MAX_DIM) // size
+    if cap < 1:
+        return None
+    fewest = ReducePlan.build(graph, robot, "gather", cap).rounds
+    slots = min(c for c in range(1, cap + 1) if ReducePlan.build(graph, robot, "gather", c).rounds == fewest)
+    return ReducePlan.build(graph, robot, "gather", slots)
+
+
+def relay_endgame_on(graph: Mapping[int, Sequence[int]], dim: int, hard: bool) -> bool:
+    """True when a relay fleet runs the paused end-game: RELAY_ENDGAME, a hard margin, a payload that fits."""
+    return RELAY_ENDGAME and hard and relay_endgame_plan(graph, min(graph), dim) is not None
+
+
 def relay_cert_slot(params: ADMMParams, n: int, dim: int) -> bool:
     """True when relay frames carry every robot's certificate payload beside its a (the guard,
     admm.certify_slot): N (dim + PAYLOAD) floats must fit the frame budget of FRAME_BUDGET x dim
@@ -182,10 +258,18 @@ def relay_cert_slot(params: ADMMParams, n: int, dim: int) -> bool:
     return certify_slot(params) and size <= FRAME_BUDGET * dim and size <= MAX_DIM
 
 
-def relay_frame_dim(params: ADMMParams, n: int, dim: int) -> int:
+def relay_frame_dim(params: ADMMParams, n: int, dim: int, graph: Mapping[int, Sequence[int]] | None = None,
+                    hard: bool = False) -> int:
     """A relay frame's length: N slots of a_l (dim floats), each followed by robot l's certificate
-    payload when the guard's slot fits (`relay_cert_slot`)."""
-    return n * (dim + (cert_math.PAYLOAD if relay_cert_slot(params, n, dim) else 0))
+    payload when the guard's slot fits (`relay_cert_slot`); with the end-game (`relay_endgame_on`, given the
+    graph and a hard margin) at least its all-reduce's frame (`relay_endgame_plan`: slots x payload_size), zero-padded:
+    every frame of a fleet has one length, whatever a round carries."""
+    relay = n * (dim + (cert_math.PAYLOAD if relay_cert_slot(params, n, dim) else 0))
+    if graph is None or not relay_endgame_on(graph, dim, hard):
+        return relay
+    plan = relay_endgame_plan(graph, min(graph), dim)
+    assert plan is not None
+    return max(relay, plan.slots * payload_size(dim))
 
 
 def relay_form(params: ADMMParams, graph: Mapping[int, Sequence[int]], dim: int) -> bool:
@@ -243,13 +327,34 @@ class RelayHubADMM(RoundCore):
         width = share.dim + (cert_math.PAYLOAD if self._cert_slot else 0)
         self._slots = {l: slice(k * width, (k + 1) * width) for k, l in enumerate(self.ids)}  # l's [a; p] in a frame
         self._blocks = {l: slice(k * share.dim, (k + 1) * share.dim) for k, l in enumerate(self.ids)}  # t_l in S
-        self.frame_dim = n * width
+        self.frame_dim = relay_frame_dim(params, n, share.dim, graph, share.C is None)
+        self._relay_dim = n * width
         self._P = np.full(self.dim, params.rho)
         self._P[-1] *= params.gamma_penalty
         self._pdiag = cert_math.step_diagonal(self._P, n)  # the step QP's diagonal (1/N on x)
         self._w = np.tile(np.sqrt(self._P), n)  # Anderson's residual weights (the P-norm)
         self._memory = relay_memory(params, n, share.dim, self.delay)
         self._qp = MarginQP(share.features, share.labels, x_weight=1.0 / n, prox_weight=self._P, C=share.C)
+        # the paused end-game (RELAY_ENDGAME, hard margins): its attempt state, the all-reduce of its payloads,
+        # and the rounds paused so far -- the ADMM's own round is `_lround` = round - paused
+        self._endgame: SoftEndgame | None = None
+        self._reduce: AllReduce | None = None
+        if relay_endgame_on(graph, share.dim, share.C is None):
+            plan = relay_endgame_plan(graph, me, share.dim)
+            assert plan is not None
+            self._endgame = SoftEndgame(self._qp, self.ids, me, math.inf)
+            self._reduce = AllReduce(plan, payload_size(share.dim))
+        self._mode = "admm"  # admm | endgame (an attempt: the frames carry the all-reduce) | certified
+        self._paused = 0
+        self._next_try = 0  # the ADMM round from which an attempt may start
+        self._quiet = 0  # fleet steps in a row in which no robot's step changed its piece (`piece_changed`)
+        self._pieces: tuple[np.ndarray, np.ndarray] | None = None  # the last step's X and W (`step_normals`)
+        self._attempt_base = 0  # the end-game's attempt count when this attempt started
+        self._attempt_steps = 0
+        self._attempt_v: np.ndarray | None = None  # my step at the attempt's start (its guess reads it)
+        self._attempt_lam: np.ndarray | None = None  # that step's multipliers (restored with a checkpoint)
+        self._reduce_frame: np.ndarray | None = None  # the all-reduce's frame of this round
+        self._attempts = 0
         self._certificate: Certificate | None = None  # the last fleet certificate computed
         self._fleet_bound = math.inf
         if self._cert_on:
@@ -263,7 +368,7 @@ class RelayHubADMM(RoundCore):
         # digest of everything the copy's state follows from (see _SHARED); the data enter by S^0
         self._token = _digest(repr((self.ids, self.dim, self.delay, params.rho, params.gamma_penalty, params.tol,
                                     self._memory, RELAY_RELAX, RELAY_SAFEGUARD, RELAY_REG,
-                                    self._tests)).encode())
+                                    self._tests, self._endgame is not None, NORMAL_FLOOR, PIECE_TOL)).encode())
         self._residuals: list[float] = []
         self._held = (0,) * len(self._tests)  # consecutive rounds each stop test passed
         self._prev_mean: np.ndarray | None = None
@@ -282,11 +387,21 @@ class RelayHubADMM(RoundCore):
         self._record()
 
     # -- frames ---------------------------------------------------------------------------------
+    @property
+    def _lround(self) -> int:
+        """The ADMM's own round: the protocol's round less the rounds its end-game attempts paused it."""
+        return self.round - self._paused
+
     def _make_frame(self) -> np.ndarray:
-        """Slot l: the newest a_l held, of round `round - d(me, l)` (zeros until it arrived)."""
+        """Slot l: the newest a_l held, of ADMM round `_lround - d(me, l)` (zeros until it arrived); in an
+        end-game attempt, the all-reduce's frame instead (zero-padded: every frame has frame_dim floats)."""
         frame = np.zeros(self.frame_dim)
+        if self._mode != "admm":
+            if self._reduce_frame is not None:
+                frame[: len(self._reduce_frame)] = self._reduce_frame
+            return frame
         for l in self.ids:
-            a = self._a[l].get(self.round - self._dist[l])
+            a = self._a[l].get(self._lround - self._dist[l])
             if a is not None:
                 frame[self._slots[l]] = a
         return frame
@@ -301,7 +416,9 @@ class RelayHubADMM(RoundCore):
     def _step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
         if self._broken is not None:
             raise SolverError(self._broken)
-        k, D = self.round, self.delay
+        if self._mode != "admm":
+            return self._attempt_step(mine, theirs)
+        k, D = self._lround, self.delay
         for l, j in self._route.items():  # round k's frames: a_l of round k - d(j, l) = k + 1 - d(me, l)
             stamp = k - self._route_hops[l]
             if stamp >= 0:
@@ -318,7 +435,7 @@ class RelayHubADMM(RoundCore):
             below = self._shared_step(S, A)
             if self._cert_on:  # the guard: the rule's stop also needs the certified bound
                 self._fleet_bound = math.inf
-                last = k + 1 >= self._round_cap  # (a capped run reports a bound too)
+                last = self.round + 1 >= self._round_cap  # (a capped run reports a bound too)
                 if (below or last or admm.CERTIFY_EVERY_ROUND) and j >= D:  # (S^j: the payloads' centres)
                     self._certify(S, A, np.ascontiguousarray(held[:, self.dim :]), self._centre_mean(S))
                 below = below and self._fleet_bound <= certify_threshold(self.params)
@@ -326,13 +443,69 @@ class RelayHubADMM(RoundCore):
         else:  # the first round's values are still on their way: t stays t^0 = the own solution
             t = self._a[self.robot_id][0][: self.dim]
         armed = self._cert_on and self._armed()
-        self._qp.keep_multipliers = armed
+        start = self._start_attempt(k, below)
+        self._qp.keep_multipliers = armed or start
         x = self._solve(t, mine if RELAY_WARM_QP and self._cert_on else None)
         a = 2.0 * x - t
         mean = self._centre_mean(self._S[k + 1]) if armed and j >= 0 else None
         self._a[self.robot_id][k + 1] = self._with_payload(a, t, mean)
         self._prune(k + 1 - D)
+        if start:
+            self._begin_attempt(x)
         return x, below
+
+    # -- the paused end-game ---------------------------------------------------------------------
+    def _start_attempt(self, k: int, below: bool) -> bool:
+        """The fleet's verdict (the same bits on every copy) that an end-game attempt starts after this
+        round's step: no robot's step changed its piece for RELAY_ENDGAME_QUIET fleet steps, the stop tests'
+        estimate below RELAY_ENDGAME_ESTIMATE, RELAY_ENDGAME_GAP ADMM rounds since a failed attempt, and the
+        ADMM not stopping now."""
+        return (self._endgame is not None and not below and k + 1 >= self._next_try
+                and self._quiet >= RELAY_ENDGAME_QUIET and self.estimate() < RELAY_ENDGAME_ESTIMATE)
+
+    def _begin_attempt(self, x: np.ndarray) -> None:
+        """Pause the ADMM (its state waits at ADMM round k + 1, the a's in flight held): guess my rows' active
+        set from this step's multipliers and solution, and start the first all-reduce of the payloads."""
+        eg, red = self._endgame, self._reduce
+        assert eg is not None and red is not None
+        self._attempt_base = eg.attempts
+        self._attempt_steps = 0
+        self._attempt_v = x.copy()
+        lam = self._qp.multipliers
+        self._attempt_lam = None if lam is None else lam.copy()
+        self._attempts += 1
+        eg.guess(self._attempt_v)
+        self._reduce_frame = red.begin(eg.payload)
+        self._mode = "endgame"
+
+    def _attempt_step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
+        """A paused round: one round of the all-reduce; at its end one end-game step on every robot's
+        payload (rows in id order, exact copies): certified -- the exact optimum, the fleet stops now; the
+        attempt over (its first fresh guess: agents/soft_endgame.py) -- the ADMM resumes where it paused
+        (from the next round); else the next payload's all-reduce begins."""
+        eg, red = self._endgame, self._reduce
+        assert eg is not None and red is not None and self._attempt_v is not None
+        if self._mode == "certified":
+            return mine, True
+        size = red.frame_size
+        frame = red.step({j: theirs[j][:size] for j in self.neighbours})
+        self._paused += 1
+        if not red.done:
+            self._reduce_frame = frame
+            return mine, False
+        self._attempt_steps += 1
+        done = eg.step(red.contributions(), self._attempt_v)
+        if done is not None:  # every robot certified its rows: the exact optimum, the same bits everywhere
+            self._mode = "certified"
+            self._reduce_frame = np.zeros(size)
+            return done.copy(), True
+        if eg.attempts != self._attempt_base + 1 or eg.kind == "wait":  # a fresh guess: the attempt is over
+            self._mode = "admm"
+            self._next_try = self._lround + 1 + RELAY_ENDGAME_GAP  # (_lround + 1: the ADMM round it resumes at)
+            self._reduce_frame = None
+            return mine, False
+        self._reduce_frame = red.begin(eg.payload)
+        return mine, False
 
     # -- the certified guard --------------------------------------------------------------------
     def _armed(self) -> bool:
@@ -341,9 +514,9 @@ class RelayHubADMM(RoundCore):
         each _held grows by at most one a round -- or it is a capped run's last round. The same on every
         copy (_held is the copy's); admm.CERTIFY_ARM = inf: every round (tests, the benchmark's --check).
         Elsewhere zeros go out."""
-        k, D = self.round, self.delay
+        D = self.delay
         near = any(h + D >= hold for h, (_, _, hold) in zip(self._held, self._tests))
-        return admm.CERTIFY_ARM == math.inf or near or k + D + 1 >= self._round_cap
+        return admm.CERTIFY_ARM == math.inf or near or self.round + D + 1 >= self._round_cap
 
     def _centre_mean(self, S: np.ndarray) -> np.ndarray:
         """The guard's primal point for the a's of round j: the mean of the centres t_l of S^j, which
@@ -414,7 +587,8 @@ class RelayHubADMM(RoundCore):
     def _snapshot(self) -> tuple[Any, ...]:
         """The copy's state after a step (arrays are never changed in place: copies may share them)."""
         return (list(self._hist_F), list(self._hist_g), self._dg, self._df, self._gram, self._best, self._fresh,
-                self._S[self.round + 1], self.residual, list(self._residuals), self._prev_mean, self._held)
+                self._S[self._lround + 1], self.residual, list(self._residuals), self._prev_mean, self._held,
+                self._quiet, self._pieces)
 
     def _shared_step(self, S: np.ndarray, A: np.ndarray) -> bool:
         """`_fleet_step`, taken once per process: a copy with the same token and inputs adopts it."""
@@ -427,9 +601,9 @@ class RelayHubADMM(RoundCore):
         (snap, below), adopted = shared_step(_SHARED, key, compute, SHARED_KEPT)
         if adopted:
             (hist_F, hist_g, self._dg, self._df, self._gram, self._best, self._fresh, S_new, self.residual,
-             residuals, self._prev_mean, self._held) = snap
+             residuals, self._prev_mean, self._held, self._quiet, self._pieces) = snap
             self._hist_F, self._hist_g, self._residuals = list(hist_F), list(hist_g), list(residuals)
-            self._S[self.round + 1] = S_new
+            self._S[self._lround + 1] = S_new
         self._token = key
         return below
 
@@ -448,7 +622,7 @@ class RelayHubADMM(RoundCore):
         self._best = min(self._best, res)
         self._fresh = min(self._fresh + 1, self.delay)
         self._push(S, F, g)
-        self._S[self.round + 1] = self._extrapolate(F) if len(self._dg) else F
+        self._S[self._lround + 1] = self._extrapolate(F) if len(self._dg) else F
         # stop test on the fleet's residual: the x's spread around their mean, the mean's move
         mean = np.add.reduce(X, axis=0) / n
         rows = np.vstack([X] if self._prev_mean is None else [X, self._prev_mean[None, :]])
@@ -462,6 +636,12 @@ class RelayHubADMM(RoundCore):
         # 1.1e-3 for 600 rounds at residual 1.6e-5), where isolated spikes in the older window fake a fast
         # rate: each hold is 1.7x the longest false streak traced (benchmarks/results/rounds-stop-relay.md)
         self._held = relay_stop_held(self._held, self._residuals, self._tests, self.params.tol)
+        if self._endgame is not None:  # the end-game's start signal: steps in a row on one piece each
+            W = step_normals(self._pdiag, self._P, X, T)
+            steady = (self._pieces is not None and self._lround + 1 - self.delay > 1
+                      and not bool(piece_changed(*self._pieces, X, W).any()))
+            self._quiet = self._quiet + 1 if steady else 0
+            self._pieces = (X, W)
         return relay_stop_passed(self._held, self._tests)
 
     # -- Anderson -------------------------------------------------------------------------------
@@ -557,6 +737,20 @@ class RelayHubADMM(RoundCore):
             "token": self._token,
             "certificate": None if self._certificate is None else self._certificate.as_list(),
             "fleet_bound": self._fleet_bound,
+            "endgame": None if self._endgame is None else self._endgame_state(),
+        }
+
+    def _endgame_state(self) -> dict[str, Any]:
+        """The paused end-game's part of a checkpoint (`_save_state`)."""
+        eg, red = self._endgame, self._reduce
+        assert eg is not None and red is not None
+        pieces = self._pieces
+        return {
+            "mode": self._mode, "paused": self._paused, "next_try": self._next_try, "quiet": self._quiet,
+            "pieces": None if pieces is None else [to_bytes(pieces[0].ravel()), to_bytes(pieces[1].ravel())],
+            "attempt_base": self._attempt_base, "attempt_steps": self._attempt_steps, "attempts": self._attempts,
+            "attempt_v": to_bytes(self._attempt_v), "attempt_lam": to_bytes(self._attempt_lam),
+            "reduce_frame": to_bytes(self._reduce_frame), "solver": eg.state(), "reduce": red.save(),
         }
 
     def _load_state(self, state: dict[str, Any]) -> None:
@@ -583,3 +777,19 @@ class RelayHubADMM(RoundCore):
         cert = state.get("certificate")
         self._certificate = None if cert is None else Certificate.from_list([float(c) for c in cert])
         self._fleet_bound = float(state.get("fleet_bound", math.inf))
+        eg, red, saved = self._endgame, self._reduce, state["endgame"]
+        if eg is not None and red is not None:
+            self._mode, self._paused = saved["mode"], int(saved["paused"])
+            self._next_try, self._quiet = int(saved["next_try"]), int(saved["quiet"])
+            pieces = saved["pieces"]
+            shape = (self.n, self.dim)
+            self._pieces = None if pieces is None else (from_bytes(pieces[0]).reshape(shape),
+                                                        from_bytes(pieces[1]).reshape(shape))
+            self._attempt_base, self._attempt_steps = int(saved["attempt_base"]), int(saved["attempt_steps"])
+            self._attempts = int(saved["attempts"])
+            self._attempt_v, self._attempt_lam = from_bytes(saved["attempt_v"]), from_bytes(saved["attempt_lam"])
+            self._reduce_frame = from_bytes(saved["reduce_frame"])
+            eg.load(saved["solver"])
+            red.load(saved["reduce"])
+            if self._mode != "admm":  # the attempt's fresh guess (its end) reads the start step's multipliers
+                self._qp.multipliers = self._attempt_lam

@@ -123,7 +123,9 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: 8 since branch survivors (7: branch hardon's): a round core's checkpoint holds the robots it knows to be
 #: dropped for good (`gone`, `prev_gone`) and its inbox the ones each neighbour sent; a version-7 survivor of
 #: a sparse soft fleet would resume without them (another weight of |x|^2, other frames)
-CHECKPOINT_VERSION = 8
+#: 9 since branch ringend (7 and 8: branches hardon and survivors, in parallel): a relay fleet with a hard margin
+#: pauses its ADMM for end-game attempts (agents/relay_hub.py); its state and frame length changed
+CHECKPOINT_VERSION = 9
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

@@ -173,7 +173,7 @@ class FleetSpec:
             return "needs a hard margin (the end-game certifies margins held); drop --C"
         if not self._hub_form(self.algorithm_params):
             return (f"needs a complete graph (the hub form); this graph of {self.n_robots} robots is not complete, "
-                    "and the relay hub has no end-game yet (docs/algorithm.md)")
+                    "(the relay hub of sparse fleets runs its own exact end-game, hard margins: docs/algorithm.md)")
         dim = len(self.grid) + 1
         if dim > polish_max_dim():
             frame = hub_frame_dim(replace(self.algorithm_params, polish=True), dim)
@@ -194,7 +194,8 @@ class FleetSpec:
         if self.algorithm == "admm" and self._hub_form(self.algorithm_params):
             return hub_frame_dim(self.algorithm_params, len(self.grid) + 1)  # [v; w] (+ the polish's payload)
         if self.algorithm == "admm" and relay_form(self.algorithm_params, self.graph, len(self.grid) + 1):
-            return relay_frame_dim(self.algorithm_params, self.n_robots, len(self.grid) + 1)  # [a; payload] per robot
+            return relay_frame_dim(self.algorithm_params, self.n_robots, len(self.grid) + 1,  # [a; payload] per robot
+                                   self.graph, self.C is None)  # (or the end-game's all-reduce, if larger)
         return len(self.grid) + 1
 
     @cached_property

@@ -9,6 +9,10 @@ is judged by its rounds and errors (no A/B needed), its CPU beside them (noisy: 
     .venv/bin/python benchmarks/relay_anderson.py --memory "min(100, n * dim // 2)" --reg 1e-3
     .venv/bin/python benchmarks/relay_anderson.py --fleets 8-ring 16-ring --jobs 2
     .venv/bin/python benchmarks/relay_anderson.py --fleets 4-ring 6-ring 8-ring --seeds 0 1 2 3 4 --warm-qp on
+    .venv/bin/python benchmarks/relay_anderson.py --jobs 2 --seeds 0 1 2 --endgame off   # the ADMM alone (before ringend)
+
+--endgame sets RELAY_ENDGAME (the paused exact end-game, branch ringend; on by default for hard margins); the
+table's last column gives its attempts, paused rounds and whether it certified.
 
 --warm-qp sets RELAY_WARM_QP (the exact warm-started local QP where the guard decides), --seeds runs
 every chosen fleet at each seed (the hold's safety check), --no-frame-budget lets the guard's payload
@@ -100,7 +104,8 @@ def stop_check_fleets() -> dict[str, dict[str, Any]]:
 
 #: the relay module's constants a variant may replace
 _DEFAULTS = {key: getattr(relay_hub, key) for key in ("RELAY_REG", "RELAY_SAFEGUARD", "RELAY_RELAX", "RELAY_HOLD",
-                                                      "RELAY_HOLD_CERTIFIED", "RELAY_FAST_HOLD", "RELAY_WARM_QP")}
+                                                      "RELAY_HOLD_CERTIFIED", "RELAY_FAST_HOLD", "RELAY_WARM_QP",
+                                                      "RELAY_ENDGAME")}
 
 
 def configure(variant: dict[str, Any]) -> None:
@@ -278,6 +283,7 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
         admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = True, math.inf
     if trace:  # never stop; the guard's bound every round (the path is the same: admm.CERTIFY_EVERY_ROUND)
         relay_hub.RELAY_HOLD = relay_hub.RELAY_HOLD_CERTIFIED = relay_hub.RELAY_FAST_HOLD = 10**9  # every test
+        relay_hub.RELAY_ENDGAME = False  # (the ADMM's own path: no end-game ends the trace)
         admm.CERTIFY_EVERY_ROUND, admm.CERTIFY_ARM = True, math.inf
     restarts = [0]
     forget = relay_hub.RelayHubADMM._forget
@@ -325,7 +331,10 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
     cpu = time.process_time() - started
     rounds = cores[0].round
     bounds = [c.error_bound() for c in cores]
+    core = cores[0]
     return {"fleet": label, "first": first, "stop": rounds, "error": error(),
+            "endgame": "-" if core._endgame is None else
+                       f"{core._attempts} / {core._paused} / {'yes' if core._mode == 'certified' else 'no'}",
             "converged": all(c.converged for c in cores), "restarts": restarts[0],
             "memory": cores[0]._memory, "D": cores[0].delay, "cpu": cpu, "ms_round": 1e3 * cpu / max(rounds, 1),
             "bound": None if None in bounds else max(bounds), "checked": checked, "unsafe": unsafe}
@@ -333,34 +342,12 @@ def run(task: tuple[str, dict[str, Any], dict[str, Any], int]) -> dict[str, Any]
 
 #: a margin row counts as active in a step when within this of tight (the emulation's truth; piqp: ~1e-10)
 ACTIVE_TOL = 1e-7
-#: W_l below this fraction of its two terms is the step solver's noise: no active row (`step_normals`). piqp's
-#: steps on the 16-ring leave W_l up to 3.5e-7 of its terms with no row within 5e-2 of its margin (a multiplier
-#: 2e-4 on a row at margin 1.056), and rows with multipliers up to 1.7e-5 above their margin
-NORMAL_FLOOR = 1e-5
-#: the piece test's threshold on |W . (x - x_prev)| relative to |W| |x| (`piece_changed`)
-PIECE_TOL = 1e-6
-
-
 def step_normals(copy: relay_hub.RelayHubADMM, X: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Every robot's W_l = (P + 1/N on x) x_l - P t_l, row by row: by its step's KKT conditions A_l' lam_l,
-    the combination of robot l's active margin rows by their multipliers (lam >= 0) -- what every copy can
-    compute from the relayed a_l (x_l = (a_l + t_l) / 2) and its own t_l, no row leaving the robot. A W_l
-    at the solver's noise (below NORMAL_FLOOR of its terms) is zero: no active row."""
-    W = copy._pdiag * X - copy._P * T
-    scale = np.linalg.norm(copy._pdiag * X, axis=1) + np.linalg.norm(copy._P * T, axis=1)
-    return np.where((np.linalg.norm(W, axis=1) <= NORMAL_FLOOR * scale)[:, None], 0.0, W)
+    """`relay_hub.step_normals` with a copy's step diagonal and P (the end-game's piece test, moved there)."""
+    return relay_hub.step_normals(copy._pdiag, copy._P, X, T)
 
 
-def piece_changed(X_prev: np.ndarray, W_prev: np.ndarray, X: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """Per robot: True when its two consecutive steps lie on different affine pieces of its step map, seen
-    from held values only. On one piece (active set A_W) the step is the projection, in the metric of
-    (P + 1/N on x), of P t / (P + 1/N on x) onto the face {A_W v = 1}: both W's are combinations of the
-    face's rows, so W . (x - x_prev) = W_prev . (x - x_prev) = 0; a row that enters or leaves breaks one
-    of them by its margin gap. Relative to |W| |x| (PIECE_TOL): piqp's answers are exact to ~1e-10."""
-    dX = X - X_prev
-    num = np.maximum(np.abs(np.sum(W * dX, axis=1)), np.abs(np.sum(W_prev * dX, axis=1)))
-    scale = np.maximum(np.linalg.norm(W, axis=1), np.linalg.norm(W_prev, axis=1)) * np.linalg.norm(X, axis=1)
-    return num > PIECE_TOL * np.maximum(scale, 1e-300)
+piece_changed = relay_hub.piece_changed
 
 
 def step_cuts(X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -514,6 +501,8 @@ def main() -> None:
     ap.add_argument("--hold-certified", type=int, default=None, help="the hold where the certified guard decides")
     ap.add_argument("--warm-qp", choices=("on", "off"), default=None,
                     help="RELAY_WARM_QP: the exact warm-started local QP where the certified guard decides")
+    ap.add_argument("--endgame", choices=("on", "off"), default=None,
+                    help="RELAY_ENDGAME: the paused exact end-game (hard margins); off: the ADMM alone")
     ap.add_argument("--no-frame-budget", action="store_true",
                     help="what-if: the guard's payload wherever a frame's MAX_DIM allows (the 16-robot fleets), "
                          "beyond the frame budget of FRAME_BUDGET x (M + 1) floats")
@@ -559,11 +548,11 @@ def main() -> None:
     if args.seeds is not None:
         fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
     if args.emulate_delay is not None:
-        global NORMAL_FLOOR
-        NORMAL_FLOOR = NORMAL_FLOOR if args.normal_floor is None else args.normal_floor  # (the pool's workers fork)
+        if args.normal_floor is not None:  # (the pool's workers fork)
+            relay_hub.NORMAL_FLOOR = args.normal_floor
         emulated = {"identify": args.identify, "signal": args.signal, "cool": args.cool, "cut_model": args.cut_model,
                     "handoff": args.handoff}
-        print(f"variant: {emulated}, NORMAL_FLOOR {NORMAL_FLOOR:g}")
+        print(f"variant: {emulated}, NORMAL_FLOOR {relay_hub.NORMAL_FLOOR:g}")
         print("| fleet | its D | emulated D | rounds to 1e-3 | restarts | active-set changes | last change | "
               "piece test: seen / missed / false | model: steps, potential's first < 1e-3 |")
         print("|---|---:|---:|---:|---:|---:|---:|---|---|")
@@ -578,12 +567,14 @@ def main() -> None:
                "RELAY_RELAX": args.relax, "RELAY_HOLD": args.hold,
                "RELAY_HOLD_CERTIFIED": args.hold_certified,
                "RELAY_WARM_QP": None if args.warm_qp is None else args.warm_qp == "on",
+               "RELAY_ENDGAME": None if args.endgame is None else args.endgame == "on",
                "no_frame_budget": args.no_frame_budget, "trace": args.trace, "trace_tols": args.trace_tols,
                "certify": args.certify, "check": args.check}
     tol = ADMMParams().tol
     print(f"variant: {variant}", flush=True)
     print("| fleet | D | memory | rounds to 1e-3 | rounds at stop | converged | error at stop | restarts | "
-          "CPU s | CPU ms per round | bound at stop | bound < error |", flush=True)
+          "CPU s | CPU ms per round | bound at stop | bound < error | end-game: attempts / paused / certified |",
+          flush=True)
     tasks = [(args.label + f, kw, variant, args.max_rounds) for f, kw in fleets.items()]
     total, worst, checked, unsafe = 0, 0.0, 0, 0
     with multiprocessing.Pool(args.jobs) as pool:
@@ -596,7 +587,7 @@ def main() -> None:
             check = f"{r['unsafe']} of {r['checked']}" if args.check else "-"
             print(f"| {r['fleet']} | {r['D']} | {r['memory']} | {r['first']} | {r['stop']} | "
                   f"{'yes' if r['converged'] else 'no'} | {r['error']:.1e}{flag} | {r['restarts']} | "
-                  f"{r['cpu']:.1f} | {r['ms_round']:.1f} | {bound} | {check} |", flush=True)
+                  f"{r['cpu']:.1f} | {r['ms_round']:.1f} | {bound} | {check} | {r.get('endgame', '-')} |", flush=True)
     print(f"total rounds at stop {total}; largest error at a stop {worst:.1e} (tol {tol:g})"
           + (f"; bound below the true error on {unsafe} of {checked} robot-rounds" if args.check else ""), flush=True)
 

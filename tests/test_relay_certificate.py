@@ -20,6 +20,13 @@ from .conftest import assert_bound_holds_every_round, make_run, max_function_err
 from .test_admm import restored_twin, step_with_twin
 
 
+@pytest.fixture(autouse=True)
+def _admm_alone(monkeypatch):
+    """These tests pin the guard on the relay's ADMM path; the paused end-game (relay_hub.RELAY_ENDGAME,
+    tests/test_relay_endgame.py) would end their runs first, exactly, before the guard decides."""
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME", False)
+
+
 def _errors(spec, central, cores) -> list[float]:
     b = spec.basis
     return [b.function_error(b.c_from_x(c.values[:-1]), c.values[-1], central.c, central.gamma) for c in cores]

@@ -8,6 +8,7 @@ import pytest
 
 from agents.admm import RATE_WINDOW, ADMMParams, error_estimate
 from agents.certificate import PAYLOAD
+from agents.soft_endgame import payload_size
 from agents.problem import SolverError
 from agents import relay_hub
 from agents.relay_hub import RELAY_MAX_ROBOTS, RelayHubADMM, relay_form
@@ -42,8 +43,10 @@ def test_a_line_reaches_the_exact_optimum_with_identical_copies(monkeypatch):
     monkeypatch.setattr("agents.relay_hub.SHARED_KEPT", 0)
     _, spec, central, cores = _fleet(robots=3, topology="line", tol=1e-6)
     assert all(isinstance(c, RelayHubADMM) for c in cores)
-    # (+ each robot's certificate payload: the certified guard, certify 10 by default)
-    assert spec.dim == 3 * (len(spec.grid) + 1 + PAYLOAD) == cores[0].outgoing().values.shape[0]
+    # (+ each robot's certificate payload: the certified guard, certify 10 by default), zero-padded to the
+    # paused end-game's all-reduce frame of 2 payloads where that is longer (3 x 22 < 2 x 70 on this grid)
+    relay = 3 * (len(spec.grid) + 1 + PAYLOAD)
+    assert spec.dim == max(relay, 2 * payload_size(len(spec.grid) + 1)) == cores[0].outgoing().values.shape[0]
     run_to_end(cores)
     assert all(c.converged for c in cores)
     assert max_function_error(spec, central, [c.result() for c in cores]) < 1e-5
@@ -188,6 +191,7 @@ def test_the_relay_fleet_stops_in_the_round_its_test_passes_without_flag_rounds(
         return below
 
     monkeypatch.setattr(RelayHubADMM, "_shared_step", recorded)
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME", False)  # (the ADMM's own stop test: no end-game first)
     _, spec, central, cores = _fleet(robots=3, topology="line", certify=0.0)
     assert cores[0].delay == 2
     run_to_end(cores)

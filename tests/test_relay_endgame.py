@@ -1,0 +1,157 @@
+"""The relay hub's paused end-game (agents/relay_hub.py, RELAY_ENDGAME): the fleet pauses its ADMM for an exact
+end-game attempt (one gather of every robot's payload per step) and either certifies the central QP's optimum or
+resumes the ADMM where it paused; the chunked gather it rides on (agents/allreduce.py, max_slots)."""
+
+from __future__ import annotations
+
+import math
+
+import networkx as nx
+import numpy as np
+import pytest
+
+import agents.soft_endgame as soft_endgame
+from agents import relay_hub
+from agents.admm import FRAME_BUDGET
+from agents.allreduce import AllReduce, ReducePlan, _layout, _graph_key
+from agents.relay_hub import RelayHubADMM
+from agents.soft_endgame import payload_size
+from agents.spec import build_core
+
+from .conftest import make_run, max_function_error, run_to_end, step_all
+from .test_admm import restored_twin, step_with_twin
+
+
+def _fleet(**kwargs):
+    world, spec, central = make_run(preset="paper", **kwargs)
+    return spec, central, [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+
+
+def _same_bits(cores) -> bool:
+    return all(c.values.tobytes() == cores[0].values.tobytes() for c in cores)
+
+
+def test_a_ring_certifies_the_exact_optimum_before_the_admm_alone_stops(monkeypatch):
+    """4-ring, paper preset: the attempt certifies; every copy (each computing its own fleet steps) holds the
+    same bits, within 1e-9 of the exact central QP, in fewer rounds than the ADMM alone takes to its stop; the
+    rounds are the ADMM's plus the paused ones."""
+    monkeypatch.setattr(relay_hub, "SHARED_KEPT", 0)  # every copy computes its own steps
+    spec, central, cores = _fleet(robots=4, topology="ring")
+    assert all(isinstance(c, RelayHubADMM) and c._endgame is not None for c in cores)
+    run_to_end(cores, limit=3000)
+    assert all(c.converged and c._mode == "certified" for c in cores)
+    assert _same_bits(cores)
+    assert max_function_error(spec, central, [c.result() for c in cores]) < 1e-9
+    assert {c.round for c in cores} == {cores[0]._lround + cores[0]._paused} and cores[0]._paused > 0
+
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME", False)
+    _, _, alone = _fleet(robots=4, topology="ring")
+    run_to_end(alone, limit=3000)
+    assert all(c.converged for c in alone)
+    assert cores[0].round < alone[0].round
+
+
+def _one_attempt_at(monkeypatch, round_: int) -> None:
+    """An attempt exactly once, after ADMM round `round_` (the rule replaced), that cannot correct its guess."""
+    monkeypatch.setattr(soft_endgame, "CAP", 0)  # (a violated set ends the attempt at its first verdict)
+    monkeypatch.setattr(RelayHubADMM, "_start_attempt", lambda self, k, below: (
+        self._endgame is not None and k + 1 == round_ and not below))
+
+
+def test_a_failed_attempt_resumes_the_admm_where_it_paused_bit_for_bit(monkeypatch):
+    """An attempt that ends without a certificate pauses the ADMM and nothing else: the run then stops where the
+    ADMM alone stops, with its bits, its rounds plus the paused ones."""
+    _one_attempt_at(monkeypatch, 20)
+    spec, central, cores = _fleet(robots=4, topology="ring")
+    while cores[0]._lround <= 20 or cores[0]._mode != "admm":
+        step_all(cores)
+    assert cores[0]._attempts == 1 and cores[0]._paused > 0  # it ran, and ended uncertified
+    run_to_end(cores, limit=3000)
+
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME", False)
+    _, _, alone = _fleet(robots=4, topology="ring")
+    run_to_end(alone, limit=3000)
+    assert all(c.converged for c in cores + alone)
+    assert [c.values.tobytes() for c in cores] == [c.values.tobytes() for c in alone]
+    assert cores[0].round == alone[0].round + cores[0]._paused
+    assert max_function_error(spec, central, [c.result() for c in cores]) < spec.params["tol"]
+
+
+def test_a_checkpoint_inside_an_attempt_resumes_bit_for_bit():
+    """A robot restarted from its checkpoint in the middle of an all-reduce sends what the original sends,
+    round for round, to the certified stop."""
+    spec, _, cores = _fleet(robots=4, topology="ring")
+    while cores[0]._mode != "endgame":
+        step_all(cores)
+    step_all(cores)  # one round into the gather (D = 2: its last round next)
+    twin = restored_twin(spec, cores[1])
+    while not cores[0].finished:
+        step_with_twin(cores, twin, cores[1])
+    assert twin.finished and twin.converged and twin.values.tobytes() == cores[1].values.tobytes()
+
+
+def test_frames_stay_within_the_budget_and_soft_margins_keep_the_relay_frames():
+    """Every relay frame (relayed a's, or the all-reduce's payloads) has one length within FRAME_BUDGET x (M + 1)
+    floats; the 16-geo fleet's shells of 4 go over two rounds of 2 payloads. A soft margin runs no end-game."""
+    for kwargs in ({"robots": 16, "topology": "ring"}, {"robots": 16, "topology": "geometric", "comm_range": 3.0}):
+        spec, _, cores = _fleet(**kwargs)
+        dim = len(spec.grid) + 1
+        plan = cores[0]._reduce.plan
+        assert spec.dim == cores[0].frame_dim == 16 * dim <= FRAME_BUDGET * dim
+        assert plan.slots * payload_size(dim) <= FRAME_BUDGET * dim
+        widest = int(_layout(_graph_key(spec.graph)).counts.max())
+        assert plan.slots < widest or kwargs["topology"] == "ring"
+    spec, _, cores = _fleet(robots=4, topology="ring", C=10.0)
+    assert cores[0]._endgame is None and spec.dim == cores[0].frame_dim == cores[0]._relay_dim  # (a and the guard)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_chunked_gather_delivers_every_contribution_in_id_order(seed):
+    """With max_slots, a shell wider than it goes over several rounds: every robot ends with every robot's
+    contribution, the same rows in id order, frames of at most max_slots contributions, and as many rounds as
+    the shells' chunks."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(5, 20))
+    g = nx.connected_watts_strogatz_graph(n, 4, 0.3, seed=seed)
+    graph = {int(a): tuple(int(b) for b in g[a]) for a in g}
+    counts = _layout(_graph_key(graph)).counts
+    for cap in (1, 2, 3):
+        reducers = {i: AllReduce(ReducePlan.build(graph, i, "gather", cap), 5) for i in graph}
+        values = {i: rng.normal(size=5) for i in graph}
+        frames = {i: reducers[i].begin(values[i]) for i in graph}
+        rounds = 0
+        while not all(r.done for r in reducers.values()):
+            assert all(len(f) == reducers[i].frame_size <= cap * 5 for i, f in frames.items())
+            frames = {i: reducers[i].step({j: frames[j] for j in graph[i]}) for i in graph}
+            rounds += 1
+        want = np.array([values[i] for i in sorted(graph)])
+        assert all(np.array_equal(r.contributions(), want) for r in reducers.values())
+        diameter = counts.shape[1] - 1
+        assert rounds == sum(math.ceil(counts[:, r].max() / cap) for r in range(diameter))
+
+
+@pytest.mark.integration
+def test_launch_equals_simulate_on_the_8_ring_with_a_crash_inside_an_attempt(tmp_path):
+    """Over Zenoh with lossy links, the 8-ring of the paper preset pauses for an attempt and certifies; robot 3
+    killed in the middle of the attempt and restarted from its checkpoint: every robot's iterates are simulate's,
+    bit for bit."""
+    from launcher.fleet import CrashPlan
+    from protocol.links import LinkFaults
+
+    from .conftest import bounded_and_clean
+    from .test_launch import _assert_same_iterates, _launch, _run, _simulate
+
+    with bounded_and_clean(str(tmp_path), 120, "relay-endgame-launch"):
+        _world, spec, central = _run(preset="paper", robots=8, topology="ring", fleet_id="launch-relay-endgame",
+                                     faults=LinkFaults(loss=0.1, delay=0.002, jitter=0.001))
+        want = _simulate(spec)
+        assert all(w["converged"] for w in want.values())
+        # the attempt's rounds in simulate: the cores' paused rounds before the stop
+        cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
+        run_to_end(cores, limit=3000)
+        assert cores[0]._mode == "certified" and cores[0].round == want[0]["rounds"]
+        crash = cores[0].round - cores[0]._paused // 2  # inside the attempt (it ends the run)
+        out = _launch(spec, tmp_path, crashes=[CrashPlan(3, crash)], restart=True, restart_after=0.5)
+        assert [(c.robot, c.planned_round) for c in out.crashes] == [(3, crash)]
+        _assert_same_iterates(out.robots, want, restarted=(3,))
+        assert max_function_error(spec, central, out.robots) < 1e-9
