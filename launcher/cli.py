@@ -704,12 +704,14 @@ def run_launch(args: argparse.Namespace, *, quiet: bool = False, router: str | N
         "router_restarts": outcome.router_restarts,
         "interrupted": outcome.interrupted,
         "timed_out": outcome.timed_out,
+        "lost_unexpectedly": {str(i): why for i, why in sorted(outcome.lost_unexpectedly.items())},
     }
     if free:
         extra.update(_free_extra(args, spec), virtual_s=outcome.wall_s)
     report.notes += [f"--crash {c.robot}@{c.round} never fired: robot {c.robot} stopped before round {c.round}"
                      for c in outcome.crashes_not_fired]
     report.notes += [str(r["error"]) for r in outcome.robots if r.get("error")]
+    report.notes += list(extra["lost_unexpectedly"].values())
     for line in [] if quiet else report.notes:  # before the summary, as the CLI always printed them
         print(f"shapefleet: {line}", file=sys.stderr)
     central = _participants(world, spec, central, outcome.robots, extra)

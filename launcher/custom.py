@@ -63,7 +63,8 @@ def build_custom_result(world: World, spec: Any, robots: list[dict[str, Any]], *
     def exact(r: dict[str, Any]) -> float | None:  # agreeing on a biased point is not converging
         return None if ref is None else relative_error(answers[int(r["id"])], ref)
 
-    verdict = report.agreement_verdict(robots, pair, tol=tol, absent=absent, exact_error=exact)
+    verdict = report.agreement_verdict(robots, pair, tol=tol, absent=absent, exact_error=exact,
+                                       lost=extra.get("lost_unexpectedly"))
     errors = [e["function_error"] for e in rows if e["function_error"] is not None]
     mean = np.mean(list(answers.values()), axis=0) if answers else None
     consensus = max((relative_error(a, mean) for a in answers.values()), default=None)

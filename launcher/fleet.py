@@ -145,6 +145,9 @@ class LaunchOutcome(FleetOutcome):
     # monotonic-clock marks of the run (launch, router_ready, robots_started, robots_exited,
     # stopped): start-up and shut-down costs, compared with the robots' own marks by benchmarks
     timeline: dict[str, float] = field(default_factory=dict)
+    # robots whose process ended without a result and not by the crash plan (a restart that failed,
+    # a robot that died of an error): what happened, in one line each -- the run failed for them
+    lost_unexpectedly: dict[int, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -593,6 +596,22 @@ class _Robot:
         return self.p.log_path
 
 
+def _lost_why(r: _Robot, *, interrupted: bool) -> str | None:
+    """Why robot r has no result when the crash plan did not mean it to be gone (its process killed
+    by the plan with no restart to follow, or a run stopped by a signal or the time bound), else None."""
+    p = r.p
+    if interrupted or p.killed:  # stopped by a signal or the bound, or SIGKILLed by the plan: gone as asked
+        return None
+    code = p.exit_code if p.exit_code is not None else (p.proc.poll() if p.proc is not None else None)
+    try:
+        lines = [ln for ln in p.log_path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        lines = []
+    last = f": {lines[-1].strip()}" if lines else ""
+    after = " after its restart" if r.restarts else ""
+    return f"robot {r.id}'s process ended{after} without a result (exit code {code}){last} (log {p.log_path})"
+
+
 def _read_lines(stream: IO[bytes], key: int, gen: int, events: queue.SimpleQueue) -> None:
     try:
         for line in iter(stream.readline, b""):
@@ -946,7 +965,9 @@ def launch_fleet(
     """
     router = _check_launch_args(spec, crashes, restart_after, zenoh_port, router)
     per_process = choose_robots_per_process(spec.n_robots, robots_per_process)
-    workdir = Path(workdir)
+    # absolute: a restarted robot is spawned in the project's root (launcher/router.py spawn), where a
+    # relative fleet file, checkpoint or result path would name nothing (its restart then failed)
+    workdir = Path(workdir).resolve()
     workdir.mkdir(parents=True, exist_ok=True)
     run_spec = spec_for_run(spec, crashes, restart=restart, restart_after=restart_after)
     timing = run_spec.timing
@@ -1157,11 +1178,15 @@ class _LaunchRun:
         fleet.reap()
         robots = _collect(fleet)
         have = {res["id"]: res for res in robots}
+        lost: dict[int, str] = {}
         for i, r in fleet.robots.items():
             if i in have:
                 r.state = "finished" if have[i].get("stopped") == "finished" else "stopped"
             else:
                 r.state = "dead"
+                why = _lost_why(r, interrupted=bool(self.interrupted or self.timed_out))
+                if why is not None:
+                    lost[i] = why
         totals = {
             k: sum(int(r.get(f"frames_{k}", 0) or 0) for r in robots)
             for k in ("sent", "received", "lost", "duplicated", "accepted", "rejected")
@@ -1186,4 +1211,5 @@ class _LaunchRun:
             interrupted=self.interrupted[0] if self.interrupted else None,
             router_restarts=self.router_restarts,
             timeline=self.timeline,
+            lost_unexpectedly=lost,
         )

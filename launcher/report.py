@@ -16,7 +16,7 @@ import math
 import os
 import re
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,6 +59,7 @@ def agreement_verdict(
     tol: float,
     absent: list[int] | tuple[int, ...] = (),
     exact_error: Callable[[dict[str, Any]], float | None] | None = None,
+    lost: Mapping[int, str] | None = None,
 ) -> dict[str, Any]:
     """The one rule for ``converged`` (the project's contract: success means agreement).
 
@@ -71,8 +72,10 @@ def agreement_verdict(
     their own data. (5) Where the testbed knows the exact answer of the participants' data
     (``exact_error``: a robot's relative function error against it, None if unknown), the agreed
     answer is within WRONG_ANSWER_FACTOR x tol of it: robots that agree on a biased point have not
-    solved the problem. Returns ``converged`` and what went wrong (``verdict``: one line; which
-    robots, which partition, since which round).
+    solved the problem. (6) No robot was lost unexpectedly (``lost``: robots whose process ended
+    without a result and not by the crash plan -- a restart that failed, a robot that died of an
+    error -- each with what happened): the run did not do what was asked. Returns ``converged`` and
+    what went wrong (``verdict``: one line; which robots, which partition, since which round).
     """
     rows = {int(r["id"]): r for r in robots}
     graph = _live_links(rows)
@@ -80,6 +83,7 @@ def agreement_verdict(
     components = connected_groups(graph)
     connected = len(components) == 1
     failed = [i for i, r in rows.items() if r.get("stopped") in FAILED_STOPS or r.get("error")]
+    lost = {int(k): str(v) for k, v in (lost or {}).items()}
     not_converged = [i for i, r in rows.items() if not _met_stopping_rule(r, len(rows) + len(absent))]
     since = [int(k) for r in rows.values() for k in (r.get("dropped_at") or {}).values()]
     reasons = []
@@ -87,6 +91,7 @@ def agreement_verdict(
         reasons.append("no robot produced a result")
     for i in failed:
         reasons.append(rows[i].get("error") or f"robot {i} stopped: {rows[i].get('stopped')}")
+    reasons += [lost[i] for i in sorted(lost)]
     if rows and not connected:
         reasons.append(
             "the participants are split into " + " | ".join(str(c) for c in components)
@@ -121,7 +126,7 @@ def agreement_verdict(
             "disagreement": _num(disagreement) if worst is not None else 0.0,
             "connected": connected,
             "components": components,
-            "failed": failed,
+            "failed": sorted(set(failed) | set(lost)),
             "not_converged": not_converged,
             "absent": sorted(int(a) for a in absent),
             "partition_since_round": min(since) if since and not connected else None,
@@ -279,7 +284,8 @@ def build_result(
         c, g = own[int(r["id"])]
         return basis.function_error(c, g, central.c, central.gamma)
 
-    verdict = agreement_verdict(robots, pair, tol=tol, absent=(extra or {}).get("absent", ()), exact_error=exact)
+    verdict = agreement_verdict(robots, pair, tol=tol, absent=(extra or {}).get("absent", ()), exact_error=exact,
+                                lost=(extra or {}).get("lost_unexpectedly"))
     result: dict[str, Any] = {
         "schema": SCHEMA_VERSION,
         **verdict,
@@ -487,7 +493,8 @@ def build_autogrid_result(
         "schema": SCHEMA_VERSION,
         **agreement_verdict(robots, lambda a, b: _autogrid_pair_error(a, b, references),
                             tol=DEFAULT_AGREEMENT_TOL, absent=(extra or {}).get("absent", ()),
-                            exact_error=lambda r: _autogrid_exact_error(r, references)),
+                            exact_error=lambda r: _autogrid_exact_error(r, references),
+                            lost=(extra or {}).get("lost_unexpectedly")),
         "rounds": max((int(r["rounds"]) for r in robots), default=0),
         "wall_s": wall_s,
         "algorithm": "autogrid",

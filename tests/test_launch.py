@@ -33,6 +33,7 @@ if str(ROOT) not in sys.path:
 from agents.admm import RATE_WINDOW  # noqa: E402
 from agents.robot import alive_key  # noqa: E402
 from agents.spec import Timing  # noqa: E402
+from launcher.report import agreement_verdict  # noqa: E402
 from launcher.fleet import CrashPlan, choose_robots_per_process, launch_fleet, parse_crash  # noqa: E402
 from launcher.simulate import simulate_fleet  # noqa: E402
 from protocol.frames import StateUpdate, encode_state  # noqa: E402
@@ -300,10 +301,13 @@ def test_autogrid_over_zenoh_same_grid_and_function_as_simulate(tmp_path, capsys
 
 
 @bound(40)
-def test_crash_and_restart_from_checkpoint(tmp_path):
+def test_crash_and_restart_from_checkpoint(tmp_path, monkeypatch):
+    """Run from a relative output folder (`launch --out rel`, as a user types it): the restarted robot
+    is spawned elsewhere and once could not find its fleet file, so robot 1 never came back."""
     _world, spec, central = _run(tol=1e-3, fleet_id="launch-crash")
     want = _simulate(spec)
-    out = _launch(spec, tmp_path, crashes=[CrashPlan(1, 40)], restart=True, restart_after=0.5)
+    monkeypatch.chdir(tmp_path)
+    out = _launch(spec, Path("."), crashes=[CrashPlan(1, 40)], restart=True, restart_after=0.5)
     assert [(c.robot, c.planned_round) for c in out.crashes] == [(1, 40)]
     assert out.crashes[0].round >= 40 and out.crashes[0].restarted_at_s is not None
     assert out.crashes_not_fired == []
@@ -317,6 +321,25 @@ def test_crash_and_restart_from_checkpoint(tmp_path):
     # the fleet file given to the robots keeps them waiting long enough for the restart
     timing = json.loads((tmp_path / "fleet" / "fleet.json").read_text())["timing"]
     assert timing["dead_after_s"] >= 0.5 + 1.0
+
+
+@bound(40)
+def test_a_restart_that_fails_is_reported_and_the_run_does_not_converge(tmp_path):
+    """The survivors of a robot whose restart failed may agree among themselves, but the run did not do
+    what was asked: the launcher names the robot and why, and the verdict is NOT converged (it once said
+    converged, exit 0, and only the missing row told)."""
+    _world, spec, _central = _run(tol=1e-3, fleet_id="launch-restart-fails")
+    out = _launch(spec, tmp_path, crashes=[CrashPlan(1, 40)], restart=True, restart_after=0.5,
+                  robot_argv=("-m", "tests.robot_refusing_restart"))
+    assert [c.robot for c in out.crashes] == [1] and out.crashes[0].restarted_at_s is not None
+    assert sorted(r["id"] for r in out.robots) == [0, 2]
+    assert list(out.lost_unexpectedly) == [1]
+    why = out.lost_unexpectedly[1]
+    assert "after its restart" in why and "exit code 2" in why and "refuses every restart" in why
+    verdict = agreement_verdict(out.robots, lambda a, b: 0.0, tol=1e-3, absent=[1], lost=out.lost_unexpectedly)
+    assert not verdict["converged"] and why in verdict["verdict"] and verdict["agreement"]["failed"] == [1]
+    planned = _launch(spec, tmp_path / "planned", crashes=[CrashPlan(1, 40)], restart=False)
+    assert planned.lost_unexpectedly == {}  # a robot killed by the plan and left dead is gone as asked
 
 
 @bound(40)
