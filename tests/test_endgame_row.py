@@ -13,8 +13,9 @@ from launcher.report import summary_table
 from .conftest import make_run, run_to_end
 
 
-def _rows(**kwargs) -> list[dict]:
+def _rows(params: dict | None = None, **kwargs) -> list[dict]:
     _world, spec, _central = make_run(**kwargs)
+    spec.params.update(params or {})  # (as a fleet file's params)
     cores = [build_core(spec, i, keep_trace=False) for i in spec.robot_ids]
     run_to_end(cores)
     assert all(c.converged for c in cores)
@@ -42,7 +43,14 @@ def test_an_end_game_the_admm_outran_is_not_certified(monkeypatch):
     assert "(exact end-game not certified)" in _title(rows) and "certified exact optimum" not in _title(rows)
 
 
-@pytest.mark.parametrize("kwargs", [{"certify": 10.0}, {"robots": 4, "topology": "ring"}], ids=["certify", "ring"])
+def test_a_relay_fleet_ended_by_its_end_game_is_certified():
+    rows = _rows(robots=4, topology="ring")  # the relay hub pauses its ADMM for the end-game (branch ringend)
+    assert [r["endgame"] for r in rows] == ["certified"] * 4
+    assert "on the certified exact optimum" in _title(rows)
+
+
+@pytest.mark.parametrize("kwargs", [{"certify": 10.0}, {"robots": 4, "topology": "ring", "params": {"relay": False}}],
+                         ids=["certify", "edge form"])
 def test_no_end_game_no_word(kwargs):
     rows = _rows(**kwargs)
     assert all(r.get("endgame") is None for r in rows)

@@ -2,7 +2,8 @@
 -- the sums, the grown Krylov span, the Galerkin solve -- is computed once per process and adopted by the
 process's other robots, with its exactly rounded sums batched side by side. Neither may move a bit: checked
 against the fold as it was before (a copy of it here, one `_dots` call per sum, every copy on its own) robot by
-robot and round by round, with the sharing on and off; and the cache stays bounded."""
+robot and round by round, with the sharing on and off, beside the hub and in the relay hub's paused end-game;
+and the cache stays bounded."""
 
 from __future__ import annotations
 
@@ -94,29 +95,43 @@ class _BeforeSharing(se.SoftEndgame):
         return added
 
 
+def _endgame(core) -> se.SoftEndgame:
+    """A robot's end-game: beside the hub (complete graphs) or the relay hub's paused one (sparse graphs)."""
+    return getattr(core, "_polish", None) or core._endgame
+
+
 def _twinned_fleet(**kwargs):
-    """A complete fleet (the end-game on by default) whose every robot's end-game is shadowed by a twin
-    running the fold before the sharing on the same payloads; returns (cores, twins, calls of `_common`)."""
+    """A fleet (the end-game on by default) whose every robot's end-game is shadowed by a twin running the
+    fold before the sharing on the same payloads; returns (cores, twins, calls of `_common`)."""
     _world, spec, _central = make_run(**kwargs)
     cores = [build_core(spec, i) for i in spec.robot_ids]
     twins, calls = [], []
     for core in cores:
-        pol = core._polish
+        pol = _endgame(core)
         assert isinstance(pol, se.SoftEndgame) and pol.kind != "off"
         twin = _BeforeSharing(pol.qp, pol.ids, pol.me, pol.C)
         twin.load(pol.state())
         twins.append(twin)
-        step, common = pol.step, pol._common
+        step, common, guess, inside = pol.step, pol._common, pol.guess, [False]
 
-        def shadowed(payloads, v_own, twin=twin, step=step):
+        def shadowed(payloads, v_own, twin=twin, step=step, inside=inside):
             twin.step(payloads, v_own)
-            return step(payloads, v_own)
+            inside[0] = True
+            try:
+                return step(payloads, v_own)
+            finally:
+                inside[0] = False
+
+        def guessed(*args, twin=twin, guess=guess, inside=inside):
+            if not inside[0]:  # the relay hub begins its attempts itself (a step's own guesses: the twin's step)
+                twin.guess(*args)
+            return guess(*args)
 
         def counted(*args, common=common):
             calls.append(1)
             return common(*args)
 
-        pol.step, pol._common = shadowed, counted
+        pol.step, pol._common, pol.guess = shadowed, counted, guessed
     return cores, twins, calls
 
 
@@ -127,21 +142,22 @@ def _run_against_twins(cores, twins) -> None:
             break
         step_all(cores)
         for core, twin in zip(cores, twins):
-            pol = core._polish
+            pol = _endgame(core)
             assert pol.kind == twin.kind and pol.payload.tobytes() == twin.payload.tobytes(), (core.round, pol.me)
             assert pol.v.tobytes() == twin.v.tobytes() and pol.P.tobytes() == twin.P.tobytes()
         assert len(se._SHARED_FOLDS) <= se.SHARED_FOLDS_KEPT
     assert all(c.finished and c.converged for c in cores)
-    assert cores[0]._polish.result is not None and twins[0].result is not None  # the end-game ended the run
+    assert _endgame(cores[0]).result is not None and twins[0].result is not None  # the end-game ended the run
     assert all(c.values.tobytes() == twins[0].result.tobytes() for c in cores)
 
 
-@pytest.mark.parametrize("C", [None, 10.0], ids=["hard", "soft"])
+@pytest.mark.parametrize("fleet", [{"topology": "complete"}, {"topology": "complete", "C": 10.0}, {"topology": "ring"}],
+                         ids=["hard", "soft", "relay-ring"])
 @pytest.mark.parametrize("kept", [se.SHARED_FOLDS_KEPT, 2, 0], ids=["shared", "kept-2", "unshared"])
-def test_shared_fold_has_the_bits_of_every_copy_folding_alone(monkeypatch, C, kept):
+def test_shared_fold_has_the_bits_of_every_copy_folding_alone(monkeypatch, fleet, kept):
     monkeypatch.setattr(se, "SHARED_FOLDS_KEPT", kept)
     se._SHARED_FOLDS.clear()
-    cores, twins, calls = _twinned_fleet(robots=4, topology="complete", C=C)
+    cores, twins, calls = _twinned_fleet(robots=4, **fleet)
     _run_against_twins(cores, twins)
     folds = twins[0].grows
     assert folds > 5 and all(t.grows == folds for t in twins)
