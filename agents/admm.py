@@ -1037,6 +1037,7 @@ class _Endgame:
     payload: np.ndarray
     prev_payload: np.ndarray | None
     result: np.ndarray | None
+    attempts: int  # attempts begun (0: none ran)
 
     def _size(self) -> int:
         """Floats of the payload."""
@@ -1299,8 +1300,19 @@ class ConsensusADMM(RoundCore):
         last round's fleet certificate (agents/certificate.py); None where there is none."""
         return cert_math.reported_bound(self._certificate if self.cert_active else None, self._values)
 
+    def endgame(self) -> str | None:
+        """How the exact end-game beside the hub ended (`_Polish`, agents/soft_endgame.py), for the result
+        row: "certified" -- the run ended on its certified optimum (every robot certified its own rows: the
+        exact optimum itself, hence no `error_bound`) --, "not certified" -- attempts ran, but the ADMM's
+        own rule or the round cap stopped first, or a drop stopped it --, None: no end-game ran (none
+        beside this fleet, or off from the start)."""
+        pol = self._polish
+        if pol is None or pol.attempts == 0:
+            return None
+        return "certified" if pol.result is not None else "not certified"
+
     def result(self) -> dict[str, Any]:
-        return {**super().result(), "error_bound": self.error_bound()}
+        return {**super().result(), "error_bound": self.error_bound(), "endgame": self.endgame()}
 
     def status(self) -> dict[str, Any]:
         if self._hub is not None and self._hub.plain:

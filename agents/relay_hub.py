@@ -566,7 +566,10 @@ class RelayHubADMM(RoundCore):
         return cert_math.reported_bound(self._certificate if self._cert_on else None, self._values)
 
     def result(self) -> dict[str, Any]:
-        return {**super().result(), "error_bound": self.error_bound()}
+        # endgame as the hub core's (agents/admm.py `ConsensusADMM.endgame`): certified -- the run ended on
+        # the paused end-game's certified optimum --, not certified -- attempts ran --, None -- none ran
+        endgame = "certified" if self._mode == "certified" else "not certified" if self._attempts else None
+        return {**super().result(), "error_bound": self.error_bound(), "endgame": endgame}
 
     def advance(self) -> StateUpdate:
         """The round protocol's advance, then this round's relay frame."""

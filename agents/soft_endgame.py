@@ -30,6 +30,12 @@ fleet's single worst row (PDAS, one row a correction: all at once diverged in th
 corrections, a fresh guess. Pure: no I/O, no clock; the ADMM runs on meanwhile, so a failed attempt
 costs bytes, not rounds.
 
+What every copy computes alike in a round (the sums, the span's growth, the Galerkin solve: `_grow`) is
+computed once per process and adopted by the process's other robots (`_SHARED_FOLDS`, keyed by a digest
+of the copy's shared state and the round's payloads, as the hub's step); each robot then replays the
+orthogonalisation's coefficients on its own P and judges its own rows. The same bits as every copy
+folding alone (tests/test_soft_endgame_shared.py).
+
 Hard margins (`ADMMParams.hard_endgame`, C = inf) are the same problem with B empty: the guess labels N
 below GUESS x the robot's own largest step multiplier, and also every row its own step leaves off the
 margin (|a_i' v - 1| > GUESS at the step's solution v: complementarity says such a multiplier is the
@@ -42,11 +48,15 @@ violations). Autogrid's hard answer solves run it (docs/autogrid.md, "Hard answe
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from agents.admm import POLISH_EQ, _dots, _Endgame, _pairwise_sum, _spd_factor, _spd_solve
+from agents.admm import (
+    POLISH_EQ, _digest, _dots, _Endgame, _pairwise_sum, _spd_factor, _spd_solve, shared_step,
+)
 from agents.rounds import from_bytes, to_bytes
 
 #: Krylov vectors per round: the frame carries BLOCK + 1 vectors of M + 1 floats (the last: P' r)
@@ -73,6 +83,108 @@ def payload_size(dim: int) -> int:
     """Floats of the end-game's part of a hub frame: the verdict and residual, BLOCK scalars, BLOCK
     images A_E' u and one vector P' r (in a start round: g_l)."""
     return _SCALARS + (BLOCK + 1) * dim
+
+
+@dataclass(frozen=True)
+class _Fold:
+    """The part of an end-game round every copy computes alike (`SoftEndgame._common`): the shared state
+    after it (S, P' r, y, gamma, v, g, the Gram S_x' S_x; arrays read-only: the process's copies hold the
+    same objects), whether the Galerkin solve went through (`solved`; not: the set is singular, a fresh
+    guess), per new image the orthogonalisation's coefficients and its norm (None: dropped), from
+    which each copy grows its own P, and the images added (each the last column of S as it was appended:
+    the copies' products with it are then the same BLAS calls on the same layout as before the sharing)."""
+
+    S: np.ndarray
+    Pr: np.ndarray
+    y: np.ndarray
+    mu: float
+    v: np.ndarray
+    g: np.ndarray
+    gram: np.ndarray | None
+    steps: tuple[tuple[tuple[np.ndarray, ...], float | None], ...]
+    added: tuple[np.ndarray, ...]
+    solved: bool
+
+
+#: end-game rounds' shared parts taken lately in this process (`SoftEndgame._fold`), by the digest of the
+#: copy's shared state and the round's payloads: computed once per process and adopted by its other
+#: robots, as the hub's step (agents/admm.py `_SHARED_STEPS`); a part no longer here is computed again.
+#: SHARED_FOLDS_KEPT = 0 turns the sharing off (the same bits: tests/test_soft_endgame_shared.py).
+_SHARED_FOLDS: OrderedDict[bytes, _Fold] = OrderedDict()
+SHARED_FOLDS_KEPT = 64
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+def _grow(S: np.ndarray, Pr: np.ndarray, y: np.ndarray, mu: float, v: np.ndarray, g: np.ndarray,
+          gram: np.ndarray | None, images: list[np.ndarray], ur: list[float]) -> _Fold:
+    """Orthogonalise the new images on S (twice), append them, and take the Galerkin correction on the
+    grown span (module docstring). Pure; the exactly rounded sums of one step run side by side in one
+    `_dots` call where they share a length (each column's sum depends on that column alone: the bits of
+    one call per sum), and the Gram grows by the new columns' entries only (an entry is the sum of its
+    two columns' products, whatever else is computed beside it). v: the solution before (kept when the
+    solve does not go through)."""
+    d = len(g)
+    k_old = S.shape[1]
+    steps: list[tuple[tuple[np.ndarray, ...], float | None]] = []
+    added = []
+    for j, s in enumerate(images):
+        s, r, coefs = s.copy(), ur[j], []
+        k = S.shape[1]
+        if k:  # the first coefficients and |s|^2 in one sum: rows S_x' and s_x against s_x
+            both = _dots(np.vstack([S[:-1].T, s[None, :-1]]), s[:-1])
+            c, norm0 = both[:k].copy(), math.sqrt(float(both[k]))
+            with_pr = np.vstack([S, Pr[None, :]])  # S c and (P' r)' c in one sum
+            for step in range(2):
+                if step:
+                    c = _dots(S[:-1].T, s[:-1])
+                sc = _dots(with_pr, c)
+                s = s - sc[:d]
+                r = r - float(sc[d])
+                coefs.append(c)
+        else:
+            norm0 = math.sqrt(float(_dots(s[:-1], s[:-1])))
+        norm = math.sqrt(float(_dots(s[:-1], s[:-1])))
+        if not norm > DROP * norm0:
+            steps.append((tuple(coefs), None))
+            continue
+        S = np.column_stack([S, s / norm])
+        added.append(_frozen(S)[:, -1])
+        Pr = np.append(Pr, r / norm)
+        y = np.append(y, 0.0)
+        steps.append((tuple(coefs), norm))
+    k = S.shape[1]
+    fold = {"S": _frozen(S), "Pr": _frozen(Pr), "steps": tuple(steps), "added": tuple(added), "g": _frozen(g)}
+
+    def failed() -> _Fold:
+        return _Fold(y=_frozen(y), mu=mu, v=_frozen(v), gram=None, solved=False, **fold)
+
+    if k == 0:
+        return failed()
+    Sx, h = S[:-1], S[-1]
+    if gram is None or gram.shape[0] != k_old:  # (after a checkpoint: from S anew)
+        gram = _dots(Sx.T[:k_old, None, :], Sx.T[None, :k_old, :]) if k_old else np.zeros((0, 0))
+    if k > k_old:  # the new columns' entries against every column (the symmetric ones are the same products)
+        new = _dots(Sx.T[k_old:, None, :], Sx.T[None, :, :])
+        gram = np.block([[gram, new[:, :k_old].T], [new]])
+    try:
+        factor = _spd_factor(gram)
+    except np.linalg.LinAlgError:
+        return failed()
+    z1, z2 = _spd_solve(factor, Pr), _spd_solve(factor, h)
+    hz = _dots(np.array([z2, z1, y]), h)  # h' z2, h' z1, h' y
+    hz2 = float(hz[0])
+    if not abs(hz2) > 0:
+        return failed()
+    rho = -g[-1] - float(hz[2])  # t' alpha + g_gamma must vanish
+    dmu = (float(hz[1]) - rho) / hz2
+    y = y + (z1 - dmu * z2)
+    mu = mu + dmu
+    v = np.append(g[:-1] + _dots(Sx, y), mu)
+    return _Fold(y=_frozen(y), mu=mu, v=_frozen(v), gram=_frozen(gram), solved=True, **fold)
 
 
 class SoftEndgame(_Endgame):
@@ -105,6 +217,7 @@ class SoftEndgame(_Endgame):
         self.P = np.zeros((n_e, 0))  # own: those vectors on this robot's E rows
         self.Pr = np.zeros(0)  # shared: P' r at the current solution (r: the E margins' residuals)
         self.y = np.zeros(0)
+        self._gram: np.ndarray | None = None  # shared: S_x' S_x, kept to grow it (None: from S anew)
         self.mu = 0.0  # the offset gamma of the current solution
         self.g = np.zeros(d)
         self.v = np.zeros(d)
@@ -169,15 +282,8 @@ class SoftEndgame(_Endgame):
             self.guess(v_own)
             return None
         d = self.dim
-        sums = _pairwise_sum(np.ascontiguousarray(payloads))
-        images = [sums[_SCALARS + j * d : _SCALARS + (j + 1) * d] for j in range(self.sent)]
-        if self.kind == "start":
-            self.g = sums[-d:].copy()
-            self.v = np.append(self.g[:-1], 0.0)
-            # U' r at v = (g_x, 0): 1' u - (A_x' u)' g_x, from the sums alone
-            ur = [float(sums[3 + j]) - float(_dots(s[:-1], self.g[:-1])) for j, s in enumerate(images)]
-            first = True
-        else:
+        first = self.kind == "start"
+        if not first:
             if bool(np.all(payloads[:, 0] == 1.0)):  # every robot certified its rows: the optimum
                 self.result = self.v.copy()
                 self._next(np.zeros(payload_size(d)), "done")
@@ -187,55 +293,52 @@ class SoftEndgame(_Endgame):
             if residual <= EQ or self.solve_rounds >= SOLVE_ROUNDS or self.refined > REFINE:
                 self._correct(payloads, v_own)  # solved (or as far as it goes) and violated: move a row
                 return None
-            self.Pr = sums[-d:][: self.S.shape[1]].copy()
-            ur = [float(sums[3 + j]) for j in range(self.sent)]
-            first = False
-        added = self._grow(images, ur)
-        if added is None:  # the reduced system is singular on this set: a fresh guess
+        payloads = np.ascontiguousarray(payloads)
+        k_old = self.S.shape[1]
+        key = _digest(b"soft-fold", b"s" if first else b"g", repr((self.sent, d, k_old, self.mu, payloads.shape)).encode(),
+                      np.ascontiguousarray(self.S), self.Pr, self.y, self.g, self.v, payloads)
+        fold, _ = shared_step(_SHARED_FOLDS, key, lambda: self._common(payloads, first), SHARED_FOLDS_KEPT)
+        if first:
+            self.g = fold.g
+        self._take(fold)
+        if not fold.solved:  # the reduced system is singular on this set: a fresh guess
             self.guess(v_own)
             return None
-        self._verdict(added, first)
+        self._verdict(list(fold.added), first)
         return None
 
-    def _grow(self, images: list[np.ndarray], ur: list[float]) -> list[np.ndarray] | None:
-        """Orthogonalise the new images on S (twice), append them, and take the Galerkin correction on
-        the grown span; the images added (None when the small system is not solvable)."""
-        added = []
-        for j, s in enumerate(images):
-            s, u, r = s.copy(), self.U[:, j].copy(), ur[j]
-            norm0 = math.sqrt(float(_dots(s[:-1], s[:-1])))
-            for _ in range(2):
-                if self.S.shape[1]:
-                    c = _dots(self.S[:-1].T, s[:-1])
-                    s = s - _dots(self.S, c)
-                    u = u - self.P @ c
-                    r = r - float(_dots(self.Pr, c))
-            norm = math.sqrt(float(_dots(s[:-1], s[:-1])))
-            if not norm > DROP * norm0:
-                continue
-            self.S = np.column_stack([self.S, s / norm])
-            self.P = np.column_stack([self.P, u / norm])
-            self.Pr = np.append(self.Pr, r / norm)
-            self.y = np.append(self.y, 0.0)
-            added.append(self.S[:, -1])
-        if self.S.shape[1] == 0:
-            return None
-        Sx, h = self.S[:-1], self.S[-1]
-        gram = _dots(Sx.T[:, None, :], Sx.T[None, :, :])
-        try:
-            factor = _spd_factor(gram)
-        except np.linalg.LinAlgError:
-            return None
-        z1, z2 = _spd_solve(factor, self.Pr), _spd_solve(factor, h)
-        hz2 = float(_dots(h, z2))
-        if not abs(hz2) > 0:
-            return None
-        rho = -self.g[-1] - float(_dots(h, self.y))  # t' alpha + g_gamma must vanish
-        dmu = (float(_dots(h, z1)) - rho) / hz2
-        self.y = self.y + (z1 - dmu * z2)
-        self.mu = self.mu + dmu
-        self.v = np.append(self.g[:-1] + _dots(Sx, self.y), self.mu)
-        return added
+    def _common(self, payloads: np.ndarray, first: bool) -> _Fold:
+        """What every copy computes alike from the round's payloads and the shared state (S, P' r, y,
+        gamma, g): the sums, the grown span and the Galerkin correction (`_grow`). Reads this copy,
+        changes nothing: the value is adopted by the process's other copies (`_SHARED_FOLDS`)."""
+        d = self.dim
+        sums = _pairwise_sum(payloads)
+        images = [sums[_SCALARS + j * d : _SCALARS + (j + 1) * d] for j in range(self.sent)]
+        if first:
+            g = sums[-d:].copy()
+            # U' r at v = (g_x, 0): 1' u - (A_x' u)' g_x, from the sums alone (one batched sum)
+            gx = _dots(np.array([s[:-1] for s in images]).reshape(len(images), d - 1), g[:-1])
+            ur = [float(sums[3 + j]) - float(gx[j]) for j in range(len(images))]
+            Pr, v = self.Pr, np.append(g[:-1], 0.0)
+        else:
+            g, v = self.g, self.v
+            Pr = sums[-d:][: self.S.shape[1]].copy()
+            ur = [float(sums[3 + j]) for j in range(self.sent)]
+        return _grow(self.S, Pr, self.y, self.mu, v, g, self._gram, images, ur)
+
+    def _take(self, fold: _Fold) -> None:
+        """Adopt a round's shared part and replay its orthogonalisation on this robot's own basis P
+        and block U (the same coefficients, in the same order, as `_grow` took them)."""
+        P = self.P
+        for j, (coefs, norm) in enumerate(fold.steps):
+            u = self.U[:, j].copy()
+            for c in coefs:
+                u = u - P @ c
+            if norm is not None:
+                P = np.column_stack([P, u / norm])
+        self.P = P
+        self.S, self.Pr, self.y, self._gram = fold.S, fold.Pr, fold.y, fold.gram
+        self.mu, self.v = fold.mu, fold.v
 
     def _verdict(self, added: list[np.ndarray], first: bool) -> None:
         """This robot's check of its own rows at the new solution, its worst violation, and the next
@@ -311,5 +414,6 @@ class SoftEndgame(_Endgame):
         self.Pr, self.y, self.mu = arr("Pr"), arr("y"), float(state["mu"])
         self.g, self.v = arr("g"), arr("v")
         self.U = arr("U").reshape(n_e, int(state["U_cols"]))
+        self._gram = None  # (computed from S anew: the same bits, each entry its own sum)
         self.sent, self.solve_rounds, self.refined = int(state["sent"]), int(state["solve_rounds"]), int(state["refined"])
         self.move = None if state["move"] is None else (int(state["move"][0]), int(state["move"][1]))

@@ -989,6 +989,16 @@ def autogrid_progress(robot: dict[str, Any], function_error: float | None) -> li
 
 
 # -- terminal ---------------------------------------------------------------------------------
+def _endgame_phrase(robots: list[dict[str, Any]]) -> str:
+    """The summary line's word on admm's exact end-game (robots' `endgame`, docs/result-schema.md): on its
+    certified optimum when every robot's run ended there; not certified when one ran and did not end the
+    run; nothing when none ran."""
+    ends = {r.get("endgame") for r in robots} - {None}
+    if not ends:
+        return ""
+    return " on the certified exact optimum" if ends == {"certified"} else " (exact end-game not certified)"
+
+
 def summary_table(result: dict[str, Any]) -> Any:
     """A short rich table: one row per robot, then the fleet's figures."""
     from rich import box
@@ -997,7 +1007,7 @@ def summary_table(result: dict[str, Any]) -> Any:
     m = result["metrics"]
     title = (
         f"{result['algorithm']}: {'converged' if result['converged'] else 'NOT converged'} in "
-        f"{result['rounds']} rounds, {result['wall_s']:.2f} s"
+        f"{result['rounds']} rounds{_endgame_phrase(result['robots'])}, {result['wall_s']:.2f} s"
     )
     # a simple head rule and no vertical lines: the nine columns fit an 80-column terminal whole
     # (with the default box rich cut the numbers to "7.92e-...")
