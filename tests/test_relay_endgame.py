@@ -181,10 +181,11 @@ def test_a_chunked_gather_delivers_every_contribution_in_id_order(seed):
 
 
 @pytest.mark.integration
-def test_launch_equals_simulate_on_the_8_ring_with_a_crash_inside_an_attempt(tmp_path):
-    """Over Zenoh with lossy links, the 8-ring of the paper preset pauses for an attempt and certifies; robot 3
-    killed in the middle of the attempt and restarted from its checkpoint: every robot's iterates are simulate's,
-    bit for bit."""
+@pytest.mark.parametrize("robots, C", [(8, None), (6, 10.0)])
+def test_launch_equals_simulate_with_a_crash_inside_an_attempt(tmp_path, robots, C):
+    """Over Zenoh with lossy links, a ring of the paper preset (the 8-ring hard, the 6-ring soft with C 10) pauses
+    for an attempt and certifies; robot 3 killed in the middle of the attempt and restarted from its checkpoint:
+    every robot's iterates are simulate's, bit for bit."""
     from launcher.fleet import CrashPlan
     from protocol.links import LinkFaults
 
@@ -192,7 +193,8 @@ def test_launch_equals_simulate_on_the_8_ring_with_a_crash_inside_an_attempt(tmp
     from .test_launch import _assert_same_iterates, _launch, _run, _simulate
 
     with bounded_and_clean(str(tmp_path), 120, "relay-endgame-launch"):
-        _world, spec, central = _run(preset="paper", robots=8, topology="ring", fleet_id="launch-relay-endgame",
+        _world, spec, central = _run(preset="paper", robots=robots, topology="ring", C=C,
+                                     fleet_id=f"launch-relay-endgame-{robots}",
                                      faults=LinkFaults(loss=0.1, delay=0.002, jitter=0.001))
         want = _simulate(spec)
         assert all(w["converged"] for w in want.values())
@@ -204,4 +206,4 @@ def test_launch_equals_simulate_on_the_8_ring_with_a_crash_inside_an_attempt(tmp
         out = _launch(spec, tmp_path, crashes=[CrashPlan(3, crash)], restart=True, restart_after=0.5)
         assert [(c.robot, c.planned_round) for c in out.crashes] == [(3, crash)]
         _assert_same_iterates(out.robots, want, restarted=(3,))
-        assert max_function_error(spec, central, out.robots) < 1e-9
+        assert max_function_error(spec, central, out.robots) < 1e-7  # (the soft reference: piqp's, ~1e-8)
