@@ -73,7 +73,9 @@ ring, shells of 4 in two rounds on the 16-geo fleet) in the frames of the paused
 frame length; every robot folds the same rows in id order. All robots certify their rows: every robot holds the
 exact optimum bit for bit and the fleet stops (the verdict is every copy's). The attempt's first fresh guess
 ends it: the ADMM resumes from the round it paused at, its state and the a's in flight untouched (`_lround`:
-the protocol's round less the paused ones), and the next attempt waits RELAY_ENDGAME_GAP ADMM rounds.
+the protocol's round less the paused ones), and the next attempt waits RELAY_ENDGAME_GAP ADMM rounds. Soft margins
+(RELAY_SOFT_ENDGAME, branch relaysoft) run the same attempt with their finite C (the same 70-float payload) where a
+step's gather takes at most RELAY_SOFT_STEP_ROUNDS rounds; their piece test is `piece_changed`'s soft form.
 
 A robot that dies for good cannot be dropped consistently (its relays are gone and the delays of
 every path through it change): the relay robots then stop, not converged, with that reason; the
@@ -159,8 +161,8 @@ RELAY_ENDGAME = True
 #: the same paused end-game on soft margins (finite C: SoftEndgame's B rows at the box; the piece test then
 #: compares the two steps' W difference, `piece_changed`'s soft form), on fleets whose end-game step (one gather)
 #: takes at most RELAY_SOFT_STEP_ROUNDS rounds. Measured (branch relaysoft, benchmarks/relay_anderson.py --C 1
-#: 10 100 --soft-endgame on|off, seeds 0-2): 4-, 6- and 8-ring 27 of 27 runs earlier, 11137 -> 8542
-#: rounds at stop; the 16-robot fleets (8 and 7 rounds a step) 19357 -> 19190 but 8 of 18 runs later, up to
+#: 10 100 --soft-endgame on|off, seeds 0-2): 4-, 6-, 8-ring and 5-line 36 of 36 runs earlier, 14856 -> 11414
+#: rounds at stop, every attempt certified; the 16-robot fleets (8 and 7 rounds a step) 19357 -> 19190 but 8 of 18 runs later, up to
 #: +521 (attempts there paused up to 546 rounds, 16-geo seed 1 C 1: two attempts): off there
 RELAY_SOFT_ENDGAME = True
 #: the soft end-game's fleets: one end-game step (a gather, `relay_endgame_plan`) in at most this many rounds
@@ -173,8 +175,14 @@ RELAY_ENDGAME_QUIET = 40
 RELAY_ENDGAME_ESTIMATE = 3.0
 #: ADMM rounds after an attempt that did not certify before the next may start
 RELAY_ENDGAME_GAP = 100
-#: end-game steps after which an attempt that has not certified ends (the ADMM resumes); inf: none
+#: end-game steps after which an attempt that has not certified ends (the ADMM resumes); inf: none. Measured on
+#: fresh seeds 6-11 (branch relaysoft, benchmarks/relay_anderson.py --max-steps): 20 ended attempts that certify
+#: (27 runs 14887 -> 14651 but 10 later, up to +940); 70 cut the 16-geo's 79-step certified attempts (+205)
 RELAY_ENDGAME_MAX_STEPS: float = math.inf
+#: an attempt whose first solve leaves more than this many robots with a violated row ends there (its guess
+#: judged: one row moves per correction); inf: never. Measured on seeds 6-11 (--judge): 5 took 36 runs 27905 ->
+#: 28225 rounds (3 later, up to +183), 2 far worse: the guesses that certify often start far off
+RELAY_ENDGAME_JUDGE: float = math.inf
 #: W_l below this fraction of its two terms is the step solver's noise: no active row (`step_normals`).
 #: piqp's steps on the 16-ring leave W_l up to 3.5e-7 of its terms with no row within 5e-2 of its margin
 NORMAL_FLOOR = 1e-5
@@ -514,12 +522,15 @@ class RelayHubADMM(RoundCore):
             self._reduce_frame = frame
             return mine, False
         self._attempt_steps += 1
+        corrections = eg.corrections
         done = eg.step(red.contributions(), self._attempt_v)
         if done is not None:  # every robot certified its rows: the exact optimum, the same bits everywhere
             self._mode = "certified"
             self._reduce_frame = np.zeros(size)
             return done.copy(), True
         over = eg.attempts != self._attempt_base + 1 or eg.kind == "wait"  # a fresh guess: the attempt is over
+        if not over and eg.corrections == 1 and corrections == 0:  # its first solve ended violated: judge it
+            over = int(np.count_nonzero(red.contributions()[:, 1] > 0.0)) > RELAY_ENDGAME_JUDGE
         if over or self._attempt_steps >= RELAY_ENDGAME_MAX_STEPS:  # (or its steps are spent)
             self._mode = "admm"
             self._next_try = self._lround + 1 + RELAY_ENDGAME_GAP  # (_lround + 1: the ADMM round it resumes at)

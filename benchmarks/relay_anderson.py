@@ -12,7 +12,12 @@ is judged by its rounds and errors (no A/B needed), its CPU beside them (noisy: 
     .venv/bin/python benchmarks/relay_anderson.py --jobs 2 --seeds 0 1 2 --endgame off   # the ADMM alone (before ringend)
 
 --endgame sets RELAY_ENDGAME (the paused exact end-game, branch ringend; on by default for hard margins); the
-table's last column gives its attempts, paused rounds and whether it certified.
+table's last column gives its attempts, paused rounds and whether it certified. --C runs every chosen fleet with
+a soft margin at each C (errors against the exact central soft QP), --soft-endgame sets RELAY_SOFT_ENDGAME (branch
+relaysoft); --quiet / --estimate / --gap / --max-steps / --judge replace the end-game's start rule and its
+ends of a failing attempt (RELAY_ENDGAME_QUIET, _ESTIMATE, _GAP, _MAX_STEPS, _JUDGE).
+
+    .venv/bin/python benchmarks/relay_anderson.py --jobs 1 --fleets 4-ring 6-ring 8-ring --seeds 0 1 2 --C 1 10 100 --soft-endgame off
 
 --warm-qp sets RELAY_WARM_QP (the exact warm-started local QP where the guard decides), --seeds runs
 every chosen fleet at each seed (the hold's safety check), --no-frame-budget lets the guard's payload
@@ -107,7 +112,7 @@ _DEFAULTS = {key: getattr(relay_hub, key) for key in ("RELAY_REG", "RELAY_SAFEGU
                                                       "RELAY_HOLD_CERTIFIED", "RELAY_FAST_HOLD", "RELAY_WARM_QP",
                                                       "RELAY_ENDGAME", "RELAY_SOFT_ENDGAME", "RELAY_ENDGAME_QUIET",
                                                       "RELAY_ENDGAME_ESTIMATE", "RELAY_ENDGAME_GAP",
-                                                      "RELAY_ENDGAME_MAX_STEPS")}
+                                                      "RELAY_ENDGAME_MAX_STEPS", "RELAY_ENDGAME_JUDGE")}
 
 
 def configure(variant: dict[str, Any]) -> None:
@@ -514,6 +519,8 @@ def main() -> None:
     ap.add_argument("--gap", type=int, default=None, help="RELAY_ENDGAME_GAP: ADMM rounds after a failed attempt")
     ap.add_argument("--max-steps", type=int, default=None,
                     help="RELAY_ENDGAME_MAX_STEPS: end-game steps after which an attempt ends uncertified")
+    ap.add_argument("--judge", type=int, default=None,
+                    help="RELAY_ENDGAME_JUDGE: robots with a violated row after an attempt's first solve that end it")
     ap.add_argument("--no-frame-budget", action="store_true",
                     help="what-if: the guard's payload wherever a frame's MAX_DIM allows (the 16-robot fleets), "
                          "beyond the frame budget of FRAME_BUDGET x (M + 1) floats")
@@ -584,6 +591,7 @@ def main() -> None:
                "RELAY_SOFT_ENDGAME": None if args.soft_endgame is None else args.soft_endgame == "on",
                "RELAY_ENDGAME_QUIET": args.quiet, "RELAY_ENDGAME_ESTIMATE": args.estimate,
                "RELAY_ENDGAME_GAP": args.gap, "RELAY_ENDGAME_MAX_STEPS": args.max_steps,
+               "RELAY_ENDGAME_JUDGE": args.judge,
                "no_frame_budget": args.no_frame_budget, "trace": args.trace, "trace_tols": args.trace_tols,
                "certify": args.certify, "check": args.check}
     tol = ADMMParams().tol
