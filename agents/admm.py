@@ -1217,10 +1217,11 @@ class ConsensusADMM(RoundCore):
             }
         self._prev_mean: np.ndarray | None = None
         self._step_q: tuple[np.ndarray | None, np.ndarray] = (None, np.zeros((0, 0)))  # (`_shared_step`)
-        # the edge form with a soft margin learns who was dropped for good fleet-wide (agents/rounds.py)
-        # and weighs |x|^2 by 1 / (robots left): its answer depends on it. The hub form sees every drop
-        # itself; a hard margin's answer does not depend on the weight (its frames stay as they were)
-        self.floods_gone = self._hub is None and self._C is not None
+        # the edge form learns who was dropped for good fleet-wide (agents/rounds.py): its stop flags must
+        # reach across the survivors' graph, however wide it became (`_gone_changed`), and a soft margin
+        # weighs |x|^2 by 1 / (robots left) (its answer depends on it; a hard margin's does not, so its
+        # steps stay as they were). The hub form sees every drop itself. No list is sent before a loss
+        self.floods_gone = self._hub is None
         self._qp = self._build_qp()
         self._residuals: list[float] = []  # the last 2 * RATE_WINDOW, for the error estimate
         self._held = 0  # hub form on the plain map: rounds in a row its stop test has passed
@@ -1364,10 +1365,12 @@ class ConsensusADMM(RoundCore):
         self._qp = self._build_qp()
 
     def _gone_changed(self) -> None:
-        """Edge form, soft margin: the fleet lost robots for good (`gone`): this robot's share of
-        1/2 |x|^2 becomes 1 / (robots left), so the survivors' fixed point is their own problem's;
-        the stop flags reach across the survivors' graph, however wide it became."""
-        self._qp = self._build_qp()
+        """Edge form: the fleet lost robots for good (`gone`): the stop flags reach across the
+        survivors' graph, however wide it became; with a soft margin this robot's share of 1/2 |x|^2
+        also becomes 1 / (robots left), so the survivors' fixed point is their own problem's (a hard
+        margin's answer is the minimum-norm separator whatever the weight: its steps stay unchanged)."""
+        if self._C is not None:
+            self._qp = self._build_qp()
         self._widen_stop(self._n_robots - len(self.gone))
 
     def _hub_step(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> tuple[np.ndarray, bool]:
@@ -1539,11 +1542,16 @@ class ConsensusADMM(RoundCore):
             self._labels,
             # every robot its share of 1/2 |x|^2: of the fleet the hub still holds (a complete graph
             # knows who left; a soft margin's answer depends on it), else of the fleet it started with
-            # less the robots it knows to be dropped for good (none unless `floods_gone`)
-            x_weight=1.0 / (len(self._hub.ids) if self._hub is not None else self._n_robots - len(self.gone)),
+            # less the robots it knows to be dropped for good with a soft margin (`_gone_changed`)
+            x_weight=1.0 / (len(self._hub.ids) if self._hub is not None else self._n_robots - len(self._weighed_gone())),
             prox_weight=self._prox_weight(),
             C=self._C,
         )
+
+    def _weighed_gone(self) -> tuple[int, ...]:
+        """The drops the edge form's |x|^2 weight counts: `gone` with a soft margin; none with a hard
+        one (its answer does not depend on the weight, and its steps stay those it took before)."""
+        return self.gone if self._C is not None else ()
 
     def _prox_weight(self) -> np.ndarray:
         if self._hub is not None:

@@ -45,8 +45,9 @@ from typing import Any
 
 import numpy as np
 
-from agents.admm import ADMMParams
+from agents.admm import ADMMParams, complete_graph
 from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public names of autogrid
+    AUTOGRID_MAX_DIAMETER,
     MIN_SPACING,
     SIGMA_DIVISOR,
     SPACING_RATIO,
@@ -147,6 +148,10 @@ class AdaptiveGridCore(RoundCore):
         self._points, self._labels = points, labels
         self._share = share
         self._n_robots = share.n_robots
+        # a sparse graph's robots see only their neighbours die: its frames flood who was dropped for good
+        # (agents/rounds.py) and the edge-form sub-machines take every neighbour's list with its values
+        # (weighed out with a soft margin, their stop widened); a complete graph's hub sees every drop
+        self.floods_gone = not complete_graph(share.n_robots, share.neighbours, dict(share.degrees))
         self._start_grid = start_grid
         self._units = holdout_units(points, labels)
         self._reset_agreed_state()
@@ -216,7 +221,7 @@ class AdaptiveGridCore(RoundCore):
 
     def _counted(self, phase: str, values: np.ndarray, rounds: int | None = None) -> None:
         self._mark(phase)
-        self._left = self.params.diameter if rounds is None else rounds
+        self._left = self._reach() if rounds is None else rounds
         self._values, self._flags = values, 0
 
     # -- entering phases ----------------------------------------------------------------------
@@ -238,7 +243,10 @@ class AdaptiveGridCore(RoundCore):
 
     def _new_sweep(self) -> SigmaSweep:
         share = self._share.with_data(self.neighbours, self._points, self._labels, None)
-        return SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params, dim=self.dim)
+        sweep = SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params, dim=self.dim,
+                           gone=self.gone)
+        sweep.reach = self._reach()
+        return sweep
 
     def _enter_tally(self) -> None:
         self._counted(TALLY, self._sweep.tally_vector())
@@ -282,6 +290,7 @@ class AdaptiveGridCore(RoundCore):
             start=self._warm, edges=self._carry if p.warm_duals else None, hub_frames=p.hub_frames,
             # (the carried duals are soft_C's: a user's other C starts from zero)
             hub_duals=self._soft_duals if mode == "soft" and p.warm_duals and C == p.soft_C else None,
+            gone=self.gone,
         )
         self._carry = {}
         self._mark(ADMM)
@@ -318,7 +327,8 @@ class AdaptiveGridCore(RoundCore):
 
     def _enter_flood(self) -> None:
         v = self._own
-        rounds = self.params.diameter + 1 if self.params.diameter > 0 else 0
+        reach = self._reach()
+        rounds = reach + 1 if reach > 0 else 0
         self._counted(FLOOD, self._pad(v[:-1], v[-1], float(self.robot_id)), rounds)
 
     def _enter_done(self) -> None:
@@ -430,8 +440,10 @@ class AdaptiveGridCore(RoundCore):
         if models is None:
             return None
         share = self._share.with_data(self.neighbours, self._points, self._labels, None)
-        return SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params, dim=self.dim,
-                          models=models)
+        sweep = SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params, dim=self.dim,
+                           models=models, gone=self.gone)
+        sweep.reach = self._reach()
+        return sweep
 
     def _enter_widths(self) -> None:
         self._mark(WIDTHS)
@@ -617,19 +629,24 @@ class AdaptiveGridCore(RoundCore):
     def advance(self) -> StateUpdate:
         theirs, their_flags = self._take_round()
         mine, flags, kind = self._values, 0, EXCHANGE[self.phase]
+        if self.floods_gone:  # (the sub-machines gather the same lists from the updates they are handed)
+            their_gone = self._inbox.gone.get(self.round, {})
+            if self._gather_gone() and self._sweep is not None:
+                self._sweep.reach = self._reach()
         if kind == "max":
             new = np.max(np.vstack([mine, *theirs.values()]), axis=0)
             self._left -= 1
         elif kind == "flood":
             new = self._flood_round(mine, theirs)
         elif kind == "sweep":
-            self._sweep.advance(theirs)
+            self._sweep.advance(theirs, their_gone if self.floods_gone else None)
             self.residual = self._sweep.residual
             new = self._sweep.stacked()
         else:  # ADMM: hand the neighbours' exact round values to the sub-machine
             sub = self._sub
             for j, v in theirs.items():
-                sub.receive(StateUpdate(j, sub.round, self._sub_message(v), int(their_flags.get(j, 0)), None))
+                sub.receive(StateUpdate(j, sub.round, self._sub_message(v), int(their_flags.get(j, 0)), None,
+                                        gone=their_gone.get(j, ()) if self.floods_gone else ()))
             sub.advance()
             self.residual = sub.residual
             new, flags = self._sub_frame(), sub.outgoing().flags
@@ -671,7 +688,17 @@ class AdaptiveGridCore(RoundCore):
         v = self._values
         if self.phase != ADMM or not v[-3] > 0 or not v[-1] > 0:
             return False
-        return self.round >= self._alarm_base() - float(v[-1]) + 1 + self.params.diameter
+        return self.round >= self._alarm_base() - float(v[-1]) + 1 + self._reach()
+
+    def _reach(self) -> int:
+        """Hops a max-consensus, the flood or the alarm must cover: D, or after a loss (`gone`, sparse
+        graphs) the bound on the survivors' graph's diameter the sub-machines' stop waits for -- a ring
+        that lost a robot is a path wider than D. The same on every robot once the news reached it (see
+        docs/algorithm.md, "autogrid after a loss", for a phase entered before it did)."""
+        d = self.params.diameter
+        if not self.gone:
+            return d
+        return max(d, min(AUTOGRID_MAX_DIAMETER, self._n_robots - len(self.gone) - 1))
 
     def _flood_round(self, mine: np.ndarray, theirs: dict[int, np.ndarray]) -> np.ndarray:
         """The lowest id's vector wins; slot -3 carries the largest gap, measured in round 1
@@ -698,6 +725,10 @@ class AdaptiveGridCore(RoundCore):
     def _forget_edge(self, j: int) -> None:
         self._edges_out.pop(j, None)
         self._carry.pop(j, None)
+
+    def _gone_changed(self) -> None:
+        """Nothing of autogrid's own: its sub-machines reweigh and widen their stop themselves. Its counted
+        phases (max-consensus, flood) keep their D rounds: see docs/algorithm.md (autogrid after a loss)."""
 
     # -- what the fleet learned ---------------------------------------------------------------
     @property

@@ -24,6 +24,7 @@ errors + PACK * held_out + PACK^2 * not_solid (summed over folds by the robot) a
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -100,10 +101,14 @@ class SigmaSweep:
     """One robot's share of the sweep: stacked values out, neighbours' stacked values in."""
 
     _given_models = False  # True for the width test's models (no early drop: they share one sigma)
+    #: hops a verdict's max-consensus covers when wider than params.diameter: after a loss on a sparse
+    #: graph the owner sets it (autogrid's `_reach`: the survivors' graph may be wider than D)
+    reach = 0
 
     def __init__(
         self, share: RobotShare, units: np.ndarray, *, bounds: tuple[float, float, float, float], diag: float,
         params: AutoGridParams, dim: int | None = None, models: list[SweepModel] | None = None,
+        gone: tuple[int, ...] = (),
     ) -> None:
         points, labels = share.features, share.labels  # autogrid's share: raw points
         # dim: the fleet's frame length (the given params', when folds_for_data ran fewer folds)
@@ -139,7 +144,8 @@ class SigmaSweep:
                 train = points[~held]
                 feats = basis.features(train) if len(train) else np.zeros((0, basis.size))
                 fold_share = share.with_data(share.neighbours, feats, labels[~held], params.soft_C)
-                sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames, start=model.start)
+                sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames, start=model.start,
+                               gone=gone)
                 self.tasks.append(SweepTask(cand, fold, model.divisor, model.sigma, model.box, basis, held, sub,
                                             offset, slot))
                 offset += slot + 3 + (slot + 1 if params.hub_frames else 0)
@@ -167,8 +173,10 @@ class SigmaSweep:
                 v[o : o + t.basis.size], v[o + t.slot] = w[:-1], w[-1]
         return v
 
-    def advance(self, theirs: dict[int, np.ndarray]) -> None:
-        """One round of every unfinished task from the neighbours' stacked round-k vectors."""
+    def advance(self, theirs: dict[int, np.ndarray], gone: Mapping[int, tuple[int, ...]] | None = None) -> None:
+        """One round of every unfinished task from the neighbours' stacked round-k vectors (and the
+        robots each neighbour knew dropped for good in that round: `gone`, for the edge form)."""
+        gone = gone or {}
         for t in self.tasks:
             if t.since >= 0:  # stopped: spread the verdict (max-consensus)
                 t.verdict = max([t.verdict, *(float(v[t.offset + t.slot + 2]) for v in theirs.values())])
@@ -182,7 +190,7 @@ class SigmaSweep:
                 if t.sub.frame_dim > t.sub.dim:
                     w = o + t.slot + 3
                     vec = np.concatenate([vec, v[w : w + m], v[w + t.slot : w + t.slot + 1]])
-                t.sub.receive(StateUpdate(j, t.sub.round, vec, int(v[o + t.slot + 1]), None))
+                t.sub.receive(StateUpdate(j, t.sub.round, vec, int(v[o + t.slot + 1]), None, gone=gone.get(j, ())))
             t.sub.advance()
             if t.sub.finished:
                 errors, _, _, solid = self._outcome(t)
@@ -202,7 +210,7 @@ class SigmaSweep:
             tasks = [t for t in self.tasks if t.cand == cand]
             if not all(t.since >= 0 or t.dropped for t in tasks):
                 return  # a candidate still running that would win a tie could still win
-            if all(t.since >= self.params.diameter and t.verdict == 0.0 for t in tasks):
+            if all(t.since >= max(self.params.diameter, self.reach) and t.verdict == 0.0 for t in tasks):
                 for t in self.tasks:
                     if sign * t.sigma > sign * tasks[0].sigma and t.since < 0:
                         t.dropped = True

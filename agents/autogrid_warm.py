@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from agents.admm import ConsensusADMM
+from agents.autogrid_rules import AUTOGRID_MAX_DIAMETER
 from agents.kernel import GridBasis
 
 
@@ -37,6 +38,7 @@ class WarmADMM(ConsensusADMM):
         start: np.ndarray | None = None,
         edges: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
         hub_duals: tuple[tuple[int, ...], np.ndarray] | None = None,
+        gone: tuple[int, ...] = (),
         **kwargs: Any,
     ) -> None:
         self._start = None if start is None else np.asarray(start, dtype=float).copy()
@@ -45,9 +47,12 @@ class WarmADMM(ConsensusADMM):
         # each copy computes every w itself: exact only while the copies agree
         kwargs.setdefault("hub_frames", False)
         super().__init__(*args, **kwargs)
-        # autogrid's frames carry the sub-machine's vectors only, never who was dropped for good: its
-        # robots cannot count the survivors on a sparse graph (|x|^2 stays weighed by 1 / N)
-        self.floods_gone = False
+        # who was dropped for good (edge form, `floods_gone`): autogrid's frames carry its own list and
+        # it hands every neighbour's to the sub-machine with that neighbour's values; a sub-machine
+        # built after a loss starts from the robots already known gone (weighed out, stop widened)
+        if gone and self.floods_gone:
+            self.gone = tuple(gone)
+            self._gone_changed()
         # the hub form's scaled duals carried in (every robot holds the same rows, bit for bit): the hub
         # starts at z = mean w, u_l = w_l - z + (U_l - mean U) (`_Hub.start`); sum_l u_l = 0 stays, so the
         # fixed point -- the exact optimum -- does not depend on them, only where the iteration starts
@@ -55,6 +60,11 @@ class WarmADMM(ConsensusADMM):
         if hub_duals is not None and hub is not None and tuple(hub_duals[0]) == hub.ids \
                 and hub_duals[1].shape == (len(hub.ids), self.dim):
             hub.seed_duals(hub_duals[1])
+
+    def _widen_stop(self, robots_left: int) -> None:
+        """As ConsensusADMM's, within AUTOGRID_MAX_DIAMETER hops: the sweep's stacked frames carry the
+        flags as floats (exact below 2^53), so a survivors' graph of at most 53 robots."""
+        super()._widen_stop(min(robots_left, AUTOGRID_MAX_DIAMETER + 1))
 
     def _local_step(self) -> np.ndarray:
         for j, (z, lam) in self._carry.items():

@@ -14,14 +14,15 @@ the same bits on every robot (`fleet_wide_verdict`: the relay hub), stops in the
 
 Robots dropped for good (`floods_gone`): a robot on a sparse graph learns only that its own
 neighbours died, yet a soft margin's answer depends on how many robots are left (each weighs
-|x|^2 by 1 / N_alive). A core that sets `floods_gone` sends with each round the sorted ids it knows
-to be dropped for good (`gone`: its own drops and those heard; round k-1's piggybacked as
-`prev_gone`) and, stepping from round k, adds every neighbour's round-k set to its own: the news
-crosses one hop a round (everyone knows within the survivors' diameter), the same bits in both
-shells. In the round its set grows, the subclass's `_gone_changed` reweighs and the robot's stop
-test counts as failed: the flags cannot stop a robot before the news reached it unless every robot
-had passed its test before anyone applied the news (see docs/algorithm.md, "A robot that dies for
-good").
+|x|^2 by 1 / N_alive), and any margin's stop on how wide the survivors' graph became. A core that
+sets `floods_gone` sends with each round the sorted ids it knows to be dropped for good (`gone`: its
+own drops and those heard; round k-1's piggybacked as `prev_gone`) and, stepping from round k, adds
+every neighbour's round-k set to its own: the news crosses one hop a round (everyone knows within
+the survivors' diameter), the same bits in both shells. In the round its set grows, the subclass's
+`_gone_changed` reweighs where the margin needs it and widens the stop (`_widen_stop`), and the
+robot's stop test counts as failed: the flags cannot stop a robot before the news reached it unless
+every robot had passed its test before anyone applied the news (see docs/algorithm.md, "A robot that
+dies for good").
 
 Subclasses implement the mathematics in `_step` (one round) and say what else a checkpoint holds;
 they never see frames, inboxes or flags.
@@ -434,7 +435,8 @@ class RoundCore:
         raise NotImplementedError
 
     def _gone_changed(self) -> None:
-        """`floods_gone`: `gone` grew (or a restore set it) -- reweigh for the robots left. Called
+        """`floods_gone`: `gone` grew (or a restore set it) -- reweigh for the robots left and widen
+        the stop (`_widen_stop`), as the algorithm needs. Called
         before the round's step, and after `restore`."""
         raise NotImplementedError
 

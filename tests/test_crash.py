@@ -162,16 +162,14 @@ def test_launch_permanent_loss_equals_simulate_bit_for_bit(run, tmp_path):
     same_iterates(out.robots, {r["id"]: r for r in want.robots})
 
 
-@pytest.mark.integration
-def test_launch_of_a_sparse_soft_fleet_losing_a_robot_equals_simulate_bit_for_bit(tmp_path):
-    """Over Zenoh the ids dropped for good travel in the frames as in `simulate` (they are part of the
-    rounds, never of arrival times): the survivors of a 4-ring with a soft margin give the same iterates
-    bit for bit and end on the exact answer of their own data."""
-    world, spec, _ = make_run(fleet_id="crash-ring-launch", timing=TIMING, robots=4, topology="ring", C=10.0)
-    with bounded_and_clean(str(tmp_path), 45.0, "launch-sparse-soft-loss"):
+def launch_loss_equals_simulate(tmp_path, world, spec, survivors: list[int], label: str) -> list[dict]:
+    """Launch ``spec`` over Zenoh losing robot 1 for good at round 40; its survivors must give
+    `simulate`'s iterates (crash one round before their drop round) bit for bit, all converged on the
+    exact answer of their own data. Returns the launched robots' rows."""
+    with bounded_and_clean(str(tmp_path), 60.0, label):
         out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[CrashPlan(1, 40)], restart_after=0.5,
                            restart=False, zenoh_port=None, progress=False)
-    assert not out.timed_out and [r["id"] for r in out.robots] == [0, 2, 3]
+    assert not out.timed_out and [r["id"] for r in out.robots] == survivors
     stuck = {r["dropped_at"][1] for r in out.robots if r["neighbours_dropped"]}
     assert len(stuck) == 1, f"survivors dropped robot 1 at different rounds: {stuck}"
     want = simulate_fleet(spec, crashes=[CrashPlan(1, stuck.pop() - 1)], restart=False)
@@ -179,3 +177,23 @@ def test_launch_of_a_sparse_soft_fleet_losing_a_robot_equals_simulate_bit_for_bi
     kept = [r for r in world.robots if r.id != 1]
     ref = solve_central(spec.basis, np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept]), spec.C)
     assert all(r["converged"] for r in out.robots) and max_function_error(spec, ref, out.robots) < 1e-3
+    return out.robots
+
+
+@pytest.mark.integration
+def test_launch_of_a_sparse_soft_fleet_losing_a_robot_equals_simulate_bit_for_bit(tmp_path):
+    """Over Zenoh the ids dropped for good travel in the frames as in `simulate` (they are part of the
+    rounds, never of arrival times): the survivors of a 4-ring with a soft margin give the same iterates
+    bit for bit and end on the exact answer of their own data."""
+    world, spec, _ = make_run(fleet_id="crash-ring-launch", timing=TIMING, robots=4, topology="ring", C=10.0)
+    launch_loss_equals_simulate(tmp_path, world, spec, [0, 2, 3], "launch-sparse-soft-loss")
+
+
+@pytest.mark.integration
+def test_launch_of_a_sparse_hard_fleet_losing_a_robot_equals_simulate_bit_for_bit(tmp_path):
+    """A hard margin's lists only widen the stop, which is part of the rounds too: over Zenoh the
+    survivors of a 6-ring (a path of diameter 4 once robot 1 is gone, the flags sized for 3) give
+    `simulate`'s iterates bit for bit and stop together on the exact answer of their own data."""
+    world, spec, _ = make_run(fleet_id="crash-ring-hard-launch", timing=TIMING, robots=6, topology="ring")
+    robots = launch_loss_equals_simulate(tmp_path, world, spec, [0, 2, 3, 4, 5], "launch-sparse-hard-loss")
+    assert len({r["rounds"] for r in robots}) == 1  # one stop (before: the path's ends 600 rounds apart)

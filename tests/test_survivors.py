@@ -1,5 +1,5 @@
-"""Survivors of a sparse fleet learn who was dropped for good (agents/rounds.py `floods_gone`) and,
-with a soft margin, solve their own problem: each weighs |x|^2 by 1 / (robots left), so the answer is
+"""Survivors of a sparse fleet learn who was dropped for good (agents/rounds.py `floods_gone`), widen
+their stop to the survivors' graph (either margin) and, with a soft margin, solve their own problem: each weighs |x|^2 by 1 / (robots left), so the answer is
 the exact central one of the survivors' data. The ids travel in the frames (protocol/frames.py "gone",
 "pgone"), one hop a round; a frame that lies about them is refused and counted, never believed."""
 
@@ -122,12 +122,16 @@ def test_a_forged_list_is_refused_and_counted_and_the_robot_goes_on(ring):
 
 
 def _lockstep(spec, dead: int, at: int, *, restart: tuple[int, int] | None = None, rounds: int = 2000,
-              frames: list | None = None):
+              frames: list | None = None, floods: bool = True, keep_trace: bool = False):
     """Every robot's core in one loop, all in the same round: `dead` sends nothing from round `at` on
     and its neighbours drop it in that round; ``restart`` = (robot, round): that robot is rebuilt from
     its checkpoint there (msgpack, as on disk), its frame before and after put in ``frames``.
+    ``floods=False`` turns the lists off (what the edge form did before, for comparison); ``rounds``
+    bounds the loop (a robot stopped alone leaves its neighbours waiting).
     Returns (cores, round -> robot -> its `gone`)."""
-    cores = {i: build_core(spec, i, keep_trace=False) for i in spec.robot_ids}
+    cores = {i: build_core(spec, i, keep_trace=keep_trace) for i in spec.robot_ids}
+    for c in cores.values():
+        c.floods_gone = c.floods_gone and floods
     heard: dict[int, dict[int, tuple[int, ...]]] = {}
     for _ in range(rounds):
         live = {i: c for i, c in cores.items() if i != dead or c.round < at}
@@ -152,7 +156,7 @@ def _lockstep(spec, dead: int, at: int, *, restart: tuple[int, int] | None = Non
             if frames is not None:
                 frames += [before, cores[restart[0]].outgoing()]
             restart = None
-    del cores[dead]
+    cores.pop(dead, None)
     return cores, heard
 
 
@@ -211,12 +215,75 @@ def test_a_sparse_soft_fleet_losing_a_robot_for_good_ends_on_its_survivors_exact
     assert max_function_error(spec, survivors_reference(world, spec, dead), out.robots) < 1e-3
 
 
-def test_hard_margins_and_the_hub_form_send_no_list(ring):
-    """A hard margin's answer does not depend on |x|^2's weight, a complete graph's hub sees every drop:
-    their frames and bits stay as they were (no `gone`, nothing flooded)."""
+def test_the_hub_form_sends_no_list_the_edge_form_does_with_either_margin(ring):
+    """A complete graph's hub sees every drop itself: its frames and bits stay as they were (nothing
+    flooded). The edge form floods with a hard margin too: its stop needs the news (below)."""
     _, spec = ring
     assert build_core(spec, 0).floods_gone
-    hard = dataclasses.replace(spec, C=None)
-    assert not build_core(hard, 0).floods_gone
+    assert build_core(dataclasses.replace(spec, C=None), 0).floods_gone
     _, complete, _ = make_run(fleet_id="survivors-complete", timing=TIMING, C=10.0)
     assert not build_core(spec_for_run(complete, [], restart=False, restart_after=0.5), 0).floods_gone
+
+
+# ---------------------------------------------------------------------- hard margins: only the stop
+
+
+def hard_edge_fleet(robots: int, topology: str, dead: int):
+    """(world, spec) of a hard-margin fleet given the edge form, as a run losing ``dead`` for good gives it."""
+    world, spec, _ = make_run(fleet_id=f"survivors-hard-{topology}", timing=TIMING, robots=robots, topology=topology)
+    return world, spec_for_run(spec, [CrashPlan(dead, 40)], restart=False, restart_after=0.5)
+
+
+@pytest.fixture(scope="module")
+def hard_six_ring():
+    """A hard 6-ring: without robot 1 its survivors form a path of diameter 4, the flags reach 3 hops."""
+    return hard_edge_fleet(6, "ring", dead=1)
+
+
+def test_a_hard_six_ring_losing_a_robot_stops_together_on_its_survivors_exact_answer(hard_six_ring):
+    """Before, the flags (sized for the ring's diameter 3) stopped the path's ends rounds apart (600 and
+    1208 here; NOT converged): the lists let every survivor widen its stop to the survivors' graph.
+    The hard steps do not use the lists: round for round, the iterates are those of the run without
+    them, up to the round where that run's first robot stopped alone."""
+    world, spec = hard_six_ring
+    cores, heard = _lockstep(spec, dead=1, at=40, keep_trace=True)
+    assert sorted(cores) == [0, 2, 3, 4, 5]
+    stop = {c.round for c in cores.values()}
+    assert len(stop) == 1 and all(c.converged for c in cores.values())  # one stop, every robot in it
+    assert all(c.gone == (1,) for c in cores.values())
+    assert all(g == () for k, g in heard.items() if k <= 40 for g in g.values())  # no list before the loss
+    ref = survivors_reference(world, spec, dead=1)
+    assert max_function_error(spec, ref, [c.result() for c in cores.values()]) < 1e-3
+
+    # the same run without the lists: the ends stop apart (bounded loop: the others wait on robot 2)
+    before, _ = _lockstep(spec, dead=1, at=40, floods=False, keep_trace=True, rounds=stop.pop() + 20)
+    alone = [i for i, c in before.items() if c.finished]
+    assert alone and len(alone) < len(before)  # some robot stopped, not all: the gap this closes
+    first = min(c.round for c in before.values())
+    for i, c in cores.items():
+        for k in range(first + 1):
+            np.testing.assert_array_equal(c.trace[k], before[i].trace[k])
+
+
+def test_a_hard_fleet_without_a_loss_sends_no_list_and_keeps_its_bits():
+    """No loss, no list: every frame is the one sent before (no `gone`), and the run with the lists on
+    is the run with them off, bit for bit, stop round included."""
+    _, spec = hard_edge_fleet(5, "ring", dead=1)
+    on, heard = _lockstep(spec, dead=-1, at=0)
+    off, _ = _lockstep(spec, dead=-1, at=0, floods=False)
+    assert all(g == () for per in heard.values() for g in per.values())
+    assert all(c.converged for c in on.values()) and len({c.round for c in on.values()}) == 1
+    for i, c in on.items():
+        assert c.round == off[i].round and c.outgoing() == off[i].outgoing()
+        np.testing.assert_array_equal(c.values, off[i].values)
+
+
+def test_a_hard_survivor_restarted_from_its_checkpoint_keeps_the_wider_stop(hard_six_ring):
+    """The widened stop is not in the checkpoint: it follows from `gone`, which is. Robot 3 (two hops
+    from the loss) rebuilt from its round-50 checkpoint stops with the others, on the same bits."""
+    _, spec = hard_six_ring
+    clean, _ = _lockstep(spec, dead=1, at=40)
+    again, _ = _lockstep(spec, dead=1, at=40, restart=(3, 50))
+    for i, c in clean.items():
+        assert again[i].round == c.round and again[i].converged and again[i].gone == (1,)
+        np.testing.assert_array_equal(again[i].values, c.values)

@@ -193,7 +193,12 @@ def test_tls_fleet_converges_and_impostors_cannot_join(tmp_path):
     for d in (hub, rogue):
         d.mkdir()
         doc.run("certs", d, env)  # rogue: the same commands make another CA
-    shutil.copy(doc.SCENARIO, hub / "scenario.toml")
+    # frames delayed 50 ms on every link: the fleet's ~110 rounds then last ~6 s, so the forger (its TLS
+    # session opens late) sees robot 0's frames for long; undelayed the fleet ended in ~0.2 s and the
+    # forger caught only its last ~10 frames (forged <= 20: the test failed 3 runs in 7)
+    scenario = doc.SCENARIO.read_text()
+    assert 'delay = "0ms"' in scenario
+    (hub / "scenario.toml").write_text(scenario.replace('delay = "0ms"', 'delay = "50ms"', 1))
     doc.run("prepare", hub, env)
     doc.run("copy-fleet", hub, env)
     doc.run("copy-certs", hub, env)
