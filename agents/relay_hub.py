@@ -73,7 +73,9 @@ ring, shells of 4 in two rounds on the 16-geo fleet) in the frames of the paused
 frame length; every robot folds the same rows in id order. All robots certify their rows: every robot holds the
 exact optimum bit for bit and the fleet stops (the verdict is every copy's). The attempt's first fresh guess
 ends it: the ADMM resumes from the round it paused at, its state and the a's in flight untouched (`_lround`:
-the protocol's round less the paused ones), and the next attempt waits RELAY_ENDGAME_GAP ADMM rounds.
+the protocol's round less the paused ones), and the next attempt waits RELAY_ENDGAME_GAP ADMM rounds. Soft margins
+(RELAY_SOFT_ENDGAME, branch relaysoft) run the same attempt with their finite C (the same 70-float payload) where a
+step's gather takes at most RELAY_SOFT_STEP_ROUNDS rounds; their piece test is `piece_changed`'s soft form.
 
 A robot that dies for good cannot be dropped consistently (its relays are gone and the delays of
 every path through it change): the relay robots then stop, not converged, with that reason; the
@@ -156,6 +158,15 @@ RELAY_WARM_QP = False
 #: chosen on seeds 0-2 with benchmarks/relay_endgame.py's attempts): every run certified, 35 of 36 earlier
 #: (6-ring seed 5 398 -> 438), 33058 -> 19101 rounds, 16-ring 1918 -> 861 on an AVX-512 machine
 RELAY_ENDGAME = True
+#: the same paused end-game on soft margins (finite C: SoftEndgame's B rows at the box; the piece test then
+#: compares the two steps' W difference, `piece_changed`'s soft form), on fleets whose end-game step (one gather)
+#: takes at most RELAY_SOFT_STEP_ROUNDS rounds. Measured (branch relaysoft, benchmarks/relay_anderson.py --C 1
+#: 10 100 --soft-endgame on|off, seeds 0-2): 4-, 6-, 8-ring and 5-line 36 of 36 runs earlier, 14856 -> 11414
+#: rounds at stop, every attempt certified; the 16-robot fleets (8 and 7 rounds a step) 19357 -> 19190 but 8 of 18 runs later, up to
+#: +521 (attempts there paused up to 546 rounds, 16-geo seed 1 C 1: two attempts): off there
+RELAY_SOFT_ENDGAME = True
+#: the soft end-game's fleets: one end-game step (a gather, `relay_endgame_plan`) in at most this many rounds
+RELAY_SOFT_STEP_ROUNDS = 4
 #: an attempt starts when no robot's step changed its piece (active set, `piece_changed`: every copy sees it
 #: from held values) for this many fleet steps in a row ...
 RELAY_ENDGAME_QUIET = 40
@@ -164,6 +175,14 @@ RELAY_ENDGAME_QUIET = 40
 RELAY_ENDGAME_ESTIMATE = 3.0
 #: ADMM rounds after an attempt that did not certify before the next may start
 RELAY_ENDGAME_GAP = 100
+#: end-game steps after which an attempt that has not certified ends (the ADMM resumes); inf: none. Measured on
+#: fresh seeds 6-11 (branch relaysoft, benchmarks/relay_anderson.py --max-steps): 20 ended attempts that certify
+#: (27 runs 14887 -> 14651 but 10 later, up to +940); 70 cut the 16-geo's 79-step certified attempts (+205)
+RELAY_ENDGAME_MAX_STEPS: float = math.inf
+#: an attempt whose first solve leaves more than this many robots with a violated row ends there (its guess
+#: judged: one row moves per correction); inf: never. Measured on seeds 6-11 (--judge): 5 took 36 runs 27905 ->
+#: 28225 rounds (3 later, up to +183), 2 far worse: the guesses that certify often start far off
+RELAY_ENDGAME_JUDGE: float = math.inf
 #: W_l below this fraction of its two terms is the step solver's noise: no active row (`step_normals`).
 #: piqp's steps on the 16-ring leave W_l up to 3.5e-7 of its terms with no row within 5e-2 of its margin
 NORMAL_FLOOR = 1e-5
@@ -219,14 +238,21 @@ def step_normals(pdiag: np.ndarray, P: np.ndarray, X: np.ndarray, T: np.ndarray)
     return np.where((np.linalg.norm(W, axis=1) <= NORMAL_FLOOR * scale)[:, None], 0.0, W)
 
 
-def piece_changed(X_prev: np.ndarray, W_prev: np.ndarray, X: np.ndarray, W: np.ndarray) -> np.ndarray:
+def piece_changed(X_prev: np.ndarray, W_prev: np.ndarray, X: np.ndarray, W: np.ndarray, *,
+                  soft: bool = False) -> np.ndarray:
     """Per robot: True when its two consecutive steps lie on different affine pieces of its step map, seen
     from held values only. On one piece (active set A_W) the step is the projection, in the metric of
     (P + 1/N on x), of P t / (P + 1/N on x) onto the face {A_W v = 1}: both W's are combinations of the
     face's rows, so W . (x - x_prev) = W_prev . (x - x_prev) = 0; a row that enters or leaves breaks one
-    of them by its margin gap. Relative to |W| |x| (PIECE_TOL): piqp's answers are exact to ~1e-10."""
+    of them by its margin gap. Relative to |W| |x| (PIECE_TOL): piqp's answers are exact to ~1e-10.
+    `soft` (finite C): W also holds C x the rows at the box (B), fixed on a piece but not orthogonal to the
+    move, so the test is on the difference, (W - W_prev) . (x - x_prev) = (lam_E - lam_E_prev)' A_E dx = 0 on
+    one piece; a row entering or leaving E breaks it by its multiplier's change x its margin gap."""
     dX = X - X_prev
-    num = np.maximum(np.abs(np.sum(W * dX, axis=1)), np.abs(np.sum(W_prev * dX, axis=1)))
+    if soft:
+        num = np.abs(np.sum((W - W_prev) * dX, axis=1))
+    else:
+        num = np.maximum(np.abs(np.sum(W * dX, axis=1)), np.abs(np.sum(W_prev * dX, axis=1)))
     scale = np.maximum(np.linalg.norm(W, axis=1), np.linalg.norm(W_prev, axis=1)) * np.linalg.norm(X, axis=1)
     return num > PIECE_TOL * np.maximum(scale, 1e-300)
 
@@ -246,8 +272,10 @@ def relay_endgame_plan(graph: Mapping[int, Sequence[int]], robot: int, dim: int)
 
 
 def relay_endgame_on(graph: Mapping[int, Sequence[int]], dim: int, hard: bool) -> bool:
-    """True when a relay fleet runs the paused end-game: RELAY_ENDGAME, a hard margin, a payload that fits."""
-    return RELAY_ENDGAME and hard and relay_endgame_plan(graph, min(graph), dim) is not None
+    """True when a relay fleet runs the paused end-game: RELAY_ENDGAME, a payload that fits, and a hard margin
+    -- or a soft one with RELAY_SOFT_ENDGAME where a step's gather takes at most RELAY_SOFT_STEP_ROUNDS rounds."""
+    plan = relay_endgame_plan(graph, min(graph), dim) if RELAY_ENDGAME else None
+    return plan is not None and (hard or (RELAY_SOFT_ENDGAME and plan.rounds <= RELAY_SOFT_STEP_ROUNDS))
 
 
 def relay_cert_slot(params: ADMMParams, n: int, dim: int) -> bool:
@@ -342,7 +370,7 @@ class RelayHubADMM(RoundCore):
         if relay_endgame_on(graph, share.dim, share.C is None):
             plan = relay_endgame_plan(graph, me, share.dim)
             assert plan is not None
-            self._endgame = SoftEndgame(self._qp, self.ids, me, math.inf)
+            self._endgame = SoftEndgame(self._qp, self.ids, me, math.inf if share.C is None else share.C)
             self._reduce = AllReduce(plan, payload_size(share.dim))
         self._mode = "admm"  # admm | endgame (an attempt: the frames carry the all-reduce) | certified
         self._paused = 0
@@ -494,12 +522,16 @@ class RelayHubADMM(RoundCore):
             self._reduce_frame = frame
             return mine, False
         self._attempt_steps += 1
+        corrections = eg.corrections
         done = eg.step(red.contributions(), self._attempt_v)
         if done is not None:  # every robot certified its rows: the exact optimum, the same bits everywhere
             self._mode = "certified"
             self._reduce_frame = np.zeros(size)
             return done.copy(), True
-        if eg.attempts != self._attempt_base + 1 or eg.kind == "wait":  # a fresh guess: the attempt is over
+        over = eg.attempts != self._attempt_base + 1 or eg.kind == "wait"  # a fresh guess: the attempt is over
+        if not over and eg.corrections == 1 and corrections == 0:  # its first solve ended violated: judge it
+            over = int(np.count_nonzero(red.contributions()[:, 1] > 0.0)) > RELAY_ENDGAME_JUDGE
+        if over or self._attempt_steps >= RELAY_ENDGAME_MAX_STEPS:  # (or its steps are spent)
             self._mode = "admm"
             self._next_try = self._lround + 1 + RELAY_ENDGAME_GAP  # (_lround + 1: the ADMM round it resumes at)
             self._reduce_frame = None
@@ -642,7 +674,7 @@ class RelayHubADMM(RoundCore):
         if self._endgame is not None:  # the end-game's start signal: steps in a row on one piece each
             W = step_normals(self._pdiag, self._P, X, T)
             steady = (self._pieces is not None and self._lround + 1 - self.delay > 1
-                      and not bool(piece_changed(*self._pieces, X, W).any()))
+                      and not bool(piece_changed(*self._pieces, X, W, soft=not self._endgame.hard).any()))
             self._quiet = self._quiet + 1 if steady else 0
             self._pieces = (X, W)
         return relay_stop_passed(self._held, self._tests)

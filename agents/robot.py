@@ -125,7 +125,10 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: a sparse soft fleet would resume without them (another weight of |x|^2, other frames)
 #: 9 since branch ringend (7 and 8: branches hardon and survivors, in parallel): a relay fleet with a hard margin
 #: pauses its ADMM for end-game attempts (agents/relay_hub.py); its state and frame length changed
-CHECKPOINT_VERSION = 9
+#: 11 since branch relaysoft (10 was kept for branch survivors2, which merged without a bump): a relay fleet with a
+#: soft margin on a ring of up to 8 robots (or the 5-line) pauses for end-game attempts too; its state (the
+#: attempt's) and frame length changed
+CHECKPOINT_VERSION = 11
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

@@ -12,7 +12,12 @@ is judged by its rounds and errors (no A/B needed), its CPU beside them (noisy: 
     .venv/bin/python benchmarks/relay_anderson.py --jobs 2 --seeds 0 1 2 --endgame off   # the ADMM alone (before ringend)
 
 --endgame sets RELAY_ENDGAME (the paused exact end-game, branch ringend; on by default for hard margins); the
-table's last column gives its attempts, paused rounds and whether it certified.
+table's last column gives its attempts, paused rounds and whether it certified. --C runs every chosen fleet with
+a soft margin at each C (errors against the exact central soft QP), --soft-endgame sets RELAY_SOFT_ENDGAME (branch
+relaysoft); --quiet / --estimate / --gap / --max-steps / --judge replace the end-game's start rule and its
+ends of a failing attempt (RELAY_ENDGAME_QUIET, _ESTIMATE, _GAP, _MAX_STEPS, _JUDGE).
+
+    .venv/bin/python benchmarks/relay_anderson.py --jobs 1 --fleets 4-ring 6-ring 8-ring --seeds 0 1 2 --C 1 10 100 --soft-endgame off
 
 --warm-qp sets RELAY_WARM_QP (the exact warm-started local QP where the guard decides), --seeds runs
 every chosen fleet at each seed (the hold's safety check), --no-frame-budget lets the guard's payload
@@ -105,7 +110,9 @@ def stop_check_fleets() -> dict[str, dict[str, Any]]:
 #: the relay module's constants a variant may replace
 _DEFAULTS = {key: getattr(relay_hub, key) for key in ("RELAY_REG", "RELAY_SAFEGUARD", "RELAY_RELAX", "RELAY_HOLD",
                                                       "RELAY_HOLD_CERTIFIED", "RELAY_FAST_HOLD", "RELAY_WARM_QP",
-                                                      "RELAY_ENDGAME")}
+                                                      "RELAY_ENDGAME", "RELAY_SOFT_ENDGAME", "RELAY_ENDGAME_QUIET",
+                                                      "RELAY_ENDGAME_ESTIMATE", "RELAY_ENDGAME_GAP",
+                                                      "RELAY_ENDGAME_MAX_STEPS", "RELAY_ENDGAME_JUDGE")}
 
 
 def configure(variant: dict[str, Any]) -> None:
@@ -503,6 +510,17 @@ def main() -> None:
                     help="RELAY_WARM_QP: the exact warm-started local QP where the certified guard decides")
     ap.add_argument("--endgame", choices=("on", "off"), default=None,
                     help="RELAY_ENDGAME: the paused exact end-game (hard margins); off: the ADMM alone")
+    ap.add_argument("--soft-endgame", choices=("on", "off"), default=None,
+                    help="RELAY_SOFT_ENDGAME: the paused end-game on soft margins too (with --C)")
+    ap.add_argument("--C", nargs="*", type=float, default=None,
+                    help="soft margins: every chosen fleet at each C (errors against the exact central soft QP)")
+    ap.add_argument("--quiet", type=int, default=None, help="RELAY_ENDGAME_QUIET: the start rule's quiet steps")
+    ap.add_argument("--estimate", type=float, default=None, help="RELAY_ENDGAME_ESTIMATE: the start rule's estimate")
+    ap.add_argument("--gap", type=int, default=None, help="RELAY_ENDGAME_GAP: ADMM rounds after a failed attempt")
+    ap.add_argument("--max-steps", type=int, default=None,
+                    help="RELAY_ENDGAME_MAX_STEPS: end-game steps after which an attempt ends uncertified")
+    ap.add_argument("--judge", type=int, default=None,
+                    help="RELAY_ENDGAME_JUDGE: robots with a violated row after an attempt's first solve that end it")
     ap.add_argument("--no-frame-budget", action="store_true",
                     help="what-if: the guard's payload wherever a frame's MAX_DIM allows (the 16-robot fleets), "
                          "beyond the frame budget of FRAME_BUDGET x (M + 1) floats")
@@ -547,6 +565,8 @@ def main() -> None:
     fleets = stop_check_fleets() if args.stop_check else {f: RELAY_FLEETS[f] for f in args.fleets}
     if args.seeds is not None:
         fleets = {f"{f.split('-s')[0]} s{seed}": {**kw, "seed": seed} for f, kw in fleets.items() for seed in args.seeds}
+    if args.C is not None:
+        fleets = {f"{f} C{C:g}": {**kw, "C": C} for f, kw in fleets.items() for C in args.C}
     if args.emulate_delay is not None:
         if args.normal_floor is not None:  # (the pool's workers fork)
             relay_hub.NORMAL_FLOOR = args.normal_floor
@@ -568,6 +588,10 @@ def main() -> None:
                "RELAY_HOLD_CERTIFIED": args.hold_certified,
                "RELAY_WARM_QP": None if args.warm_qp is None else args.warm_qp == "on",
                "RELAY_ENDGAME": None if args.endgame is None else args.endgame == "on",
+               "RELAY_SOFT_ENDGAME": None if args.soft_endgame is None else args.soft_endgame == "on",
+               "RELAY_ENDGAME_QUIET": args.quiet, "RELAY_ENDGAME_ESTIMATE": args.estimate,
+               "RELAY_ENDGAME_GAP": args.gap, "RELAY_ENDGAME_MAX_STEPS": args.max_steps,
+               "RELAY_ENDGAME_JUDGE": args.judge,
                "no_frame_budget": args.no_frame_budget, "trace": args.trace, "trace_tols": args.trace_tols,
                "certify": args.certify, "check": args.check}
     tol = ADMMParams().tol
