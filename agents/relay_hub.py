@@ -175,6 +175,13 @@ RELAY_ENDGAME_QUIET = 40
 RELAY_ENDGAME_ESTIMATE = 3.0
 #: ADMM rounds after an attempt that did not certify before the next may start
 RELAY_ENDGAME_GAP = 100
+#: attempts per run at most; then the ADMM alone finishes (its iterates are the ADMM-alone path, so the run
+#: stops at most the paused rounds of these attempts later than without the end-game). On the 72 hard relay
+#: runs measured (seeds 0-11, branches ringend and relaysoft) every certified run certified by its second
+#: attempt; the two that did not (16-ring seed 8: 5 attempts, 3208 paused rounds, 4577 at stop against 2058
+#: alone; 16-geo seed 8: 5 attempts, 3290 paused, the 5000-round cap, NOT converged, against 2587 alone)
+#: waited out failed attempts of ~640 paused rounds each
+RELAY_ENDGAME_TRIES = 2
 #: end-game steps after which an attempt that has not certified ends (the ADMM resumes); inf: none. Measured on
 #: fresh seeds 6-11 (branch relaysoft, benchmarks/relay_anderson.py --max-steps): 20 ended attempts that certify
 #: (27 runs 14887 -> 14651 but 10 later, up to +940); 70 cut the 16-geo's 79-step certified attempts (+205)
@@ -486,9 +493,10 @@ class RelayHubADMM(RoundCore):
     def _start_attempt(self, k: int, below: bool) -> bool:
         """The fleet's verdict (the same bits on every copy) that an end-game attempt starts after this
         round's step: no robot's step changed its piece for RELAY_ENDGAME_QUIET fleet steps, the stop tests'
-        estimate below RELAY_ENDGAME_ESTIMATE, RELAY_ENDGAME_GAP ADMM rounds since a failed attempt, and the
-        ADMM not stopping now."""
+        estimate below RELAY_ENDGAME_ESTIMATE, RELAY_ENDGAME_GAP ADMM rounds since a failed attempt, fewer than
+        RELAY_ENDGAME_TRIES attempts so far, and the ADMM not stopping now."""
         return (self._endgame is not None and not below and k + 1 >= self._next_try
+                and self._attempts < RELAY_ENDGAME_TRIES
                 and self._quiet >= RELAY_ENDGAME_QUIET and self.estimate() < RELAY_ENDGAME_ESTIMATE)
 
     def _begin_attempt(self, x: np.ndarray) -> None:

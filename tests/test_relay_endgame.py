@@ -120,6 +120,30 @@ def test_a_failed_attempt_resumes_the_admm_where_it_paused_bit_for_bit(monkeypat
     assert max_function_error(spec, central, [c.result() for c in cores]) < spec.params["tol"]
 
 
+def test_after_its_tries_the_admm_alone_finishes(monkeypatch):
+    """At most RELAY_ENDGAME_TRIES attempts a run: attempts that cannot correct their guess (CAP 0), started as
+    often as the rule allows (quiet 0, any estimate, gap 5), stop after 2 and the ADMM alone finishes on its own
+    bits, 2 attempts' paused rounds later (16-geo seed 8 once waited out 5 failed attempts into the round cap)."""
+    monkeypatch.setattr(soft_endgame, "CAP", 0)
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME_QUIET", 0)
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME_ESTIMATE", math.inf)
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME_GAP", 5)
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME_TRIES", 10**9)
+    _, _, unlimited = _fleet(robots=4, topology="ring")
+    run_to_end(unlimited, limit=3000)
+    assert unlimited[0]._attempts > 2  # the control: without the limit the rule starts attempt after attempt
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME_TRIES", 2)
+    spec, central, cores = _fleet(robots=4, topology="ring")
+    run_to_end(cores, limit=3000)
+    assert [c._attempts for c in cores] == [2] * 4 and all(c._mode == "admm" and c.converged for c in cores)
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME", False)
+    _, _, alone = _fleet(robots=4, topology="ring")
+    run_to_end(alone, limit=3000)
+    assert [c.values.tobytes() for c in cores] == [c.values.tobytes() for c in alone]
+    assert cores[0].round == alone[0].round + cores[0]._paused
+    assert max_function_error(spec, central, [c.result() for c in cores]) < spec.params["tol"]
+
+
 @pytest.mark.parametrize("C", [None, 10.0])
 def test_a_checkpoint_inside_an_attempt_resumes_bit_for_bit(C):
     """A robot restarted from its checkpoint in the middle of an all-reduce sends what the original sends,
