@@ -168,12 +168,12 @@ RELAY_ENDGAME = True
 RELAY_SOFT_ENDGAME = True
 #: the paused end-game's block (Krylov vectors per step; soft_endgame.BLOCK = 3, the complete graphs', so the
 #: payload and frames are theirs) with its start block filled (`SoftEndgame(wide_start=True)`: the preconditioned
-#: 1 and t, then each robot's step multipliers on its E rows). A larger block alone changes nothing (the widest
-#: block a step sends is the start block's 2 vectors, 3 with soft g: the same bits at 5). Measured (branch
-#: relayblock, benchmarks/relay_anderson.py, six relay fleets x seeds 0-5, AVX-512): this 19101 -> 17967 rounds,
-#: every run earlier, each attempt's steps cut by a quarter; a start block filled to 4-6 (then the
-#: preconditioned x columns w A_E[:, j]) 17701 / 17212 / 17138 but 6-ring seed 4 278 -> 355-361: its first
-#: set's span is exhausted with no row to move, a fresh guess, a second attempt
+#: 1 and t, then each robot's step multipliers on its E rows; a wide solve ended off the answer with nothing to
+#: move is solved again from the narrow start). A larger block alone changes nothing (the widest block a step
+#: sends is the start block's: 2 vectors, 3 with soft g; the same bits at 5). Measured (branch relayblock,
+#: benchmarks/relay_anderson.py, six relay fleets x seeds 0-5): AVX-512 19101 -> 18045 rounds, all 36 earlier;
+#: AVX2 17725 -> 16668, 35 earlier, 6-ring seed 4 250 -> 280; start blocks filled to 4-6 (then w A_E[:, j])
+#: 17701 / 17212 / 17138 on AVX-512 but 6-ring seed 4 278 -> 355-361
 RELAY_ENDGAME_BLOCK = 3
 #: the soft end-game's fleets: one end-game step (a gather, `relay_endgame_plan`) in at most this many rounds
 RELAY_SOFT_STEP_ROUNDS = 4

@@ -210,6 +210,7 @@ class SoftEndgame(_Endgame):
         # and t alone, and the block never grows past them (each step's new vectors are the images of the
         # last step's: at most 2 a step on hard margins, 3 on soft ones, whatever the block)
         self.wide_start = wide_start
+        self.narrow = False  # this attempt's solves start narrow: a wide one ended off the answer (`_correct`)
         self.rows = qp._rows
         self.ids = ids
         self.me = me
@@ -264,6 +265,7 @@ class SoftEndgame(_Endgame):
         self.labels = labels
         self.attempts += 1
         self.corrections = 0
+        self.narrow = False
         self._start()
 
     def _own_e(self) -> tuple[np.ndarray, np.ndarray]:
@@ -289,7 +291,7 @@ class SoftEndgame(_Endgame):
         the M-dimensional x space, so a solve's span is exhausted after about M / width steps: a wider
         start block takes fewer steps."""
         cols = [w, w * A[:, -1]]
-        if self.wide_start:
+        if self.wide_start and not self.narrow:
             lam = self.qp.multipliers
             own = lam is not None and len(lam) == len(self.rows)
             cols.append(np.asarray(lam, dtype=float)[self.labels == E_ROW] if own else np.zeros(len(A)))
@@ -407,9 +409,15 @@ class SoftEndgame(_Endgame):
 
     def _correct(self, payloads: np.ndarray, v_own: np.ndarray) -> None:
         """The fleet's single worst row changes sides (its owner moves it); after CAP corrections, or
-        with nothing to move, a fresh guess."""
+        with nothing to move, a fresh guess -- but a wide start's solve with nothing to move first solves its
+        set again from the narrow start: its span can fill the x space off the answer (the extra vectors are
+        outside the Krylov space of 1 and t, which holds it), leaving no multiplier or margin violated."""
         worst = payloads[:, 1]
         k = int(np.argmax(worst))  # ties: the lowest id
+        if not worst[k] > 0.0 and self.wide_start and not self.narrow:
+            self.narrow = True
+            self._start()
+            return
         if not worst[k] > 0.0 or self.corrections >= CAP:
             self.guess(v_own)
             return
@@ -428,6 +436,7 @@ class SoftEndgame(_Endgame):
             "Pr": to_bytes(self.Pr), "y": to_bytes(self.y), "mu": self.mu, "g": to_bytes(self.g),
             "v": to_bytes(self.v), "U": to_bytes(self.U.ravel()), "U_cols": self.U.shape[1], "sent": self.sent,
             "solve_rounds": self.solve_rounds, "refined": self.refined, "move": None if self.move is None else list(self.move),
+            "narrow": self.narrow,
         }
 
     def load(self, state: dict[str, Any]) -> None:
@@ -448,3 +457,4 @@ class SoftEndgame(_Endgame):
         self._gram = None  # (computed from S anew: the same bits, each entry its own sum)
         self.sent, self.solve_rounds, self.refined = int(state["sent"]), int(state["solve_rounds"]), int(state["refined"])
         self.move = None if state["move"] is None else (int(state["move"][0]), int(state["move"][1]))
+        self.narrow = bool(state["narrow"])

@@ -206,6 +206,26 @@ def test_the_wide_start_block_certifies_the_optimum_in_fewer_paused_rounds(monke
     assert 0 < wide[0]._paused < narrow[0]._paused and wide[0].round < narrow[0].round
 
 
+def test_a_wide_solve_with_nothing_to_move_solves_its_set_again_from_the_narrow_start():
+    """A wide start's span can fill the x space off the answer with no multiplier or margin violated (AVX2 6-ring
+    seed 4): the attempt then solves the same set from the narrow start (1 and t) instead of a fresh guess; a
+    narrow solve with nothing to move ends the attempt as before. The flag survives a checkpoint."""
+    spec, _, cores = _fleet(robots=4, topology="ring")
+    while cores[0]._mode != "endgame":
+        step_all(cores)
+    eg = cores[0]._endgame
+    labels, attempts = eg.labels.copy(), eg.attempts
+    nothing = np.zeros((len(cores), len(eg.payload)))  # verdicts: not ok, worst violation 0
+    eg._correct(nothing, None)
+    assert eg.narrow and eg.kind == "start" and eg.attempts == attempts and np.array_equal(eg.labels, labels)
+    assert eg.U.shape[1] == 2 and not np.any(eg.payload[5])  # the start block: 1 and t alone
+    twin = soft_endgame.SoftEndgame(eg.qp, eg.ids, eg.me, eg.C, block=eg.block, wide_start=True)
+    twin.load(eg.state())
+    assert twin.narrow
+    eg._correct(nothing, None)
+    assert eg.attempts == attempts + 1 and not eg.narrow  # a fresh guess: the attempt is over
+
+
 def test_a_larger_block_alone_sends_the_same_numbers(monkeypatch):
     """Without the wide start a block of 5 changes the frames' length only: a step's new vectors are the images
     of the last step's, never more than the start block's 2 (hard margins), so every copy ends on the same bits
