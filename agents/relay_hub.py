@@ -67,7 +67,8 @@ ride beside the ADMM; the fleet pauses it instead. Every copy watches every robo
 held values, `step_normals`): once no robot's step changed its piece (`piece_changed`) for RELAY_ENDGAME_QUIET
 fleet steps and the stop tests' estimate is below RELAY_ENDGAME_ESTIMATE, every robot -- in the same round, from
 the same bits -- keeps its step's multipliers, guesses its rows' active set and starts an attempt of
-agents/soft_endgame.py's block Krylov end-game (C = inf). Each end-game step is one gather of every robot's
+agents/soft_endgame.py's block Krylov end-game (C = inf; its start block widened by the robots' step
+multipliers, RELAY_ENDGAME_BLOCK). Each end-game step is one gather of every robot's
 payload (payload_size(M + 1) = 70 floats on the paper grid; `relay_endgame_plan`: 2 per frame, D rounds on a
 ring, shells of 4 in two rounds on the 16-geo fleet) in the frames of the paused rounds, padded to the fleet's one
 frame length; every robot folds the same rows in id order. All robots certify their rows: every robot holds the
@@ -165,6 +166,15 @@ RELAY_ENDGAME = True
 #: rounds at stop, every attempt certified; the 16-robot fleets (8 and 7 rounds a step) 19357 -> 19190 but 8 of 18 runs later, up to
 #: +521 (attempts there paused up to 546 rounds, 16-geo seed 1 C 1: two attempts): off there
 RELAY_SOFT_ENDGAME = True
+#: the paused end-game's block (Krylov vectors per step; soft_endgame.BLOCK = 3, the complete graphs', so the
+#: payload and frames are theirs) with its start block filled (`SoftEndgame(wide_start=True)`: the preconditioned
+#: 1 and t, then each robot's step multipliers on its E rows; a wide solve ended off the answer with nothing to
+#: move is solved again from the narrow start). A larger block alone changes nothing (the widest block a step
+#: sends is the start block's: 2 vectors, 3 with soft g; the same bits at 5). Measured (branch relayblock,
+#: benchmarks/relay_anderson.py, six relay fleets x seeds 0-5): AVX-512 19101 -> 18045 rounds, all 36 earlier;
+#: AVX2 17725 -> 16668, 35 earlier, 6-ring seed 4 250 -> 280; start blocks filled to 4-6 (then w A_E[:, j])
+#: 17701 / 17212 / 17138 on AVX-512 but 6-ring seed 4 278 -> 355-361
+RELAY_ENDGAME_BLOCK = 3
 #: the soft end-game's fleets: one end-game step (a gather, `relay_endgame_plan`) in at most this many rounds
 RELAY_SOFT_STEP_ROUNDS = 4
 #: an attempt starts when no robot's step changed its piece (active set, `piece_changed`: every copy sees it
@@ -265,11 +275,11 @@ def piece_changed(X_prev: np.ndarray, W_prev: np.ndarray, X: np.ndarray, W: np.n
 
 
 def relay_endgame_plan(graph: Mapping[int, Sequence[int]], robot: int, dim: int) -> ReducePlan | None:
-    """The end-game's all-reduce on a relay fleet: a gather of every robot's payload (payload_size(dim)
-    floats), at most as many per frame as the frame budget (FRAME_BUDGET x dim) and MAX_DIM allow -- and of
-    those, the fewest that keep its fewest rounds (16-geo: 2 per frame, 7 rounds, as with 3). None when not
-    one payload fits."""
-    size = payload_size(dim)
+    """The end-game's all-reduce on a relay fleet: a gather of every robot's payload (payload_size(dim,
+    RELAY_ENDGAME_BLOCK) floats), at most as many per frame as the frame budget (FRAME_BUDGET x dim) and MAX_DIM
+    allow -- and of those, the fewest that keep its fewest rounds (16-geo: 2 per frame, 7 rounds). None when
+    not one payload fits."""
+    size = payload_size(dim, RELAY_ENDGAME_BLOCK)
     cap = min(FRAME_BUDGET * dim, MAX_DIM) // size
     if cap < 1:
         return None
@@ -304,7 +314,7 @@ def relay_frame_dim(params: ADMMParams, n: int, dim: int, graph: Mapping[int, Se
         return relay
     plan = relay_endgame_plan(graph, min(graph), dim)
     assert plan is not None
-    return max(relay, plan.slots * payload_size(dim))
+    return max(relay, plan.slots * payload_size(dim, RELAY_ENDGAME_BLOCK))
 
 
 def relay_form(params: ADMMParams, graph: Mapping[int, Sequence[int]], dim: int) -> bool:
@@ -377,8 +387,9 @@ class RelayHubADMM(RoundCore):
         if relay_endgame_on(graph, share.dim, share.C is None):
             plan = relay_endgame_plan(graph, me, share.dim)
             assert plan is not None
-            self._endgame = SoftEndgame(self._qp, self.ids, me, math.inf if share.C is None else share.C)
-            self._reduce = AllReduce(plan, payload_size(share.dim))
+            self._endgame = SoftEndgame(self._qp, self.ids, me, math.inf if share.C is None else share.C,
+                                        block=RELAY_ENDGAME_BLOCK, wide_start=True)
+            self._reduce = AllReduce(plan, payload_size(share.dim, RELAY_ENDGAME_BLOCK))
         self._mode = "admm"  # admm | endgame (an attempt: the frames carry the all-reduce) | certified
         self._paused = 0
         self._next_try = 0  # the ADMM round from which an attempt may start

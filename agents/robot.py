@@ -128,7 +128,9 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: 11 since branch relaysoft (10 was kept for branch survivors2, which merged without a bump): a relay fleet with a
 #: soft margin on a ring of up to 8 robots (or the 5-line) pauses for end-game attempts too; its state (the
 #: attempt's) and frame length changed
-CHECKPOINT_VERSION = 11
+#: 12 since branch relayblock: the end-game's state holds whether its attempt went back to the narrow start
+#: block (`narrow`; a relay fleet's attempts start wide)
+CHECKPOINT_VERSION = 12
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

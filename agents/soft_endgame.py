@@ -17,7 +17,9 @@ and a few scalars -- issue 10's frame rule: no point, no per-point row, no Gram 
   alpha_l = P_l y; every copy holds S = A_E' P (the vectors' images, (M+1)-vectors), y and gamma;
 * a round sends A_E,l' U_l for the new block U_l = diag(1/|a_i|^2) A_E,l,x s (s: last round's new
   images; the first block: the preconditioned 1 and t, then g's image), U_l' r_l and P_l' r_l (r_l
-  = 1 - A_E,l v: its margins' residuals) and a verdict [ok, worst violation, residual];
+  = 1 - A_E,l v: its margins' residuals) and a verdict [ok, worst violation, residual] (`wide_start`, the
+  relay fleets': the first block also holds the robot's step multipliers on its E rows, and more up to the
+  block -- a step's block is never wider than the first, whatever BLOCK: `_start_block`);
 * every copy orthogonalises the new images on the shared S (the G inner product of two Krylov
   vectors is the dot product of their images) and takes the exact Galerkin correction on the grown
   span from the shared Gram S_x' S_x (a Cholesky solve, exactly rounded: the same bits on every
@@ -59,7 +61,9 @@ from agents.admm import (
 )
 from agents.rounds import from_bytes, to_bytes
 
-#: Krylov vectors per round: the frame carries BLOCK + 1 vectors of M + 1 floats (the last: P' r)
+#: Krylov vectors per round: the frame carries BLOCK + 1 vectors of M + 1 floats (the last: P' r); the
+#: default, sized for the complete graphs' frames (the payload rides beside the ADMM); `SoftEndgame(block=...)`
+#: takes another, which pays only with a start block as wide (`wide_start`; agents/relay_hub.py RELAY_ENDGAME_BLOCK)
 BLOCK = 3
 #: single-row corrections per attempt before a fresh guess (replays: 2-8 needed, 8 reached 212 / 739)
 CAP = 8
@@ -76,13 +80,17 @@ GUESS = 1e-6
 DROP = 1e-8
 #: row labels
 N_ROW, E_ROW, B_ROW = 0, 1, 2
-_SCALARS = 3 + BLOCK  # ok, worst violation, residual; then U' r (or 1' U in a start round) per block vector
 
 
-def payload_size(dim: int) -> int:
-    """Floats of the end-game's part of a hub frame: the verdict and residual, BLOCK scalars, BLOCK
+def _scalars(block: int) -> int:
+    """ok, worst violation, residual; then U' r (or 1' U in a start round) per block vector."""
+    return 3 + block
+
+
+def payload_size(dim: int, block: int = BLOCK) -> int:
+    """Floats of the end-game's part of a hub frame: the verdict and residual, `block` scalars, `block`
     images A_E' u and one vector P' r (in a start round: g_l)."""
-    return _SCALARS + (BLOCK + 1) * dim
+    return _scalars(block) + (block + 1) * dim
 
 
 @dataclass(frozen=True)
@@ -192,8 +200,17 @@ class SoftEndgame(_Endgame):
     round, after the robot's own step (`qp.multipliers` are that step's); `payload` goes into its
     next frame."""
 
-    def __init__(self, qp: Any, ids: tuple[int, ...], me: int, C: float) -> None:
+    def __init__(self, qp: Any, ids: tuple[int, ...], me: int, C: float, block: int = BLOCK,
+                 wide_start: bool = False) -> None:
+        if block < 2:  # a start round sends two vectors (the preconditioned 1 and t)
+            raise ValueError(f"the end-game's block must be at least 2, not {block}")
         self.qp = qp
+        self.block = block
+        # wide_start: the start block fills the whole block (`_start_block`); off, it is the preconditioned 1
+        # and t alone, and the block never grows past them (each step's new vectors are the images of the
+        # last step's: at most 2 a step on hard margins, 3 on soft ones, whatever the block)
+        self.wide_start = wide_start
+        self.narrow = False  # this attempt's solves start narrow: a wide one ended off the answer (`_correct`)
         self.rows = qp._rows
         self.ids = ids
         self.me = me
@@ -202,8 +219,8 @@ class SoftEndgame(_Endgame):
         self.dim = self.rows.shape[1]
         self.labels = np.zeros(len(self.rows), dtype=np.int8)
         self.kind = "wait"  # wait (no multipliers yet), start, grow, done, off
-        self.payload = np.zeros(payload_size(self.dim))
-        self.prev_payload: np.ndarray | None = np.zeros(payload_size(self.dim))
+        self.payload = np.zeros(payload_size(self.dim, self.block))
+        self.prev_payload: np.ndarray | None = np.zeros(payload_size(self.dim, self.block))
         self.result: np.ndarray | None = None
         self.attempts = 0
         self.corrections = 0
@@ -228,14 +245,14 @@ class SoftEndgame(_Endgame):
         self.move: tuple[int, int] | None = None  # this robot's worst row and its new label
 
     def _size(self) -> int:
-        return payload_size(self.dim)
+        return payload_size(self.dim, self.block)
 
     def guess(self, v_own: np.ndarray | None = None) -> None:
         """A fresh attempt from this robot's own step multipliers and (hard) the step's solution v_own
         (none yet: wait)."""
         lam = self.qp.multipliers
         if lam is None or len(lam) != len(self.rows):
-            self._next(np.zeros(payload_size(self.dim)), "wait")
+            self._next(np.zeros(payload_size(self.dim, self.block)), "wait")
             return
         labels = np.full(len(self.rows), E_ROW, dtype=np.int8)
         if self.hard:  # no bound: N below GUESS x its own largest multiplier
@@ -248,6 +265,7 @@ class SoftEndgame(_Endgame):
         self.labels = labels
         self.attempts += 1
         self.corrections = 0
+        self.narrow = False
         self._start()
 
     def _own_e(self) -> tuple[np.ndarray, np.ndarray]:
@@ -259,19 +277,34 @@ class SoftEndgame(_Endgame):
         """A start round: g_l = C sum of its B rows, and the first block: the preconditioned 1 and t."""
         self._reset_solve()
         A, w = self._own_e()
-        self.U = np.column_stack([w, w * A[:, -1]]) if len(A) else np.zeros((0, 2))
-        out = np.zeros(payload_size(self.dim))
+        self.U = self._start_block(A, w)
+        out = np.zeros(payload_size(self.dim, self.block))
         self._put_block(out, A, self.U.sum(axis=0))
         if not self.hard:  # (hard: B is empty, g = 0)
             out[-self.dim :] = self.C * self.rows[self.labels == B_ROW].sum(axis=0)
         self._next(out, "start")
 
+    def _start_block(self, A: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """The first block on this robot's E rows: the preconditioned 1 and t; with wide_start, then its
+        step's multipliers (the ADMM's estimate of alpha) and the preconditioned x columns w * A_E[:, j]
+        (j = 0, 1, ..., the images of unit vectors), up to the block. Every Krylov vector's image lies in
+        the M-dimensional x space, so a solve's span is exhausted after about M / width steps: a wider
+        start block takes fewer steps."""
+        cols = [w, w * A[:, -1]]
+        if self.wide_start and not self.narrow:
+            lam = self.qp.multipliers
+            own = lam is not None and len(lam) == len(self.rows)
+            cols.append(np.asarray(lam, dtype=float)[self.labels == E_ROW] if own else np.zeros(len(A)))
+            cols += [w * A[:, j] for j in range(min(self.block - len(cols), A.shape[1] - 1))]
+        cols = cols[: self.block]
+        return np.column_stack(cols) if len(A) else np.zeros((0, len(cols)))
+
     def _put_block(self, out: np.ndarray, A: np.ndarray, scalars: np.ndarray) -> None:
-        d, k = self.dim, self.U.shape[1]
+        d, k, at = self.dim, self.U.shape[1], _scalars(self.block)
         self.sent = k
         out[3 : 3 + k] = scalars
         for j in range(k):
-            out[_SCALARS + j * d : _SCALARS + (j + 1) * d] = A.T @ self.U[:, j]
+            out[at + j * d : at + (j + 1) * d] = A.T @ self.U[:, j]
 
     # -- one round ---------------------------------------------------------------------------------
     def _fold(self, payloads: np.ndarray, v_own: np.ndarray) -> np.ndarray | None:
@@ -286,7 +319,7 @@ class SoftEndgame(_Endgame):
         if not first:
             if bool(np.all(payloads[:, 0] == 1.0)):  # every robot certified its rows: the optimum
                 self.result = self.v.copy()
-                self._next(np.zeros(payload_size(d)), "done")
+                self._next(np.zeros(payload_size(d, self.block)), "done")
                 return self.result
             residual = float(payloads[:, 2].max())
             self.refined = self.refined + 1 if self.sent == 0 else 0
@@ -312,8 +345,8 @@ class SoftEndgame(_Endgame):
         gamma, g): the sums, the grown span and the Galerkin correction (`_grow`). Reads this copy,
         changes nothing: the value is adopted by the process's other copies (`_SHARED_FOLDS`)."""
         d = self.dim
-        sums = _pairwise_sum(payloads)
-        images = [sums[_SCALARS + j * d : _SCALARS + (j + 1) * d] for j in range(self.sent)]
+        sums, at = _pairwise_sum(payloads), _scalars(self.block)
+        images = [sums[at + j * d : at + (j + 1) * d] for j in range(self.sent)]
         if first:
             g = sums[-d:].copy()
             # U' r at v = (g_x, 0): 1' u - (A_x' u)' g_x, from the sums alone (one batched sum)
@@ -366,8 +399,8 @@ class SoftEndgame(_Endgame):
         blocks = [w * (A[:, :-1] @ s[:-1]) for s in added]
         if first:
             blocks.append(w * (A[:, :-1] @ self.g[:-1]))
-        self.U = np.column_stack(blocks[:BLOCK]) if blocks else np.zeros((len(A), 0))
-        out = np.zeros(payload_size(d))
+        self.U = np.column_stack(blocks[: self.block]) if blocks else np.zeros((len(A), 0))
+        out = np.zeros(payload_size(d, self.block))
         out[:3] = [1.0 if ok else 0.0, worst, residual]
         self._put_block(out, A, self.U.T @ r if self.U.size else np.zeros(self.U.shape[1]))
         out[-d:][: self.P.shape[1]] = self.P.T @ r if len(e_rows) else 0.0
@@ -376,9 +409,15 @@ class SoftEndgame(_Endgame):
 
     def _correct(self, payloads: np.ndarray, v_own: np.ndarray) -> None:
         """The fleet's single worst row changes sides (its owner moves it); after CAP corrections, or
-        with nothing to move, a fresh guess."""
+        with nothing to move, a fresh guess -- but a wide start's solve with nothing to move first solves its
+        set again from the narrow start: its span can fill the x space off the answer (the extra vectors are
+        outside the Krylov space of 1 and t, which holds it), leaving no multiplier or margin violated."""
         worst = payloads[:, 1]
         k = int(np.argmax(worst))  # ties: the lowest id
+        if not worst[k] > 0.0 and self.wide_start and not self.narrow:
+            self.narrow = True
+            self._start()
+            return
         if not worst[k] > 0.0 or self.corrections >= CAP:
             self.guess(v_own)
             return
@@ -397,6 +436,7 @@ class SoftEndgame(_Endgame):
             "Pr": to_bytes(self.Pr), "y": to_bytes(self.y), "mu": self.mu, "g": to_bytes(self.g),
             "v": to_bytes(self.v), "U": to_bytes(self.U.ravel()), "U_cols": self.U.shape[1], "sent": self.sent,
             "solve_rounds": self.solve_rounds, "refined": self.refined, "move": None if self.move is None else list(self.move),
+            "narrow": self.narrow,
         }
 
     def load(self, state: dict[str, Any]) -> None:
@@ -417,3 +457,4 @@ class SoftEndgame(_Endgame):
         self._gram = None  # (computed from S anew: the same bits, each entry its own sum)
         self.sent, self.solve_rounds, self.refined = int(state["sent"]), int(state["solve_rounds"]), int(state["refined"])
         self.move = None if state["move"] is None else (int(state["move"][0]), int(state["move"][1]))
+        self.narrow = bool(state["narrow"])

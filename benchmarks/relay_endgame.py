@@ -48,7 +48,7 @@ def attempt(cores: list[relay_hub.RelayHubADMM], qps: list[Any]) -> tuple[int, n
         qp.keep_multipliers = True
         sol = qp.solve(-c._P * t)
         v = np.append(sol.x, sol.gamma)
-        eg = SoftEndgame(qp, ids, c.robot_id, math.inf)
+        eg = SoftEndgame(qp, ids, c.robot_id, math.inf, block=relay_hub.RELAY_ENDGAME_BLOCK, wide_start=True)
         eg.guess(v)
         solvers.append(eg)
         steps.append(v)

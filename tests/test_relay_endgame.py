@@ -179,6 +179,66 @@ def test_frames_stay_within_the_budget_and_soft_margins_keep_the_relay_frames():
     assert spec.dim == cores[0].frame_dim == hard.dim == cores[0]._reduce.plan.slots * payload_size(len(spec.grid) + 1)
 
 
+def _narrow_start(monkeypatch, block: int) -> None:
+    """The relay end-game with `block` and the complete graphs' start block (the preconditioned 1 and t alone)."""
+    monkeypatch.setattr(relay_hub, "RELAY_ENDGAME_BLOCK", block)
+    narrow = lambda *a, **k: soft_endgame.SoftEndgame(*a, **{**k, "wide_start": False})  # noqa: E731
+    monkeypatch.setattr(relay_hub, "SoftEndgame", narrow)
+
+
+def _certified_ring():
+    spec, central, cores = _fleet(robots=4, topology="ring")
+    run_to_end(cores, limit=3000)
+    assert all(c.converged and c._mode == "certified" for c in cores) and _same_bits(cores)
+    assert max_function_error(spec, central, [c.result() for c in cores]) < 1e-9  # the exact central QP's optimum
+    return cores
+
+
+def test_the_wide_start_block_certifies_the_optimum_in_fewer_paused_rounds(monkeypatch):
+    """The relay end-game's start block with every robot's step multipliers beside the preconditioned 1 and t
+    (RELAY_ENDGAME_BLOCK, wide_start): one more Krylov vector a step, so a solve exhausts its span in fewer steps;
+    the same exact optimum, fewer paused rounds (4-ring: 44 -> 32 on AVX-512, 124 -> 92 on the AVX2 8-ring: no
+    figure pinned, the order only)."""
+    wide = _certified_ring()
+    assert wide[0]._endgame.wide_start and wide[0]._endgame.block == relay_hub.RELAY_ENDGAME_BLOCK
+    _narrow_start(monkeypatch, soft_endgame.BLOCK)
+    narrow = _certified_ring()
+    assert 0 < wide[0]._paused < narrow[0]._paused and wide[0].round < narrow[0].round
+
+
+def test_a_wide_solve_with_nothing_to_move_solves_its_set_again_from_the_narrow_start():
+    """A wide start's span can fill the x space off the answer with no multiplier or margin violated (AVX2 6-ring
+    seed 4): the attempt then solves the same set from the narrow start (1 and t) instead of a fresh guess; a
+    narrow solve with nothing to move ends the attempt as before. The flag survives a checkpoint."""
+    spec, _, cores = _fleet(robots=4, topology="ring")
+    while cores[0]._mode != "endgame":
+        step_all(cores)
+    eg = cores[0]._endgame
+    labels, attempts = eg.labels.copy(), eg.attempts
+    nothing = np.zeros((len(cores), len(eg.payload)))  # verdicts: not ok, worst violation 0
+    eg._correct(nothing, None)
+    assert eg.narrow and eg.kind == "start" and eg.attempts == attempts and np.array_equal(eg.labels, labels)
+    assert eg.U.shape[1] == 2 and not np.any(eg.payload[5])  # the start block: 1 and t alone
+    twin = soft_endgame.SoftEndgame(eg.qp, eg.ids, eg.me, eg.C, block=eg.block, wide_start=True)
+    twin.load(eg.state())
+    assert twin.narrow
+    eg._correct(nothing, None)
+    assert eg.attempts == attempts + 1 and not eg.narrow  # a fresh guess: the attempt is over
+
+
+def test_a_larger_block_alone_sends_the_same_numbers(monkeypatch):
+    """Without the wide start a block of 5 changes the frames' length only: a step's new vectors are the images
+    of the last step's, never more than the start block's 2 (hard margins), so every copy ends on the same bits
+    after the same paused rounds as with the block of 3."""
+    _narrow_start(monkeypatch, 3)
+    three = _certified_ring()
+    _narrow_start(monkeypatch, 5)
+    five = _certified_ring()
+    assert five[0].frame_dim > three[0].frame_dim and five[0]._endgame.block == 5
+    assert [c.values.tobytes() for c in five] == [c.values.tobytes() for c in three]
+    assert five[0]._paused == three[0]._paused and five[0].round == three[0].round
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_a_chunked_gather_delivers_every_contribution_in_id_order(seed):
     """With max_slots, a shell wider than it goes over several rounds: every robot ends with every robot's

@@ -14,10 +14,10 @@ import pytest
 
 from agents.admm import FRAME_BUDGET, hub_frame_dim
 from agents.autogrid import ADMM
-from agents.soft_endgame import payload_size
+from agents.soft_endgame import BLOCK, payload_size
 from agents.spec import build_core
 
-from .conftest import make_run, run_to_end
+from .conftest import make_run, run_to_end, step_all
 from .test_autogrid import _lockstep, _resume_from_checkpoints, make_cores, run_fleet
 from .test_autogrid_illcond import _fleets, _params
 from .test_autogrid_softstart import _soft_error
@@ -57,6 +57,23 @@ def test_frames_stay_within_the_budget_and_the_flag_off_leaves_them():
     assert spec.dim <= FRAME_BUDGET * d  # BLOCK + 1 vectors of M + 1 floats and a few scalars beside [v; w]
     spec, _c, cores = _admm_fleet(False)
     assert getattr(cores[0], "_polish") is None and len(cores[0].outgoing().values) == spec.dim != 2 * d + payload_size(d)
+
+
+def test_complete_graphs_keep_the_block_of_3_and_its_narrow_start():
+    """The relay fleets' wide start block (agents/relay_hub.py RELAY_ENDGAME_BLOCK) stays off the complete graphs:
+    their end-game has the default block and starts from the preconditioned 1 and t alone -- the start round's
+    third scalar and image slots stay 0 -- so their frames and bits are those before it."""
+    spec, _c, cores = _admm_fleet(True)
+    d = spec.basis.size + 1
+    for _ in range(2000):
+        if cores[0]._polish.kind == "start":
+            break
+        step_all(cores)
+    ends = [c._polish for c in cores]
+    assert all(e.kind == "start" and e.block == BLOCK == 3 and not e.wide_start for e in ends)
+    assert all(e.U.shape[1] == 2 == e.sent and len(e.payload) == payload_size(d) for e in ends)
+    assert any(np.any(e.payload[3:5]) for e in ends)  # the 1' U of the two start vectors...
+    assert not any(np.any(e.payload[5]) or np.any(e.payload[6 + 2 * d : 6 + 3 * d]) for e in ends)  # ...no third
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,8 @@ class _BeforeSharing(se.SoftEndgame):
             return None
         d = self.dim
         sums = _pairwise_sum(np.ascontiguousarray(payloads))
-        images = [sums[se._SCALARS + j * d : se._SCALARS + (j + 1) * d] for j in range(self.sent)]
+        at = se._scalars(self.block)
+        images = [sums[at + j * d : at + (j + 1) * d] for j in range(self.sent)]
         if self.kind == "start":
             self.g = sums[-d:].copy()
             self.v = np.append(self.g[:-1], 0.0)
@@ -39,7 +40,7 @@ class _BeforeSharing(se.SoftEndgame):
         else:
             if bool(np.all(payloads[:, 0] == 1.0)):
                 self.result = self.v.copy()
-                self._next(np.zeros(se.payload_size(d)), "done")
+                self._next(np.zeros(se.payload_size(d, self.block)), "done")
                 return self.result
             residual = float(payloads[:, 2].max())
             self.refined = self.refined + 1 if self.sent == 0 else 0
@@ -109,7 +110,7 @@ def _twinned_fleet(**kwargs):
     for core in cores:
         pol = _endgame(core)
         assert isinstance(pol, se.SoftEndgame) and pol.kind != "off"
-        twin = _BeforeSharing(pol.qp, pol.ids, pol.me, pol.C)
+        twin = _BeforeSharing(pol.qp, pol.ids, pol.me, pol.C, block=pol.block, wide_start=pol.wide_start)
         twin.load(pol.state())
         twins.append(twin)
         step, common, guess, inside = pol.step, pol._common, pol.guess, [False]
