@@ -629,24 +629,24 @@ class AdaptiveGridCore(RoundCore):
     def advance(self) -> StateUpdate:
         theirs, their_flags = self._take_round()
         mine, flags, kind = self._values, 0, EXCHANGE[self.phase]
-        if self.floods_gone:  # (the sub-machines gather the same lists from the updates they are handed)
-            their_gone = self._inbox.gone.get(self.round, {})
-            if self._gather_gone() and self._sweep is not None:
-                self._sweep.reach = self._reach()
+        # (the sub-machines gather the same lists from the updates they are handed)
+        their_gone = self._inbox.gone.get(self.round, {}) if self.floods_gone else {}
+        if self.floods_gone and self._gather_gone() and self._sweep is not None:
+            self._sweep.reach = self._reach()
         if kind == "max":
             new = np.max(np.vstack([mine, *theirs.values()]), axis=0)
             self._left -= 1
         elif kind == "flood":
             new = self._flood_round(mine, theirs)
         elif kind == "sweep":
-            self._sweep.advance(theirs, their_gone if self.floods_gone else None)
+            self._sweep.advance(theirs, their_gone)
             self.residual = self._sweep.residual
             new = self._sweep.stacked()
         else:  # ADMM: hand the neighbours' exact round values to the sub-machine
             sub = self._sub
             for j, v in theirs.items():
                 sub.receive(StateUpdate(j, sub.round, self._sub_message(v), int(their_flags.get(j, 0)), None,
-                                        gone=their_gone.get(j, ()) if self.floods_gone else ()))
+                                        gone=their_gone.get(j, ())))
             sub.advance()
             self.residual = sub.residual
             new, flags = self._sub_frame(), sub.outgoing().flags
@@ -727,8 +727,9 @@ class AdaptiveGridCore(RoundCore):
         self._carry.pop(j, None)
 
     def _gone_changed(self) -> None:
-        """Nothing of autogrid's own: its sub-machines reweigh and widen their stop themselves. Its counted
-        phases (max-consensus, flood) keep their D rounds: see docs/algorithm.md (autogrid after a loss)."""
+        """Nothing to rebuild here: its sub-machines reweigh and widen their stop themselves (they are handed
+        the lists), and its counted phases, the flood and the alarm read `_reach()` when they begin (a phase
+        begun before the news arrived keeps its length: docs/algorithm.md, autogrid after a loss)."""
 
     # -- what the fleet learned ---------------------------------------------------------------
     @property

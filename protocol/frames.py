@@ -114,11 +114,6 @@ class Decoded:
     seq: int
     need: tuple[int, ...] | None = None
 
-    def names_gone(self, robot: int) -> bool:
-        """Whether the frame says ``robot`` was dropped for good (its "gone" or "pgone")."""
-        update = self.update
-        return robot in update.gone or robot in update.prev_gone
-
 
 @dataclass(frozen=True)
 class Rejected:
@@ -778,7 +773,6 @@ class FrameDecoder:
         why = gone_problem(sender, gone, pgone)
         if why is not None:
             raise _Reject("gone", why.replace("prev_gone", "pgone"))
-
 
     @classmethod
     def _unpack(cls, data: bytes | bytearray | memoryview) -> dict[str, Any]:
