@@ -57,7 +57,8 @@ def test_a_fleet_file_asking_for_the_guard_the_rule_or_the_polish_keeps_it():
 
 
 def test_sparse_fleets_are_unchanged():
-    """The relay hub (a ring) reads its params as written: the same core, frames and bits as before."""
+    """The complete-graph default does not touch a sparse fleet's params: the relay hub (a ring) reads them as
+    written (its own paused end-game is agents/relay_hub.py's, tests/test_relay_endgame.py)."""
     for C in (None, 10.0):
         _w, ring, _c = make_run(C=C, robots=4, topology="ring")
         assert not ring._hub_form(ring.algorithm_params)
