@@ -138,9 +138,10 @@ class ContinuousTimeADMM(RoundCore):
         # every robot carries beta/2 |x|^2 and the fleet's objective is N beta/2 |x|^2
         self._C = C
         self._u_min = -math.inf if C is None else -float(C) * n_robots * params.beta
-        # with a soft margin the bound depends on how many robots are left: learn who was dropped
-        # for good fleet-wide (agents/rounds.py) and rescale (`_gone_changed`)
-        self.floods_gone = C is not None
+        # who was dropped for good fleet-wide (agents/rounds.py): a soft margin's bound depends on how
+        # many robots are left (`_gone_changed` rescales it); either margin's stop must reach across
+        # the survivors' graph, which can be wider than the fleet's
+        self.floods_gone = True
         self._sign = {j: (1.0 if robot_id < j else -1.0) for j in self.neighbours}
         self._lam = {j: np.zeros(self.dim) for j in self.neighbours}  # low end's consensus dual
         self._y = np.zeros(len(self._A))
@@ -188,11 +189,12 @@ class ContinuousTimeADMM(RoundCore):
         self._build_metric()
 
     def _gone_changed(self) -> None:
-        """Soft margin: robots were dropped for good (`gone`): the survivors carry (N - lost) beta/2
-        |x|^2, so the duals' bound is C (N - lost) beta -- else they solve C x N / N_alive; and the stop
-        flags reach across the survivors' graph."""
+        """Robots were dropped for good (`gone`): the stop flags reach across the survivors' graph; with a
+        soft margin the survivors carry (N - lost) beta/2 |x|^2, so the duals' bound is C (N - lost) beta
+        -- else they solve C x N / N_alive. A hard margin's steps never read the lists."""
         left = self._n_robots - len(self.gone)
-        self._u_min = -float(self._C) * left * self.params.beta
+        if self._C is not None:
+            self._u_min = -float(self._C) * left * self.params.beta
         self._widen_stop(left)
 
     def _save_state(self) -> dict[str, Any]:

@@ -287,3 +287,17 @@ def test_a_hard_survivor_restarted_from_its_checkpoint_keeps_the_wider_stop(hard
     for i, c in clean.items():
         assert again[i].round == c.round and again[i].converged and again[i].gone == (1,)
         np.testing.assert_array_equal(again[i].values, c.values)
+
+
+def test_a_hard_ct_admm_ring_losing_a_robot_stops_together_on_its_survivors_exact_answer():
+    """ct-admm with a hard margin floods the lists too (its stop alone needs them). Before, an 8-ring
+    losing robot 3 at round 40 stopped its path's ends at rounds 5147 and 11918, 0.19 from the survivors'
+    answer, each robot reporting converged; the wider stop makes it one stop, 4.8e-4 from it."""
+    world, spec, _ = make_run(fleet_id="survivors-ct-hard", timing=TIMING, robots=8, topology="ring",
+                              algorithm="ct-admm", ct_stop_time=60.0)
+    assert spec.C is None
+    out = simulate_fleet(spec, crashes=[CrashPlan(3, 40)], restart=False)
+    assert sorted(r["id"] for r in out.robots) == [0, 1, 2, 4, 5, 6, 7]
+    assert all(r["converged"] and r["stopped"] == "finished" for r in out.robots)
+    assert len({r["rounds"] for r in out.robots}) == 1  # one stop, every robot in the same round
+    assert max_function_error(spec, survivors_reference(world, spec, dead=3), out.robots) < 1e-3
