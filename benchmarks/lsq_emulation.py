@@ -173,6 +173,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("out", type=Path, help="folder for one pickle per data set (kept: a second call only prints)")
     ap.add_argument("--jobs", type=int, default=2)
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs must be >= 1, got {args.jobs}")
+    if args.out.exists() and not args.out.is_dir():
+        ap.error(f"{args.out}: not a directory")
     args.out.mkdir(parents=True, exist_ok=True)
     items = datasets(args.sets)
     todo = [it for it in items if not (args.out / f"{it[0]}.pkl").exists()]
