@@ -11,10 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from launcher import scenario as sc
-from launcher.cli import _options, parse_args
-from launcher.world import build_world
-from tests.test_outlines_heldout4 import ROOT, _maker
+from tests.test_outlines_heldout4 import ROOT
+from tests.test_outlines_heldout5 import (
+    assert_folder_is_what_make_outlines_writes,
+    assert_one_ring_whose_world_simulate_builds,
+)
 
 FOLDER = ROOT / "benchmarks/outlines/heldout6"
 #: outline -> (world scale, offset, pairs each of the 5 default robots keeps of the 20 asked). Every robot
@@ -32,26 +33,11 @@ WORLD = {
 
 def test_the_files_are_what_make_outlines_writes(tmp_path: Path) -> None:
     """Byte for byte: an outline edited by hand (or a maker changed after the set was fixed) fails here."""
-    maker = _maker()
-    assert [make.__name__ for make, _ in maker.HELDOUT6] == list(WORLD)
-    for make, digits in maker.HELDOUT6:
-        maker.write(f"{make.__name__}.csv", make(), digits, tmp_path)
-    written = {p.name: p.read_bytes() for p in tmp_path.glob("*.csv")}
-    assert written == {p.name: p.read_bytes() for p in FOLDER.glob("*.csv")}
+    assert_folder_is_what_make_outlines_writes("HELDOUT6", FOLDER, list(WORLD), tmp_path)
 
 
 @pytest.mark.parametrize("name", list(WORLD))
 def test_each_outline_is_one_simple_ring_whose_world_simulate_builds(name: str) -> None:
     """Metres keep the paper's world (scale 1); millimetres get the x20 world (6 mm offsets); the pairs per
     robot pin that no robot loses points, so the data are what a new user's simulate gives."""
-    path = FOLDER / f"{name}.csv"
-    shape = sc.load_polygon_csv(path)
-    assert shape.is_valid and shape.exterior.is_simple and not shape.interiors
-    assert 0.3 < shape.area / shape.envelope.area < 0.7  # notches and concavities, not a filled box
-    world, spec = build_world(_options(parse_args(
-        ["simulate", "--shape-file", str(path), "--robots", "5", "--points", "40"]), fleet_id="heldout6"))
-    scale, offset, pairs = WORLD[name]
-    assert (world.lengths.scale, world.lengths.offset) == (scale, offset)
-    assert spec.algorithm == "autogrid"
-    assert [int((r.labels < 0).sum()) for r in world.robots] == pairs
-    assert [int((r.labels > 0).sum()) for r in world.robots] == pairs
+    assert_one_ring_whose_world_simulate_builds(FOLDER / f"{name}.csv", *WORLD[name])

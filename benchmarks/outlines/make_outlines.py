@@ -101,7 +101,7 @@ stepping out up a taper. One ring each, no closed holes:
                        Archimedean curve from radius 0.4 to 1.95 over 120 degrees, 120 degrees apart: under each arm
                        a wedge pocket 0.95 wide (radially) at its mouth, narrowing to the hub over 120 degrees, whose
                        mouth faces round the object (counterclockwise), not out from it
-- ratchet_mm.csv  (mm) a ratchet wheel: twelve asymmetric teeth on a 36 mm root circle, 14 mm deep (tips at 50 mm),
+- ratchet_mm.csv  (mm) a ratchet wheel: twelve asymmetric teeth 14 mm deep, root radius 36 mm, tips at radius 50,
                        each a radial face, a 4-degree land and a straight back to the next tooth's root: gaps 22.5 mm
                        at the rim, one wall radial and one sloping (the bore omitted: no closed holes)
 - dovetail_mm.csv (mm) a dovetailed board end: a 120 x 15 board, three tails 40 mm long, 14 mm wide at the board
