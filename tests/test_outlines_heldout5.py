@@ -30,28 +30,38 @@ WORLD = {
 }
 
 
-def test_the_files_are_what_make_outlines_writes(tmp_path: Path) -> None:
-    """Byte for byte: an outline edited by hand (or a maker changed after the set was fixed) fails here."""
+def assert_folder_is_what_make_outlines_writes(
+    held_out: str, folder: Path, names: list[str], tmp_path: Path
+) -> None:
+    """make_outlines.py's set `held_out` (e.g. "HELDOUT5") written afresh equals the folder, byte for byte."""
     maker = _maker()
-    assert [make.__name__ for make, _ in maker.HELDOUT5] == list(WORLD)
-    for make, digits in maker.HELDOUT5:
+    assert [make.__name__ for make, _ in getattr(maker, held_out)] == names
+    for make, digits in getattr(maker, held_out):
         maker.write(f"{make.__name__}.csv", make(), digits, tmp_path)
     written = {p.name: p.read_bytes() for p in tmp_path.glob("*.csv")}
-    assert written == {p.name: p.read_bytes() for p in FOLDER.glob("*.csv")}
+    assert written == {p.name: p.read_bytes() for p in folder.glob("*.csv")}
+
+
+def assert_one_ring_whose_world_simulate_builds(path: Path, scale: float, offset: float, pairs: list[int]) -> None:
+    """One simple ring, 0.3 to 0.7 of its box, whose default 5-robot world has this scale, offset and pairs per robot."""
+    shape = sc.load_polygon_csv(path)
+    assert shape.is_valid and shape.exterior.is_simple and not shape.interiors
+    assert 0.3 < shape.area / shape.envelope.area < 0.7  # notches and concavities, not a filled box
+    world, spec = build_world(_options(parse_args(
+        ["simulate", "--shape-file", str(path), "--robots", "5", "--points", "40"]), fleet_id=path.parent.name))
+    assert (world.lengths.scale, world.lengths.offset) == (scale, offset)
+    assert spec.algorithm == "autogrid"
+    assert [int((r.labels < 0).sum()) for r in world.robots] == pairs
+    assert [int((r.labels > 0).sum()) for r in world.robots] == pairs
+
+
+def test_the_files_are_what_make_outlines_writes(tmp_path: Path) -> None:
+    """Byte for byte: an outline edited by hand (or a maker changed after the set was fixed) fails here."""
+    assert_folder_is_what_make_outlines_writes("HELDOUT5", FOLDER, list(WORLD), tmp_path)
 
 
 @pytest.mark.parametrize("name", list(WORLD))
 def test_each_outline_is_one_simple_ring_whose_world_simulate_builds(name: str) -> None:
     """Metres keep the paper's world (scale 1); millimetres get the x20 world, so a 4 or 8 mm part is
     thinner than two offsets; the pairs per robot pin which robots lose points to that."""
-    path = FOLDER / f"{name}.csv"
-    shape = sc.load_polygon_csv(path)
-    assert shape.is_valid and shape.exterior.is_simple and not shape.interiors
-    assert 0.3 < shape.area / shape.envelope.area < 0.7  # notches and concavities, not a filled box
-    world, spec = build_world(_options(parse_args(
-        ["simulate", "--shape-file", str(path), "--robots", "5", "--points", "40"]), fleet_id="heldout5"))
-    scale, offset, pairs = WORLD[name]
-    assert (world.lengths.scale, world.lengths.offset) == (scale, offset)
-    assert spec.algorithm == "autogrid"
-    assert [int((r.labels < 0).sum()) for r in world.robots] == pairs
-    assert [int((r.labels > 0).sum()) for r in world.robots] == pairs
+    assert_one_ring_whose_world_simulate_builds(FOLDER / f"{name}.csv", *WORLD[name])

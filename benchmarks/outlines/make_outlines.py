@@ -83,6 +83,36 @@ sides of a thin strip, barbs. One ring each, no closed holes:
                        radius 42 (200 to 340 degrees) whose ends carry 18 mm-wide barbed flukes 28 mm long: acute
                        notches under each barb
 
+The sixth held-out set (issue 15, branch heldout6, in heldout6/; committed before any fleet, rule, SVC or
+emulation ran on it, for the lead's one evaluation of the next model or rule; nothing may be tuned on these). New
+kinds next to the 36 above: a spur jutting into a counter's mouth, two counters behind gaps opening to opposite
+sides, tangential (chiral) pockets, asymmetric teeth round a disc, dovetail undercuts, round undercut lobes
+stepping out up a taper. One ring each, no closed holes:
+
+- letter_g.csv    (m)  a G: a 0.56-wide stroke along an elliptic arc (semi-axes 1.22 x 1.72 about (1.5, 2.0), 40 to
+                       340 degrees, flat ends), a 0.5-wide jaw from the arc's lower end (2.65, 1.41) up to y = 2 and
+                       a spur from there left to x = 1.55 (mitred): the counter opens right through a 0.70 mouth
+                       above the spur, and a pocket under the spur opens only back into the counter
+- digit_8.csv     (m)  an 8 of two rings with 0.55 strokes: above radius 1.0 about (1.5, 3.0), below radius 1.1
+                       about (1.5, 1.1), overlapping 0.2 at the waist (notches left and right); the upper counter
+                       (radius 0.45) opens right through a 0.45 gap, the lower (radius 0.55) left through a 0.5 gap,
+                       both less than two 0.3 offsets
+- triskelion.csv  (m)  a triskelion: a hub of radius 0.6 and three 0.6-wide arms (round ends), each along an
+                       Archimedean curve from radius 0.4 to 1.95 over 120 degrees, 120 degrees apart: under each arm
+                       a wedge pocket 0.95 wide (radially) at its mouth, narrowing to the hub over 120 degrees, whose
+                       mouth faces round the object (counterclockwise), not out from it
+- ratchet_mm.csv  (mm) a ratchet wheel: twelve asymmetric teeth 14 mm deep, root radius 36 mm, tips at radius 50,
+                       each a radial face, a 4-degree land and a straight back to the next tooth's root: gaps 22.5 mm
+                       at the rim, one wall radial and one sloping (the bore omitted: no closed holes)
+- dovetail_mm.csv (mm) a dovetailed board end: a 120 x 15 board, three tails 40 mm long, 14 mm wide at the board
+                       and 28 mm at the end (flanks 9.9 degrees off square), 40 mm apart: two sockets 12 mm wide at
+                       the mouth, 26 mm at the base (undercut on both flanks); the end tails overhang a 13 mm ledge
+                       by 7 mm
+- fir_tree_mm.csv (mm) a turbine blade's fir-tree root: an 80 x 16 platform on a root tapering from 12 mm wide at
+                       the bottom to 36 mm under the platform, with three pairs of round lobes 14 mm thick at
+                       heights 10, 32, 54 reaching 17, 23, 29 mm from the centre line: round-bottomed notches 8 mm
+                       high at the lobe tips, undercut by the lobe above, and an 18 mm notch under the platform
+
     .venv/bin/python benchmarks/outlines/make_outlines.py
 """
 
@@ -371,6 +401,56 @@ def anchor_mm() -> Polygon:
     return shapely.union_all([shank, stock, eye, arms, *flukes])
 
 
+def letter_g() -> Polygon:
+    t = np.linspace(math.radians(40), math.radians(340), 40)
+    arc = np.column_stack([1.5 + 1.22 * np.cos(t), 2.0 + 1.72 * np.sin(t)])
+    stroke = LineString(arc).buffer(0.28, quad_segs=4, cap_style="flat")
+    end = arc[-1]
+    jaw = LineString([end, (end[0], 2.0), (1.55, 2.0)]).buffer(0.25, cap_style="flat", join_style="mitre")
+    return shapely.union_all([stroke, jaw]).intersection(shapely.box(0.0, 0.0, 3.0, 4.0))
+
+
+def digit_8() -> Polygon:
+    upper = Point(1.5, 3.0).buffer(1.0, quad_segs=16).difference(Point(1.5, 3.0).buffer(0.45, quad_segs=16))
+    lower = Point(1.5, 1.1).buffer(1.1, quad_segs=16).difference(Point(1.5, 1.1).buffer(0.55, quad_segs=16))
+    upper = upper.difference(shapely.box(1.5, 2.775, 2.6, 3.225))  # the upper counter's gap, open right
+    lower = lower.difference(shapely.box(0.3, 0.85, 1.5, 1.35))  # the lower counter's gap, open left
+    return shapely.union_all([upper, lower])
+
+
+def triskelion() -> Polygon:
+    hub = Point(0.0, 0.0).buffer(0.6, quad_segs=16)
+    t = np.linspace(0.0, math.radians(120), 30)
+    radius = 0.4 + 1.55 * t / t[-1]
+    arm = LineString(np.column_stack([radius * np.cos(t), radius * np.sin(t)])).buffer(0.3, quad_segs=4)
+    return shapely.union_all([hub, *(shapely.affinity.rotate(arm, 120.0 * k, origin=(0.0, 0.0)) for k in range(3))])
+
+
+def ratchet_mm() -> Polygon:
+    corners = []
+    for k in range(12):
+        face, land = math.radians(30.0 * k), math.radians(30.0 * k + 4.0)
+        corners += [(36.0 * math.cos(face), 36.0 * math.sin(face)), (50.0 * math.cos(face), 50.0 * math.sin(face)),
+                    (50.0 * math.cos(land), 50.0 * math.sin(land))]
+    return Polygon(corners)
+
+
+def dovetail_mm() -> Polygon:
+    board = shapely.box(0.0, 0.0, 120.0, 15.0)
+    # 14 mm wide at the board's face (y = 15), 28 at the end: flanks 7 mm out over 40 mm (and 1 mm into the board)
+    tails = [Polygon([(c - 6.825, 14.0), (c + 6.825, 14.0), (c + 14.0, 55.0), (c - 14.0, 55.0)])
+             for c in (20.0, 60.0, 100.0)]
+    return shapely.union_all([board, *tails])
+
+
+def fir_tree_mm() -> Polygon:
+    root = Polygon([(-6.0, 0.0), (6.0, 0.0), (18.0, 80.0), (-18.0, 80.0)])
+    lobes = [LineString([(-w, y), (w, y)]).buffer(7.0, quad_segs=8)
+             for w, y in ((10.0, 10.0), (16.0, 32.0), (22.0, 54.0))]
+    platform = shapely.box(-40.0, 79.0, 40.0, 95.0)
+    return shapely.union_all([root, *lobes, platform])
+
+
 def write(name: str, polygon: Polygon, digits: int, folder: Path = HERE) -> None:
     polygon = shapely.set_precision(polygon.simplify(10.0 ** -digits), 10.0 ** -digits)
     assert polygon.geom_type == "Polygon" and polygon.is_valid and not polygon.interiors, name
@@ -392,6 +472,8 @@ HELDOUT3 = ((letter_s, 4), (digit_4, 4), (digit_5, 4), (caliper_mm, 2), (tuning_
 HELDOUT4 = ((letter_w, 4), (letter_x, 4), (digit_6, 4), (pliers_mm, 2), (castellated_nut_mm, 2), (circlip_mm, 2))
 #: the fifth held-out set, in heldout5/ (points kept: benchmarks/results/autogrid.md, "Held-out 5")
 HELDOUT5 = ((letter_z, 4), (letter_y, 4), (spiral, 4), (heatsink_mm, 2), (spring_mm, 2), (anchor_mm, 2))
+#: the sixth held-out set, in heldout6/ (pairs kept: benchmarks/results/autogrid.md, "Held-out 6")
+HELDOUT6 = ((letter_g, 4), (digit_8, 4), (triskelion, 4), (ratchet_mm, 2), (dovetail_mm, 2), (fir_tree_mm, 2))
 
 if __name__ == "__main__":
     for make, digits in OUTLINES:
@@ -402,3 +484,5 @@ if __name__ == "__main__":
         write(f"{make.__name__}.csv", make(), digits, HERE / "heldout4")
     for make, digits in HELDOUT5:
         write(f"{make.__name__}.csv", make(), digits, HERE / "heldout5")
+    for make, digits in HELDOUT6:
+        write(f"{make.__name__}.csv", make(), digits, HERE / "heldout6")
