@@ -30,10 +30,13 @@ from agents.rounds import RobotShare
 @dataclass(frozen=True)
 class LSQParams:
     """The least-squares fleet's parameters: the model's ridge weight and admm's consensus settings
-    (the same defaults, the same meaning: ADMMParams)."""
+    (the same meaning as ADMMParams', the same defaults but rho's)."""
 
     lam: float = DEFAULT_LSQ_LAMBDA
-    rho: float = 15.0
+    # admm's 15 is the SVM's scale (1/N |x|^2); a robot's least-squares curvature 2 A'A is of its rows'
+    # scale: measured on 8x6 / 12x10 grids, 8 robots complete and ring, rho 1 took 78-100 / 351-626 rounds
+    # to the stop against 174 / 3004 (8x6) with 15, and 0.3 or 3 were slower (docs/algorithm.md)
+    rho: float = 1.0
     gamma_penalty: float = 3.0
     relax: float = 1.95
     tol: float = 1e-3

@@ -330,6 +330,16 @@ class FleetSpec:
         rows = me.points if points else self.basis.features(me.points)
         return RobotShare(robot_id, me.neighbours, rows, me.labels, n_robots=self.n_robots, C=self.C, degrees=degrees)
 
+    @property
+    def model(self) -> str | None:
+        """The model a fixed-grid fleet fits, in words (result.json's ``model``); None for autogrid
+        (its margin is chosen by the fleet) and for a user's algorithm."""
+        if self.algorithm == "lsq":
+            return f"LiDAR least squares (pair: outside +1, return 0, inside -1), lam {self.algorithm_params.lam:g}"
+        if not self.fixed_grid or self.custom:
+            return None
+        return "hard-margin SVM" if self.C is None else f"soft-margin SVM, C {self.C:g}"
+
     def central(self, robots: list[tuple[int, np.ndarray, np.ndarray]]) -> CentralSolution:
         """The exact reference of this fleet's model on the data of ``robots`` ((id, points, labels)
         each): the central QP of the margin, or for lsq the central least-squares fit (each robot's
