@@ -25,7 +25,6 @@ import math
 import numpy as np
 import scipy.linalg
 
-from agents.admm import _spd_factor, _spd_solve
 from agents.kernel import GridBasis
 from agents.problem import CentralSolution
 
@@ -136,9 +135,11 @@ class LsqLocalStep:
         <=>  (2 A'A + 2 x_weight E + diag(prox)) v = 2 A't - q
 
     The matrix changes only with the proximal weights (once per run, and when a neighbour is
-    dropped), so it is factored there and every round is two triangular solves. Factor and solves
-    are agents/admm.py's deterministic Cholesky (exactly rounded sums, no BLAS reduction order):
-    simulate and launch, and a robot restored from its checkpoint, take the same bits. A robot
+    dropped), so it is factored there (LAPACK's Cholesky) and every round is two triangular solves.
+    A local step is this robot's own (no other robot recomputes it), so LAPACK's bits, the same on one
+    machine (one BLAS thread: agents/__init__.py), suffice: simulate and launch, and a robot restored
+    from its checkpoint, take the same bits. (agents/admm.py's exactly rounded Cholesky, the hub's, cost
+    3.1 ms a solve at M = 208 against ~0.03 ms: measured on letter_e, benchmarks/results/lsq.md.) A robot
     with no rows and no proximal weight on gamma (round 0's own solve) keeps gamma at 0."""
 
     #: (MarginQP's fields the hub core reads; the least-squares step has no margin multipliers)
@@ -151,7 +152,7 @@ class LsqLocalStep:
         self.dim = len(gram)
         self._gram2 = 2.0 * gram
         self._rhs2 = 2.0 * rhs
-        self._factor: tuple = ()
+        self._factor: tuple[np.ndarray, bool] = (np.zeros((0, 0)), True)
         self.set_prox(prox_weight)
 
     def set_prox(self, prox: float | np.ndarray) -> None:
@@ -159,8 +160,8 @@ class LsqLocalStep:
         H = self._gram2 + np.diag(np.broadcast_to(np.asarray(prox, dtype=float), (self.dim,)))
         if not H[-1, -1] > 0:  # no row and no proximal weight on gamma: pin it at 0
             H[-1, -1] = 1.0
-        self._factor = _spd_factor(H)
+        self._factor = scipy.linalg.cho_factor(H, lower=True, check_finite=False)
 
     def solve_v(self, q: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
         """The step's v for the linear cost q (``guess`` unused: the solve is exact)."""
-        return _spd_solve(self._factor, self._rhs2 - np.asarray(q, dtype=float))
+        return scipy.linalg.cho_solve(self._factor, self._rhs2 - np.asarray(q, dtype=float), check_finite=False)
