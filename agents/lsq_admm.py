@@ -35,7 +35,7 @@ class LSQParams:
     lam: float = DEFAULT_LSQ_LAMBDA
     # admm's 15 is the SVM's scale (1/N |x|^2); a robot's least-squares curvature 2 A'A is of its rows'
     # scale: measured on 8x6 / 12x10 grids, 8 robots complete and ring, rho 1 took 78-100 / 351-626 rounds
-    # to the stop against 174 / 3004 (8x6) with 15, and 0.3 or 3 were slower (docs/algorithm.md)
+    # to the stop against 174 / 3004 (8x6) with 15; 0.3 was slower, 3 too but on the 12x10 ring (docs/algorithm.md)
     rho: float = 1.0
     gamma_penalty: float = 3.0
     relax: float = 1.95
