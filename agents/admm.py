@@ -1358,7 +1358,7 @@ class ConsensusADMM(RoundCore):
             self._hub.drop(j)
             if self._polish is not None:  # the polish does not follow a drop: it stops for good
                 self._polish.stop()
-            if self._C is not None:  # soft: the survivors' problem weighs |x|^2 by 1 / (robots left)
+            if self._weight_matters():  # soft: the survivors' problem weighs |x|^2 by 1 / (robots left)
                 self._qp = self._build_qp()
             return
         del self._edges[j]
@@ -1369,7 +1369,7 @@ class ConsensusADMM(RoundCore):
         survivors' graph, however wide it became; with a soft margin this robot's share of 1/2 |x|^2
         also becomes 1 / (robots left), so the survivors' fixed point is their own problem's (a hard
         margin's answer is the minimum-norm separator whatever the weight: its steps stay unchanged)."""
-        if self._C is not None:
+        if self._weight_matters():
             self._qp = self._build_qp()
         self._widen_stop(self._n_robots - len(self.gone))
 
@@ -1551,7 +1551,12 @@ class ConsensusADMM(RoundCore):
     def _weighed_gone(self) -> tuple[int, ...]:
         """The drops the edge form's |x|^2 weight counts: `gone` with a soft margin; none with a hard
         one (its answer does not depend on the weight, and its steps stay those it took before)."""
-        return self.gone if self._C is not None else ()
+        return self.gone if self._weight_matters() else ()
+
+    def _weight_matters(self) -> bool:
+        """True when the answer depends on each robot's weight of |x|^2 (1 / robots left): a soft
+        margin; a hard margin's minimum-norm separator does not (agents/lsq_admm.py: always)."""
+        return self._C is not None
 
     def _prox_weight(self) -> np.ndarray:
         if self._hub is not None:

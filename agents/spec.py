@@ -20,21 +20,25 @@ from agents.autogrid import AdaptiveGridCore, AutoGridParams
 from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.extension import load_algorithm
 from agents.kernel import GridBasis
+from agents.lsq_admm import ConsensusLSQ, LSQParams
+from agents.lsq_model import lsq_rows, solve_central_lsq
 from agents.newton import DistributedNewton, NewtonParams, frame_size
 from agents.relay_hub import RelayHubADMM, relay_form, relay_frame_dim
 from agents.params import params_from
+from agents.problem import CentralSolution, solve_central
 from agents.rounds import RobotShare
 from protocol.auth import FLEET_SECRET_BYTES, FrameAuth, new_fleet_secret
 from protocol.frames import config_tag as make_config_tag
 from protocol.keys import validate_fleet_id
 from protocol.links import LinkFaults
 
-ALGORITHMS = ("admm", "ct-admm", "autogrid", "newton")
+ALGORITHMS = ("admm", "ct-admm", "autogrid", "newton", "lsq")
 #: algorithms whose grid and sigma are fixed by the launcher (autogrid's fleet chooses its own)
-FIXED_GRID_ALGORITHMS = ("admm", "ct-admm", "newton")
+FIXED_GRID_ALGORITHMS = ("admm", "ct-admm", "newton", "lsq")
 #: each algorithm's typed parameters: the fleet file's ``params`` are the fields of its class
 PARAMS_CLASSES: dict[str, type] = {
     "admm": ADMMParams, "ct-admm": CTADMMParams, "autogrid": AutoGridParams, "newton": NewtonParams,
+    "lsq": LSQParams,
 }
 
 
@@ -193,6 +197,8 @@ class FleetSpec:
             return frame_size(len(self.grid) + 1, self.graph, self.algorithm_params)
         if self.algorithm == "admm" and self._hub_form(self.algorithm_params):
             return hub_frame_dim(self.algorithm_params, len(self.grid) + 1)  # [v; w] (+ the polish's payload)
+        if self.algorithm == "lsq" and self._hub_form(self.algorithm_params):
+            return hub_frame_dim(self.algorithm_params.admm, len(self.grid) + 1)  # [v; w]
         if self.algorithm == "admm" and relay_form(self.algorithm_params, self.graph, len(self.grid) + 1):
             return relay_frame_dim(self.algorithm_params, self.n_robots, len(self.grid) + 1,  # [a; payload] per robot
                                    self.graph, self.C is None)  # (or the end-game's all-reduce, if larger)
@@ -317,8 +323,33 @@ class FleetSpec:
         the fleet's C and every neighbour's degree (for the hub form's verdict)."""
         me = self.robots[robot_id]
         degrees = {j: len(self.robots[j].neighbours) for j in me.neighbours}
+        if self.algorithm == "lsq":  # the model's rows (a pair: outside, midpoint, inside) and their targets
+            row_points, targets = lsq_rows(me.points, me.labels)
+            return RobotShare(robot_id, me.neighbours, self.basis.features(row_points), targets,
+                              n_robots=self.n_robots, C=None, degrees=degrees)
         rows = me.points if points else self.basis.features(me.points)
         return RobotShare(robot_id, me.neighbours, rows, me.labels, n_robots=self.n_robots, C=self.C, degrees=degrees)
+
+    @property
+    def model(self) -> str | None:
+        """The model a fixed-grid fleet fits, in words (result.json's ``model``); None for autogrid
+        (its margin is chosen by the fleet) and for a user's algorithm."""
+        if self.algorithm == "lsq":
+            return f"LiDAR least squares (pair: outside +1, return 0, inside -1), lam {self.algorithm_params.lam:g}"
+        if not self.fixed_grid or self.custom:
+            return None
+        return "hard-margin SVM" if self.C is None else f"soft-margin SVM, C {self.C:g}"
+
+    def central(self, robots: list[tuple[int, np.ndarray, np.ndarray]]) -> CentralSolution:
+        """The exact reference of this fleet's model on the data of ``robots`` ((id, points, labels)
+        each): the central QP of the margin, or for lsq the central least-squares fit (each robot's
+        pairs read in its own data, as its share does)."""
+        points = np.vstack([p for _, p, _ in robots]).reshape(-1, 2)
+        labels = np.concatenate([np.asarray(lab) for _, _, lab in robots])
+        if self.algorithm == "lsq":
+            robot_of = np.concatenate([np.full(len(p), i) for i, p, _ in robots])
+            return solve_central_lsq(self.basis, points, labels, self.algorithm_params.lam, robot_of=robot_of)
+        return solve_central(self.basis, points, labels, self.C)
 
     @classmethod
     def load(cls, path: Path) -> FleetSpec:
@@ -347,7 +378,7 @@ def endgame_default(params: ADMMParams, C: float | None, given: Any, hub: bool) 
     return "certify" not in given and ("hard_endgame" not in given or params.hard_endgame)
 
 
-Core = ConsensusADMM | RelayHubADMM | ContinuousTimeADMM | AdaptiveGridCore | DistributedNewton  # or a user's RoundCore
+Core = ConsensusADMM | ConsensusLSQ | RelayHubADMM | ContinuousTimeADMM | AdaptiveGridCore | DistributedNewton  # or a user's RoundCore
 
 
 def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Core:
@@ -371,6 +402,8 @@ def build_core(spec: FleetSpec, robot_id: int, *, keep_trace: bool = True) -> Co
         return DistributedNewton(share, params, graph=spec.graph, keep_trace=keep_trace)
     if spec.algorithm == "ct-admm":
         return ContinuousTimeADMM(share, params, keep_trace=keep_trace)
+    if spec.algorithm == "lsq":
+        return ConsensusLSQ(share, params, keep_trace=keep_trace)
     if relay_form(params, spec.graph, share.dim):  # a sparse graph of <= 16 robots: the relay hub
         return RelayHubADMM(share, params, graph=spec.graph, keep_trace=keep_trace)
     return ConsensusADMM(share, params, keep_trace=keep_trace)

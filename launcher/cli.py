@@ -221,7 +221,7 @@ def _finish(out: Path, world: World, spec: Any, central: Any, robots: list[dict[
     if spec.fixed_grid:
         tol = float(getattr(spec.algorithm_params, "tol", report.DEFAULT_AGREEMENT_TOL))
         result = report.build_result(world, spec.basis, central, robots, algorithm=spec.algorithm, C=spec.C,
-                                     wall_s=wall_s, extra=extra, tol=tol)
+                                     wall_s=wall_s, extra=extra, tol=tol, model=spec.model)
     else:
         references = _autogrid_references(world, spec, robots, extra)
         bases = {i: ref.basis for i, ref in references.items()}
@@ -295,12 +295,23 @@ def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], 
 def _participants_data(world: World, extra: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """The points and labels of the robots that took part to the end (all of them when none is
     absent): the data the fleet's answer is measured against."""
+    kept = _participants_robots(world, extra)
+    return np.vstack([p for _, p, _ in kept]), np.concatenate([lab for _, _, lab in kept])
+
+
+def _participants_robots(world: World, extra: dict[str, Any]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(id, points, labels) of each robot that took part to the end (`_participants_data`)."""
     kept = world.robots
     if extra.get("absent"):
         kept = [r for r in world.robots if r.id in extra["participants"]]
     if not kept:  # e.g. every robot crashed with --no-restart: nobody's answer to measure
         raise RunFailure(f"no robot took part to the end (robots {extra['absent']} all lost): no answer to measure")
-    return np.vstack([r.points for r in kept]), np.concatenate([r.labels for r in kept])
+    return _robot_data(kept)
+
+
+def _robot_data(robots: list[Any]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(id, points, labels) per robot: what `FleetSpec.central` measures a fleet's model against."""
+    return [(r.id, r.points, r.labels) for r in robots]
 
 
 def _round_budget(spec: Any) -> int:
@@ -329,7 +340,7 @@ def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None
     (an autogrid fleet's grid exists only after its run: central is None then).
     ``check(spec)`` validates what needs the fleet before anything is written (a refused run
     leaves nothing behind)."""
-    from agents.problem import SolverError, solve_central
+    from agents.problem import SolverError
 
     world, spec = build_world(options or _options(args, **extra))
     _fault_robots_check(spec)
@@ -338,7 +349,7 @@ def _prepare(args: argparse.Namespace, mode: str, options: Options | None = None
     out = _out_dir(args, mode)
     scenario.write_data_csv(out / "data.csv", world.robots)
     try:
-        central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
+        central = spec.central(_robot_data(world.robots)) if spec.fixed_grid else None
     except SolverError as exc:  # e.g. --C 1e300: the reference every figure is measured against has no answer
         raise RunFailure(f"the exact centralized solve failed ({exc}) with --C {spec.C:g} on the "
                          f"{args_grid(spec)} grid: no reference to measure the fleet against; wrote {out}/data.csv") from None
@@ -391,7 +402,8 @@ def cmd_central(args: argparse.Namespace) -> int:
             f"{PAPER_GRID}, sigma {PAPER_SIGMA:g}); the automatic grid and sigma are chosen by the fleet "
             "(shapefleet simulate / launch)"
         )
-    options = dataclasses.replace(options, preset=options.preset or "paper", algorithm="admm")
+    model = "lsq" if options.algorithm == "lsq" else "admm"  # the least-squares model's own central fit, else the QP
+    options = dataclasses.replace(options, preset=options.preset or "paper", algorithm=model)
     out, world, spec, central = _prepare(args, "central", options=options)
     if not central.solved:
         _infeasible(out, world, spec, central)
@@ -734,8 +746,6 @@ def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, 
     A robot took part if it wrote a result or if a robot that did still lists it as a neighbour
     at the end (its data is in their answer: only its result file is missing, ``results_missing``).
     ``absent``: robots dropped for good by everyone who wrote a result (or that never came)."""
-    from agents.problem import solve_central
-
     with_result = {int(r["id"]) for r in robots}
     linked = {int(j) for r in robots for j in (r.get("neighbours") or [])}
     extra["participants"] = sorted(with_result | (linked & set(spec.robot_ids)))
@@ -747,9 +757,9 @@ def _participants(world: World, spec: Any, central: Any, robots: list[dict[str, 
         return None
     if not extra["absent"]:
         return central
-    pts, labels = _participants_data(world, extra)
+    kept = _participants_robots(world, extra)
     extra["reference"] = "central solution of the participants' data"
-    return solve_central(spec.basis, pts, labels, spec.C)
+    return spec.central(kept)
 
 
 
@@ -883,7 +893,6 @@ def cmd_prepare(args: argparse.Namespace) -> int:
 
 def cmd_collect(args: argparse.Namespace) -> int:
     """Gather robot result files into result.json and pictures, as `launch` writes them."""
-    from agents.problem import solve_central
     from launcher import deploy
 
     wait_s = args.wait  # seconds (the options table parsed the duration)
@@ -901,7 +910,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
         print(f"robot {i}: no result ({deploy.result_file(args.results, i)}: {why})", file=sys.stderr)
     out = _out_dir(args, "collect")
     scenario.write_data_csv(out / "data.csv", world.robots)
-    central = solve_central(spec.basis, world.points, world.labels, spec.C) if spec.fixed_grid else None
+    central = spec.central(_robot_data(world.robots)) if spec.fixed_grid else None
     extra: dict[str, Any] = {"fleet": spec.fleet, "topology": prepared.topology, "faults": _fault_dict(spec.faults)}
     central = _participants(world, spec, central, robots, extra)
     wall = max(float(r.get("wall_s") or 0.0) for r in robots)

@@ -241,6 +241,11 @@ def _non_negative(value: float) -> None:
         raise ValueError(f"{value!r} must be a non-negative number")
 
 
+def _finite_positive(value: float) -> None:
+    if not 0 < value < math.inf:
+        raise ValueError(f"{value!r} must be a finite positive number")
+
+
 def _finite_non_negative(value: float) -> None:
     if not 0 <= value < math.inf:
         raise ValueError(f"{value!r} must be a finite number >= 0")
@@ -340,7 +345,7 @@ SWEEP = "sweep grid (the default world on the paper's 5x3 grid; in-process on vi
 _T = Timing()
 _FOLLOWS = ("times the object's scale: its bounding-box diagonal/5 rounded to 1, 2, 5, 10, 20...; "
             "1 for the built-in shapes")
-_ADMM_FAMILY = ("admm", "autogrid")
+_ADMM_FAMILY = ("admm", "autogrid", "lsq")
 
 OPTIONS: tuple[Option, ...] = (
     # -- every scenario command ------------------------------------------------------------
@@ -391,13 +396,16 @@ OPTIONS: tuple[Option, ...] = (
            f"{_FOLLOWS})", group=ALGORITHM, section="algorithm"),
     Option("algorithm", STR, "auto", "auto (default): admm when --grid and --sigma are given, else autogrid; "
            "autogrid: the fleet agrees on its data's box, chooses sigma by a held-out vote and refines its grid; "
-           "admm / ct-admm / newton (a distributed interior-point method, exact in tens of rounds): fixed grid, "
+           "admm / ct-admm / newton (a distributed interior-point method, exact in tens of rounds) / lsq (the LiDAR "
+           "least-squares model: outside +1, the return 0, inside -1, ridge --lsq-lambda; issue 15): fixed grid, "
            f"the paper's ({PAPER_GRID}, sigma {PAPER_SIGMA:g}) unless --grid/--sigma say otherwise; "
            "or your own fleet algorithm: a dotted path package.module:ClassName or an entry-point name "
            "(agents/extension.py, docs/testing.md)",
            group=ALGORITHM, section="algorithm", check=_algorithm, show_default=False,
            metavar="|".join(ALGORITHM_CHOICES) + "|PKG.MOD:CLASS"),
-    Option("rho", FLOAT, FROM_PARAMS, "ADMM penalty", group=ALGORITHM, section="algorithm", check=positive,
+    Option("rho", FLOAT, None, f"ADMM penalty (default {param_default('admm', 'rho'):g}; lsq "
+           f"{param_default('lsq', 'rho'):g}: its local curvature, 2 A'A, is of another scale)", group=ALGORITHM,
+           section="algorithm", check=positive, show_default=False,
            feeds={a: "rho" for a in _ADMM_FAMILY}),
     Option("relax", FLOAT, FROM_PARAMS, "ADMM over-relaxation in (0, 2)", group=ALGORITHM, section="algorithm",
            check=_open_interval(0.0, 2.0), feeds={a: "relax" for a in _ADMM_FAMILY}),
@@ -406,7 +414,7 @@ OPTIONS: tuple[Option, ...] = (
     Option("max-rounds", INT, None, f"round cap (default {param_default('admm', 'max_rounds')}; ct-admm: the "
            f"stop time in periods; autogrid: the cap over all its phases, default "
            f"{param_default('autogrid', 'max_total_rounds')})", group=ALGORITHM, section="algorithm",
-           check=at_least(1), feeds={"admm": "max_rounds", "ct-admm": "max_rounds", "newton": "max_rounds",
+           check=at_least(1), feeds={"admm": "max_rounds", "ct-admm": "max_rounds", "newton": "max_rounds", "lsq": "max_rounds",
                                      "autogrid": "max_total_rounds"}),
     Option("polish", FLAG, False, "admm on a complete graph, hard margin, grids of <= 24 points: the exact "
            "active-set end-game (docs/algorithm.md, \"An exact end-game\"): the run ends at the KKT-certified optimum, "
@@ -417,6 +425,9 @@ OPTIONS: tuple[Option, ...] = (
            f"{param_default('admm', 'certify'):g} on the relay hub); 0: the stopping rule alone. A complete graph runs "
            "the exact end-game by default instead; giving --certify there keeps this guard",
            group=ALGORITHM, section="algorithm", check=_finite_non_negative, show_default=False),
+    Option("lsq-lambda", FLOAT, FROM_PARAMS, "lsq: the ridge weight lam of the LiDAR least-squares model "
+           "(docs/algorithm.md, \"The LiDAR least-squares model\"): sum of squared residuals + lam ||f||_H^2",
+           group=ALGORITHM, section="algorithm", check=_finite_positive, feeds={"lsq": "lam"}),
     Option("ct-step", DURATION, FROM_PARAMS, "ct-admm: integration step of the flow, the paper's",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "step"}),
     Option("ct-period", DURATION, FROM_PARAMS, "ct-admm: communication period T_sp, the paper's",

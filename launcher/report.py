@@ -249,9 +249,11 @@ def build_result(
     wall_s: float,
     extra: dict[str, Any] | None = None,
     tol: float = DEFAULT_AGREEMENT_TOL,
+    model: str | None = None,
 ) -> dict[str, Any]:
     """The run's result.json content (see docs/result-schema.md); ``converged`` is
-    :func:`agreement_verdict` of the robots' own answers with the run's ``tol``."""
+    :func:`agreement_verdict` of the robots' own answers with the run's ``tol``; ``model``: what
+    the fleet fitted, in words (`FleetSpec.model`)."""
     fs = [(_robot_c(basis, r), float(r["gamma"])) for r in robots]
     function, consensus = _errors(basis, fs, central)
     pts, labels = world.points, world.labels
@@ -292,6 +294,7 @@ def build_result(
         "rounds": rounds,
         "wall_s": wall_s,
         "algorithm": algorithm,
+        **({} if model is None else {"model": model}),
         "sigma": basis.sigma,
         "C": C,
         "grid": basis.grid.tolist(),
@@ -1035,6 +1038,8 @@ def summary_table(result: dict[str, Any]) -> Any:
         f"function error {fmt(m['function_error'], '.2e')}, consensus error {fmt(m['consensus_error'], '.2e')}\n"
         f"train accuracy {fmt(m['train_accuracy'], '.3f')}, IoU {fmt(m['iou'], '.3f')}"
     )
+    if result.get("model"):
+        table.caption += f"\nmodel: {result['model']}"
     if m.get("error_bound") is not None:  # proven: the function error is at most this (agents/certificate.py)
         table.caption += f"\ncertified: function error <= {m['error_bound']:.2e} (duality-gap bound)"
     w = result.get("world")

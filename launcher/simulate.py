@@ -107,6 +107,7 @@ SIMULATE_MEMORY = {
     "admm": MemoryFit(robot_mb=1.2, link_kb=3.6, link_round_kb=0.12, round_kb=2.0, round_kb_per_number=0.055),
     "ct-admm": MemoryFit(robot_mb=1.2, link_kb=3.6, link_round_kb=0.12, round_kb=2.0, round_kb_per_number=0.065),
     "newton": MemoryFit(robot_mb=1.2, link_kb=3.6, link_round_kb=0.12, round_kb=2.5, round_kb_per_number=0.25),
+    "lsq": MemoryFit(robot_mb=1.2, link_kb=3.6, link_round_kb=0.12, round_kb=2.0, round_kb_per_number=0.055),  # (admm's core)
     "autogrid": MemoryFit(robot_mb=4.0, link_kb=3.6, link_round_kb=0.12, round_kb=2.0, round_kb_per_number=0.055),
 }
 #: the share of the available memory a run may take (as `launch`'s max_robots: half)

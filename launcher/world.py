@@ -32,6 +32,7 @@ from agents.autogrid import AutoGridParams
 from agents.autogrid_rules import AUTOGRID_MAX_DIAMETER
 from agents.ct_admm import CTADMMParams
 from agents.extension import ENTRY_POINT_GROUP, load_algorithm
+from agents.lsq_model import lidar_pairs
 from agents.params import MAX_DIAMETER
 from agents.relay_hub import relay_cert_slot, relay_form
 from agents.spec import ALGORITHMS, FleetSpec, RobotSpec
@@ -185,6 +186,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             f"triangle of a {len(grid) + 1}-square matrix per contribution), more than a frame holds ({MAX_DIM}); "
             "use a coarser --grid or --algorithm admm"
         )
+    if opts.algorithm == "lsq":
+        _check_lsq(opts, robots)
     if opts.polish:
         _check_polish(opts, spec)
     if opts.certify is not None:
@@ -210,6 +213,18 @@ def _checked_diameter(opts: Options, n_robots: int, neighbours: dict[int, tuple[
             f"{diameter} hops, more than the round protocol's stop flags reach ({limit}); use a denser topology "
             "(complete, or geometric with a larger --comm-range) or fewer robots")
     return diameter
+
+
+def _check_lsq(opts: Options, robots: list[scenario.RobotData]) -> None:
+    """The least-squares model reads LiDAR pairs and has no margin: a --C, or data without a single
+    pair (consecutive +1, -1 rows of one robot), is refused by name instead of fitting labels alone."""
+    if opts.C is not None:
+        raise scenario.ScenarioError("--C: the lsq model has no margin (its weight is --lsq-lambda); drop --C")
+    if not any(len(lidar_pairs(r.labels)) for r in robots):
+        source = opts.data if opts.data is not None else "the scan"
+        raise scenario.ScenarioError(
+            f"{source}: no LiDAR pair (a +1 row followed by a -1 row of the same robot) in the data: the lsq model "
+            "fits the returns between pairs; use --algorithm admm for labelled points alone")
 
 
 def _check_polish(opts: Options, spec: FleetSpec) -> None:
