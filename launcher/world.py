@@ -178,6 +178,8 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         seed=opts.seed,
         timing=opts.timing,
     )
+    if autogrid and opts.model == "lsq":
+        _check_lsq(opts, robots)
     if autogrid:
         _check_autogrid(opts, spec)
     if opts.algorithm == "newton" and spec.dim > MAX_DIM:
