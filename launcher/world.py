@@ -178,6 +178,10 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         seed=opts.seed,
         timing=opts.timing,
     )
+    if opts.model == "lsq" and not autogrid:
+        raise scenario.ScenarioError(
+            f"--model lsq: the model autogrid fits; this run is --algorithm {opts.algorithm} on a fixed grid (for the "
+            "least-squares model there: --algorithm lsq)")
     if autogrid and opts.model == "lsq":
         _check_lsq(opts, robots)
     if autogrid:
