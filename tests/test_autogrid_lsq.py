@@ -142,7 +142,8 @@ def test_launch_equals_simulate_bit_for_bit(tmp_path):
     _, spec = _spec(fleet_id="autolsq-launch", timing=TIMING)
     want = {r["id"]: r for r in simulate_fleet(spec).robots}
     with bounded_and_clean(str(tmp_path), 45.0, "autolsq-launch"):
-        out = launch_fleet(spec, workdir=tmp_path / "fleet", zenoh_port=None, progress=False)
+        out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=0.5, restart=True,
+                           zenoh_port=None, progress=False)
     assert not out.timed_out and sorted(r["id"] for r in out.robots) == sorted(want)
     for r in out.robots:
         w = want[r["id"]]
