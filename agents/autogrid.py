@@ -317,7 +317,10 @@ class AdaptiveGridCore(RoundCore):
             self._share.with_data(self.neighbours, feats, self._targets, None),
             lsq_sub_params(p.lsq_lambda, rho=p.lsq_rho, relax=p.relax, tol=p.tol, max_rounds=p.soft_rounds,
                            diameter=p.diameter),
-            lam=p.lsq_lambda, keep_trace=False, hub_frames=p.hub_frames, gone=self.gone,
+            lam=p.lsq_lambda, keep_trace=False, hub_frames=p.hub_frames,
+            # lam / (robots left): a complete graph's robots hear of no `gone` list, they saw the drops themselves
+            # (a sub-machine built after one runs the edge form among the survivors, weighed by this list)
+            gone=self.gone if self.floods_gone else tuple(sorted(self.dropped)),
         )
         self._mark(ADMM)
         self._values, self._flags = self._sub_frame(), 0

@@ -41,12 +41,12 @@ def _fleet(world, spec) -> list[dict]:
     return [c.result() for c in cores]
 
 
-def _exact(world, result: dict):
-    """The exact least-squares fit of every robot's rows on the result's grid and sigma."""
+def _exact(robots, result: dict):
+    """The exact least-squares fit of the robots' rows on the result's grid and sigma."""
     basis = GridBasis(np.asarray(result["grid"]), result["sigma"])
-    points = np.vstack([r.points for r in world.robots])
-    labels = np.concatenate([r.labels for r in world.robots])
-    robot_of = np.concatenate([np.full(len(r.labels), r.id) for r in world.robots])
+    points = np.vstack([r.points for r in robots])
+    labels = np.concatenate([r.labels for r in robots])
+    robot_of = np.concatenate([np.full(len(r.labels), r.id) for r in robots])
     return basis, solve_central_lsq(basis, points, labels, result["lsq_lambda"], robot_of=robot_of)
 
 
@@ -70,7 +70,7 @@ def test_fleet_makes_the_emulations_choice_and_its_exact_fit(kwargs, monkeypatch
                                    spec.autogrid_params.max_points)
     np.testing.assert_allclose(first["grid"], lattice, rtol=0, atol=1e-12)
     # the final function: the exact least-squares fit on that grid, within 1e-3; its IoU the emulation's
-    basis, ref = _exact(world, first)
+    basis, ref = _exact(world.robots, first)
     c, gamma = np.asarray(first["c"]), first["gamma"]
     assert basis.function_error(c, gamma, ref.c, ref.gamma) < 1e-3
     q = scenario.make_grid(emulation.RES, emulation.RES, bench.padded_bounds(world.shape))
@@ -106,6 +106,17 @@ def test_crash_and_restart_in_the_sweep_and_the_fit_end_on_the_clean_answer():
         assert (r["x"], r["gamma"], r["rounds"], r["sigma"]) == (want["x"], want["gamma"], want["rounds"], want["sigma"])
 
 
+def test_survivors_of_a_loss_in_the_sweep_fit_their_own_data():
+    """Robot 1 dies for good in the sweep of a complete graph: the final fit, built after the loss, weighs lam
+    by the robots left and ends on the exact fit of the survivors' rows."""
+    world, spec = _spec(fleet_id="autolsq-loss", timing=TIMING, topology="complete", robots=4)
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, 20)], restart=False)
+    assert [r["id"] for r in out.robots] == [0, 2, 3] and all(r["converged"] for r in out.robots)
+    assert dict(out.robots[0]["phases"])["tally"] > 20  # (the loss was in the sweep)
+    basis, ref = _exact([r for r in world.robots if r.id != 1], out.robots[0])
+    assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
+
+
 # -- the shells -------------------------------------------------------------------------------------
 def test_bad_model_exits_2_naming_the_flag(tmp_path, capsys):
     code, err = cli_exit_and_stderr(["simulate", "--model", "bogus", "--out", str(tmp_path / "x")], capsys)
@@ -131,7 +142,7 @@ def test_simulate_reports_the_model_its_choice_and_its_exact_reference(tmp_path,
     assert len(result["sigma_validation"]) == len(emulation.CANDIDATES)
     assert all(np.isfinite(r["score"]) and r["held_out_pairs"] > 0 for r in result["sigma_validation"])
     world, _ = _spec(lsq_lambda=0.2)
-    _, ref = _exact(world, result)
+    _, ref = _exact(world.robots, result)
     assert result["central"]["c"] == ref.c.tolist()  # measured against the least-squares fit, not the margin QP
     assert result["metrics"]["function_error"] < 1e-3
 
