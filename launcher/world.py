@@ -184,6 +184,9 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
             "least-squares model there: --algorithm lsq)")
     if autogrid and opts.model == "lsq":
         _check_lsq(opts, robots)
+        if opts.narrow_ratio is not None and opts.narrow_ratio != 1:
+            raise scenario.ScenarioError("--narrow-ratio: the lsq model fits on one level-0 lattice of one width "
+                                         "(no refinement); drop --narrow-ratio")
     if autogrid:
         _check_autogrid(opts, spec)
     if opts.algorithm == "newton" and spec.dim > MAX_DIM:

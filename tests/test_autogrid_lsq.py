@@ -127,6 +127,9 @@ def test_lsq_model_refuses_a_margin_and_data_without_pairs(tmp_path, capsys):
     code, err = cli_exit_and_stderr(["simulate", "--algorithm", "autogrid", "--model", "lsq", "--C", "10",
                                      "--out", str(tmp_path / "c")], capsys)
     assert code == 2 and "--C" in err[-1]
+    for flags, named in ((["--narrow-ratio", "3"], "--narrow-ratio"), (["--preset", "paper"], "--model")):
+        code, err = cli_exit_and_stderr(["simulate", "--model", "lsq", *flags, "--out", str(tmp_path / "n")], capsys)
+        assert code == 2 and named in err[-1]
     data = tmp_path / "nopairs.csv"  # inside before outside: no (+1, -1) pair in any robot's rows
     data.write_text("robot,x,y,label\n0,0,0,-1\n0,3,3,1\n1,0.5,0,-1\n1,3,-3,1\n")
     code, err = cli_exit_and_stderr(["simulate", "--algorithm", "autogrid", "--model", "lsq", "--data", str(data),
