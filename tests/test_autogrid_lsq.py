@@ -123,18 +123,11 @@ def test_bad_model_exits_2_naming_the_flag(tmp_path, capsys):
     assert code == 2 and "--model" in err[-1]
 
 
-def test_lsq_model_refuses_a_margin_and_data_without_pairs(tmp_path, capsys):
-    code, err = cli_exit_and_stderr(["simulate", "--algorithm", "autogrid", "--model", "lsq", "--C", "10",
-                                     "--out", str(tmp_path / "c")], capsys)
-    assert code == 2 and "--C" in err[-1]
+def test_lsq_model_refuses_two_widths_and_a_fixed_grid(tmp_path, capsys):
+    """(--C and data without pairs: tests/test_lsq.py, for both lsq fleets)"""
     for flags, named in ((["--narrow-ratio", "3"], "--narrow-ratio"), (["--preset", "paper"], "--model")):
         code, err = cli_exit_and_stderr(["simulate", "--model", "lsq", *flags, "--out", str(tmp_path / "n")], capsys)
         assert code == 2 and named in err[-1]
-    data = tmp_path / "nopairs.csv"  # inside before outside: no (+1, -1) pair in any robot's rows
-    data.write_text("robot,x,y,label\n0,0,0,-1\n0,3,3,1\n1,0.5,0,-1\n1,3,-3,1\n")
-    code, err = cli_exit_and_stderr(["simulate", "--algorithm", "autogrid", "--model", "lsq", "--data", str(data),
-                                     "--out", str(tmp_path / "d")], capsys)
-    assert code == 2 and str(data) in err[-1] and "LiDAR pair" in err[-1]
 
 
 def test_simulate_reports_the_model_its_choice_and_its_exact_reference(tmp_path, capsys):
