@@ -125,7 +125,8 @@ def test_bad_model_exits_2_naming_the_flag(tmp_path, capsys):
 
 def test_lsq_model_refuses_two_widths_and_a_fixed_grid(tmp_path, capsys):
     """(--C and data without pairs: tests/test_lsq.py, for both lsq fleets)"""
-    for flags, named in ((["--narrow-ratio", "3"], "--narrow-ratio"), (["--preset", "paper"], "--model")):
+    for flags, named in ((["--narrow-ratio", "3"], "--narrow-ratio"), (["--preset", "paper"], "--model"),
+                         (["--rho", "2"], "--rho")):
         code, err = cli_exit_and_stderr(["simulate", "--model", "lsq", *flags, "--out", str(tmp_path / "n")], capsys)
         assert code == 2 and named in err[-1]
 
