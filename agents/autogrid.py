@@ -52,6 +52,7 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     SIGMA_DIVISOR,
     SPACING_RATIO,
     AutoGridParams,
+    choose_lsq_sigma,
     choose_sigma,
     choose_widths,
     coarse_lattice,
@@ -72,6 +73,8 @@ from agents.autogrid_state import load_state, save_state
 from agents.autogrid_sweep import SigmaSweep, SweepModel
 from agents.autogrid_warm import WarmADMM, carry_edges, carry_hub_duals, carry_vector, hub_duals, superset_maps
 from agents.kernel import GridBasis
+from agents.lsq_admm import WarmLSQ, lsq_sub_params
+from agents.lsq_model import lsq_rows
 from agents.problem import InfeasibleError, MarginQP
 from agents.rounds import RobotShare, RoundCore, relative_gap
 from agents.soft_endgame import payload_size as endgame_payload_size
@@ -113,6 +116,9 @@ TRANSITIONS = {
     (FLOOD, "refined"): VOTE,
     (FLOOD, "final"): DONE,
     (FLOOD, "disagree"): DONE,
+    # the least-squares model (params.model "lsq"): no vote, no margin, no refinement
+    (BOUNDS, "least squares"): ADMM,  # sigma given
+    (TALLY, "least squares"): ADMM,  # sigma by the held-out squared residual
 }
 
 
@@ -154,6 +160,8 @@ class AdaptiveGridCore(RoundCore):
         self.floods_gone = not complete_graph(share.n_robots, share.neighbours, dict(share.degrees))
         self._start_grid = start_grid
         self._units = holdout_units(points, labels)
+        # the lsq model's rows of this robot's data (outside +1, return 0, inside -1): its final fit's
+        self._rows, self._targets = lsq_rows(points, labels) if params.lsq else (np.zeros((0, 2)), np.zeros(0))
         self._reset_agreed_state()
         self._enter_bounds()
         self._settle()
@@ -168,7 +176,7 @@ class AdaptiveGridCore(RoundCore):
         self.sigma_validation: list[dict[str, Any]] = []
         self.grid: np.ndarray | None = None
         self.grid_history: list[dict[str, Any]] = []
-        self.margin = "hard" if self.params.C is None else "soft"
+        self.margin = "lsq" if self.params.lsq else "hard" if self.params.C is None else "soft"
         self.message = ""
         self.disagreement: float | None = None  # the fleet's largest gap before the last flood
         self._diag = 0.0
@@ -275,6 +283,9 @@ class AdaptiveGridCore(RoundCore):
 
     def _enter_admm(self) -> None:
         p, mode = self.params, self._mode
+        if p.lsq:
+            self._enter_lsq_fit()
+            return
         sub_params = ADMMParams(
             rho=p.rho, relax=p.relax, tol=p.tol, diameter=p.diameter,
             max_rounds=p.hard_rounds if mode == "hard" else p.soft_rounds,
@@ -297,6 +308,22 @@ class AdaptiveGridCore(RoundCore):
         self._values, self._flags = self._sub_frame(), 0
         if mode == "hard":  # the bound rides in every frame of the phase: a restart re-derives the test from it
             self._values[-3] = self._ill_norm2
+
+    def _enter_lsq_fit(self) -> None:
+        """The lsq model's one fit: every row of every robot on the chosen level-0 lattice, from zero."""
+        p = self.params
+        feats = self._basis.features(self._rows) if len(self._rows) else np.zeros((0, len(self.grid)))
+        self._sub = WarmLSQ(
+            self._share.with_data(self.neighbours, feats, self._targets, None),
+            lsq_sub_params(p.lsq_lambda, rho=p.lsq_rho, relax=p.relax, tol=p.tol, max_rounds=p.soft_rounds,
+                           diameter=p.diameter),
+            lam=p.lsq_lambda, keep_trace=False, hub_frames=p.hub_frames,
+            # lam / (robots left): a complete graph's robots hear of no `gone` list, they saw the drops themselves
+            # (a sub-machine built after one runs the edge form among the survivors, weighed by this list)
+            gone=self.gone if self.floods_gone else tuple(sorted(self.dropped)),
+        )
+        self._mark(ADMM)
+        self._values, self._flags = self._sub_frame(), 0
 
     def _endgame_fits(self) -> bool:
         """True when an answer solve may run the exact end-game (AutoGridParams.soft_polish; hard ones
@@ -368,7 +395,7 @@ class AdaptiveGridCore(RoundCore):
             return "sweep sigma"
         self.sigma, self.sigma_reason = scale_from_bounds(self.bounds, self.params)
         self._first_grid()
-        return "sigma by rule"
+        return "least squares" if self.params.lsq else "sigma by rule"
 
     def _finish_validate(self) -> str:
         return "solved"
@@ -376,6 +403,10 @@ class AdaptiveGridCore(RoundCore):
     def _finish_tally(self) -> str:
         sweep, self._sweep = self._sweep, None
         self.sigma_validation = sweep.records(self._values)
+        if self.params.lsq:
+            self.sigma, self.sigma_reason = choose_lsq_sigma(self.sigma_validation, self._diag, self.params)
+            self._first_grid()
+            return "least squares"
         self.sigma, self.sigma_reason = choose_sigma(self.sigma_validation, self._diag, self.params)
         self.params, note = widths_for_data(self.params, self.sigma_validation)
         self.sigma_reason += folds_for_data(self._given, self._held_units)[1] + note
@@ -528,7 +559,8 @@ class AdaptiveGridCore(RoundCore):
         v = self._values
         self.disagreement = float(v[-3])
         agreed = self._unpad(v)
-        status = f"{self._mode}-margin solved" if self._sub_converged else f"{self._mode}-margin round cap"
+        model = "least-squares" if self.params.lsq else f"{self._mode}-margin"
+        status = f"{model} solved" if self._sub_converged else f"{model} round cap"
         endgame = {"endgame": self._endgame} if self._endgame else {}
         if not self.disagreement <= self.params.tol:
             self._note(status=status, rounds=self._admm_rounds, disagreement_before_flood=self.disagreement, **endgame)
@@ -544,9 +576,10 @@ class AdaptiveGridCore(RoundCore):
                    disagreement_before_flood=self.disagreement, **endgame)
         self._final, self._agreed = agreed, True
         if not self._sub_converged:
-            self._capped = f"the {self._mode} margin stopped at its round cap ({self._admm_rounds} rounds)"
+            what = "least-squares fit" if self.params.lsq else f"{self._mode} margin"
+            self._capped = f"the {what} stopped at its round cap ({self._admm_rounds} rounds)"
             return "final"
-        return "refined" if self._refine(x, gamma, norm2) else "final"
+        return "refined" if not self.params.lsq and self._refine(x, gamma, norm2) else "final"
 
     def _refine(self, x: np.ndarray, gamma: float, norm2: float) -> bool:
         """Move to the refined grid with warm starts; False when refining no longer helps."""
@@ -593,7 +626,7 @@ class AdaptiveGridCore(RoundCore):
     # -- grids ------------------------------------------------------------------------------------
     def _first_grid(self) -> None:
         """The run on all data at the agreed sigma: the level-0 lattice (or the start grid)."""
-        self._box, self._h0, grid = coarse_lattice(self.bounds, self.sigma, self.params.spacing_ratio, self.params.max_points)
+        self._box, self._h0, grid = coarse_lattice(self.bounds, self.sigma, self.params.coarse_spacing, self.params.max_points)
         if self._start_grid is not None:
             grid = self._start_grid.copy()
         self._set_grid(grid)
@@ -782,6 +815,8 @@ class AdaptiveGridCore(RoundCore):
             "phases": [[p, r] for p, r in self.phases],
             "residuals": [None if not math.isfinite(r) else r for r in self.residuals],
         }
+        if self.params.lsq:  # (an SVM robot's row is as it was: no model key)
+            out.update(model="lsq", lsq_lambda=self.params.lsq_lambda)
         if self.phase == DONE:
             grid, c, gamma = self.function()
             out.update(grid=grid.tolist(), x=self._final[:-1].tolist(), c=c.tolist(), gamma=gamma,

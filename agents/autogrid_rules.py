@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from agents.kernel import GridBasis
+from agents.lsq_model import DEFAULT_LSQ_LAMBDA
 from agents.params import params_from
 from protocol.frames import MAX_DIM
 
@@ -32,6 +33,14 @@ PACK = 2.0**20
 #: slots per (robot, candidate) in the tally: the packed integer and the hinge loss
 TALLY_BLOCKS = 2
 
+
+#: spacing of the level-0 lattice, in units of sigma, for the least-squares model (model "lsq"): the rule
+#: frozen in its central emulation (benchmarks/lsq_emulation.py SPACING)
+LSQ_SPACING_RATIO = 1.0
+#: the least-squares model's ADMM penalty (agents/lsq_admm.py LSQParams.rho: its local curvature's scale)
+LSQ_RHO = 1.0
+#: what autogrid fits: the soft/hard-margin SVM (refined grids) or the LiDAR least-squares model
+AUTOGRID_MODELS = ("svm", "lsq")
 
 #: the largest graph diameter autogrid runs: its stop flags ride as bits of one float (53-bit mantissa)
 AUTOGRID_MAX_DIAMETER = 52
@@ -117,6 +126,13 @@ class AutoGridParams:
     # both grids in one stacked pass (WIDTHS, the sweep's machinery); the two widths are kept only
     # when they make fewer held-out errors in all (ties -> one width)
     narrow_by_holdout: bool = False
+    # the model (issue 15): "svm" (the margin, refined grids, everything above) or "lsq" (the LiDAR
+    # least-squares model, agents/lsq_model.py): sigma swept over validate_divisors on level-0 lattices at
+    # LSQ_SPACING_RATIO sigma, 5 folds of whole pairs scored by their held-out squared residual, then one fit
+    # on the chosen lattice -- the rule of benchmarks/lsq_emulation.py (docs/autogrid.md)
+    model: str = "svm"
+    lsq_lambda: float = DEFAULT_LSQ_LAMBDA  # the least-squares model's ridge weight (agents/lsq_model.py)
+    lsq_rho: float = LSQ_RHO  # its ADMM penalty (rho is the SVM's)
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= AUTOGRID_MAX_DIAMETER:
@@ -126,7 +142,7 @@ class AutoGridParams:
             raise ValueError(f"max_points must be at least 4, got {self.max_points}")
         if not (math.isfinite(self.narrow_ratio) and self.narrow_ratio >= 1):
             raise ValueError(f"narrow_ratio must be a number >= 1, got {self.narrow_ratio!r}")
-        for name in ("sigma_divisor", "spacing_ratio", "min_spacing", "near_data", "band", "rho", "tol", "soft_C"):
+        for name in ("sigma_divisor", "spacing_ratio", "min_spacing", "near_data", "band", "rho", "tol", "soft_C", "lsq_rho"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
@@ -153,6 +169,16 @@ class AutoGridParams:
             raise ValueError(f"solid_raster must be at least 8, got {self.solid_raster}")
         if not 0 < self.relax < 2:
             raise ValueError(f"relax must be in (0, 2), got {self.relax}")
+        if self.model not in AUTOGRID_MODELS:
+            raise ValueError(f"model must be one of {', '.join(AUTOGRID_MODELS)}, got {self.model!r}")
+        if not (isinstance(self.lsq_lambda, (int, float)) and math.isfinite(self.lsq_lambda) and self.lsq_lambda > 0):
+            raise ValueError(f"lsq_lambda must be a finite positive number, got {self.lsq_lambda!r}")
+        if self.model == "lsq":
+            if self.C is not None:
+                raise ValueError("C: the lsq model has no margin (its weight is lsq_lambda)")
+            if self.narrow_ratio != 1.0 or self.narrow_by_holdout:
+                raise ValueError("narrow_ratio / narrow_by_holdout: the lsq model fits on one level-0 lattice, "
+                                 "one width (no refinement)")
         if self.dim > MAX_DIM:
             raise ValueError(f"max_points {self.max_points}: frames of {self.dim} numbers exceed MAX_DIM={MAX_DIM}")
 
@@ -170,9 +196,24 @@ class AutoGridParams:
         solve = 2 * self.max_points + 4 if self.hub_frames else self.max_points + 3
         return max(solve, sum(self.sweep_blocks()), sum(self.width_blocks()))
 
+    @property
+    def lsq(self) -> bool:
+        """True when the fleet fits the LiDAR least-squares model (no margin, no refinement)."""
+        return self.model == "lsq"
+
+    @property
+    def coarse_spacing(self) -> float:
+        """The level-0 lattice's spacing in units of sigma: spacing_ratio, or the lsq model's own."""
+        return LSQ_SPACING_RATIO if self.lsq else self.spacing_ratio
+
+    @property
+    def sweep_folds(self) -> int:
+        """Folds the sweep runs: validate_folds, or for the lsq model all holdout_every of them (its rule)."""
+        return self.holdout_every if self.lsq else self.validate_folds
+
     def sweep_slot(self, divisor: float) -> int:
         """Grid points of candidate diag/divisor's coarse lattice, at most (any box shape)."""
-        return min(self.max_points, max_lattice_nodes(divisor, self.spacing_ratio))
+        return min(self.max_points, max_lattice_nodes(divisor, self.coarse_spacing))
 
     def sweep_blocks(self) -> list[int]:
         """Frame length of each sweep task (candidate-major, then fold): x, gamma, flags, verdict
@@ -181,7 +222,7 @@ class AutoGridParams:
             return []
         extra = 1 if self.hub_frames else 0
         return [self.sweep_slot(d) + 3 + extra * (self.sweep_slot(d) + 1)
-                for d in self.validate_divisors for _ in range(self.validate_folds)]
+                for d in self.validate_divisors for _ in range(self.sweep_folds)]
 
     def width_blocks(self) -> list[int]:
         """Frame length of each task of the width test (one width, then two; each fold): a grid
@@ -474,6 +515,23 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
         f"fold a soft-margin ADMM (C = {params.soft_C:g}) on its coarse lattice, all solved in the same "
         f"rounds, errors summed exactly by max-consensus over one slot per robot id; diag = {diag:.6g} = "
         "diagonal of the data's bounding box (scale-free: every candidate is proportional to diag)"
+    )
+    return float(best["sigma"]), why
+
+
+def choose_lsq_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridParams) -> tuple[float, str]:
+    """The lsq model's rule (benchmarks/lsq_emulation.py `choice`), the same on every robot from the agreed
+    tally: the smallest mean held-out squared residual per pair; ties -> the larger sigma. No solid check
+    (the model's f is a fit of the returns, not a margin: its region is what it is). Returns (sigma, reason)."""
+    best = min(records, key=lambda r: (r["score"], -r["sigma"]))
+    table = ", ".join(f"diag/{r['divisor']:g}: {r['score']:.6g}" for r in records)
+    why = (
+        f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: the smallest mean held-out squared residual per "
+        f"LiDAR pair ({table}); {params.sweep_folds} folds of whole pairs (a robot's k-th pair in fold (k + id) mod "
+        f"{params.sweep_folds}), every candidate and fold the least-squares fit (lam = {params.lsq_lambda:g}) of the "
+        f"other folds' rows on its level-0 lattice at {params.coarse_spacing:g} sigma, all solved in the same rounds, "
+        f"residuals summed by max-consensus over one slot per robot id; diag = {diag:.6g} = diagonal of the data's "
+        "bounding box"
     )
     return float(best["sigma"]), why
 

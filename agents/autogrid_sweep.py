@@ -20,10 +20,19 @@ wider candidate has stopped. The choice is the one the full sweep would make; on
 
 Tally (one max-consensus): per candidate, two slots per robot id: the exact integer
 errors + PACK * held_out + PACK^2 * not_solid (summed over folds by the robot) and the hinge loss.
+
+The least-squares model (params.model "lsq", the rule of benchmarks/lsq_emulation.py): the same tasks and
+frames, each task the least-squares fit (`WarmLSQ`) of the rows of its training pairs on its candidate's
+level-0 lattice (spacing LSQ_SPACING_RATIO sigma); holdout_every folds of whole LiDAR pairs, a robot's k-th
+pair in fold (k + robot id) mod holdout_every (points in no pair always train). A task's outcome is its
+held-out pairs' squared residual, (f(o) - 1)^2 + f(midpoint)^2 + (f(i) + 1)^2 summed, in the hinge slot, and
+their count in the packed integer (no errors, always solid); no verdict, no early drop (a continuous score
+has no perfect candidate).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -34,6 +43,8 @@ from agents.admm import ADMMParams
 from agents.autogrid_rules import PACK, TALLY_BLOCKS, AutoGridParams, coarse_lattice, solid_on_raster, tie_sign
 from agents.autogrid_warm import WarmADMM
 from agents.kernel import GridBasis
+from agents.lsq_admm import WarmLSQ, lsq_sub_params
+from agents.lsq_model import lidar_pairs
 from agents.rounds import RobotShare
 from protocol.frames import StateUpdate
 
@@ -55,6 +66,7 @@ class SweepTask:
     verdict: float = 0.0  # 1: this task has a held-out error or a region not solid (max over robots)
     since: int = -1  # rounds since the task stopped (-1: running); verdict fleet-wide at >= diameter
     dropped: bool = False
+    held_pairs: np.ndarray | None = None  # the lsq model: (outside, inside) of this robot's held-out pairs, (k, 2, 2)
 
 
 class _RasterBasis:
@@ -91,10 +103,41 @@ class SweepModel:
     start: np.ndarray | None = None
 
 
+def pair_folds(labels: np.ndarray, robot_id: int, folds: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lsq model's folds of one robot's data: (start index of each LiDAR pair, its fold), the k-th
+    pair (in data order) in fold (k + robot id) mod folds (benchmarks/lsq_emulation.py lidar_rows)."""
+    starts = lidar_pairs(labels)
+    return starts, (np.arange(len(starts)) + robot_id) % folds
+
+
+def lsq_fold_rows(points: np.ndarray, labels: np.ndarray, starts: np.ndarray, train: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The model's rows of the pairs kept for training (`train`, one flag per pair) and of every point
+    in no pair: outside +1, midpoint 0, inside -1 per pair (agents/lsq_model.py lsq_rows), loose rows
+    with their label."""
+    in_pair = np.zeros(len(points), dtype=bool)
+    in_pair[starts], in_pair[starts + 1] = True, True
+    out, inside = points[starts[train]], points[starts[train] + 1]
+    rows = np.vstack([out, 0.5 * (out + inside), inside, points[~in_pair]]).reshape(-1, 2)
+    n = len(out)
+    targets = np.concatenate([np.ones(n), np.zeros(n), -np.ones(n), np.asarray(labels, dtype=float)[~in_pair]])
+    return rows, targets
+
+
 def held_mask(units: np.ndarray, fold: int, params: AutoGridParams) -> np.ndarray:
     """The points a robot holds out in `fold` (whole units, see `holdout_units`)."""
     k = params.holdout_every
     return (units >= 0) & (units % k == k - 1 - fold)
+
+
+def lsq_residual(basis: GridBasis, c: np.ndarray, gamma: float, pairs: np.ndarray) -> float:
+    """sum over (outside, inside) pairs of (f(o) - 1)^2 + f(midpoint)^2 + (f(i) + 1)^2: what the held-out
+    pairs say f should be (+1, 0, -1), as the lsq model's rows."""
+    if not len(pairs):
+        return 0.0
+    o, i = pairs[:, 0], pairs[:, 1]
+    fo, fm, fi = (basis.decision(q, c, gamma) for q in (o, 0.5 * (o + i), i))
+    return float(np.sum((fo - 1.0) ** 2 + fm**2 + (fi + 1.0) ** 2))
 
 
 class SigmaSweep:
@@ -121,6 +164,10 @@ class SigmaSweep:
             max_rounds=params.validate_rounds, diameter=params.diameter,
             certify=0.0,  # the rule alone: the nested runs' frames have no room for the guard
         )
+        if params.lsq:  # each task a least-squares fit to the answer's tolerance: its score is that fit's
+            sub_params = lsq_sub_params(params.lsq_lambda, rho=params.lsq_rho, relax=params.relax, tol=params.tol,
+                                        max_rounds=params.soft_rounds, diameter=params.diameter)
+            starts, pair_fold = pair_folds(labels, share.robot_id, params.sweep_folds)
         self.tasks: list[SweepTask] = []
         self._raster: dict[int, _RasterBasis] = {}  # per candidate (its folds share the basis)
         self._outcomes: dict[tuple[int, int], tuple[bytes, tuple[int, int, float, bool]]] = {}  # per task: last iterate's
@@ -132,22 +179,33 @@ class SigmaSweep:
             for d in params.validate_divisors:
                 sigma = diag / d
                 slot = params.sweep_slot(d)
-                box, _, grid = coarse_lattice(bounds, sigma, params.spacing_ratio, slot)
+                box, _, grid = coarse_lattice(bounds, sigma, params.coarse_spacing, slot)
                 models.append(SweepModel(float(d), sigma, box, GridBasis(grid, sigma), slot))
         self.models = models
         offset = 0
         for cand, model in enumerate(models):
             basis, slot = model.basis, model.slot
             self._raster[cand] = _RasterBasis(basis)
-            for fold in range(params.validate_folds):
-                held = held_mask(units, fold, params)
-                train = points[~held]
-                feats = basis.features(train) if len(train) else np.zeros((0, basis.size))
-                fold_share = share.with_data(share.neighbours, feats, labels[~held], params.soft_C)
-                sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames, start=model.start,
-                               gone=gone)
+            for fold in range(params.sweep_folds):
+                pairs = None
+                if params.lsq:
+                    held = np.zeros(len(points), dtype=bool)  # (unused: the pairs are held out)
+                    rows, targets = lsq_fold_rows(points, labels, starts, pair_fold != fold)
+                    feats = basis.features(rows) if len(rows) else np.zeros((0, basis.size))
+                    sub: WarmADMM = WarmLSQ(share.with_data(share.neighbours, feats, targets, None), sub_params,
+                                            lam=params.lsq_lambda, keep_trace=False, hub_frames=params.hub_frames,
+                                            gone=gone)
+                    kept = starts[pair_fold == fold]
+                    pairs = np.stack([points[kept], points[kept + 1]], axis=1).reshape(-1, 2, 2)
+                else:
+                    held = held_mask(units, fold, params)
+                    train = points[~held]
+                    feats = basis.features(train) if len(train) else np.zeros((0, basis.size))
+                    fold_share = share.with_data(share.neighbours, feats, labels[~held], params.soft_C)
+                    sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames,
+                                   start=model.start, gone=gone)
                 self.tasks.append(SweepTask(cand, fold, model.divisor, model.sigma, model.box, basis, held, sub,
-                                            offset, slot))
+                                            offset, slot, held_pairs=pairs))
                 offset += slot + 3 + (slot + 1 if params.hub_frames else 0)
 
     @property
@@ -194,7 +252,7 @@ class SigmaSweep:
             t.sub.advance()
             if t.sub.finished:
                 errors, _, _, solid = self._outcome(t)
-                t.verdict, t.since = float(errors > 0 or not solid), 0
+                t.verdict, t.since = float((errors > 0 or not solid) and not self.params.lsq), 0
         self._drop_decided()
 
     def _drop_decided(self) -> None:
@@ -202,7 +260,7 @@ class SigmaSweep:
         ties go to the smaller sigma, narrower ones when to the larger) once every candidate that
         would win a tie against it has stopped (see the module docstring); the same round on
         every robot."""
-        if not self.params.early_drop or self._given_models:
+        if not self.params.early_drop or self._given_models or self.params.lsq:
             return
         sign = tie_sign(self.params)
         cands = sorted({t.cand for t in self.tasks}, key=lambda c: sign * self.task(c, 0).sigma)  # tie winners first
@@ -230,6 +288,10 @@ class SigmaSweep:
         if kept is not None and kept[0] == key:
             return kept[1]
         c, gamma = t.basis.c_from_x(v[:-1]), float(v[-1])
+        if t.held_pairs is not None:  # the lsq model: the held-out pairs' squared residual (no errors, no solid check)
+            outcome = 0, len(t.held_pairs), lsq_residual(t.basis, c, gamma, t.held_pairs), True
+            self._outcomes[index] = (key, outcome)
+            return outcome
         pts, y = self._points[t.held], self._labels[t.held]
         errors, hinge = 0, 0.0
         if len(y):
@@ -261,6 +323,14 @@ class SigmaSweep:
             base = cand * TALLY_BLOCKS * s
             packed = int(round(float(np.sum(tally[base : base + s]))))
             tasks = [t for t in self.tasks if t.cand == cand]
+            if self.params.lsq:  # the held-out pairs' mean squared residual (the rule's score)
+                held = (packed // int(PACK)) % int(PACK)
+                total = float(np.sum(tally[base + s : base + 2 * s]))
+                out.append({"divisor": float(d), "sigma": tasks[0].sigma, "grid_points": tasks[0].basis.size,
+                            "held_out_pairs": held, "squared_residual": total, "score": total / held if held else math.inf,
+                            "folds": len(tasks), "rounds": max(t.sub.round for t in tasks),
+                            "converged": all(t.sub.converged or not t.sub.neighbours for t in tasks)})
+                continue
             out.append(
                 {
                     "divisor": float(d),

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from agents.admm import ADMMParams, ConsensusADMM
+from agents.autogrid_warm import WarmADMM
 from agents.lsq_model import DEFAULT_LSQ_LAMBDA, LsqLocalStep, check_lsq_lambda
 from agents.params import params_from
 from agents.rounds import RobotShare
@@ -85,3 +86,22 @@ class ConsensusLSQ(ConsensusADMM):
     def _weight_matters(self) -> bool:
         """The fit depends on lam / N: the survivors of a drop reweigh (their own problem's optimum)."""
         return True
+
+
+class WarmLSQ(WarmADMM):
+    """The least-squares local step in autogrid's sub-machine (agents/autogrid_warm.py `WarmADMM`):
+    the sigma sweep's (candidate, fold) fits and the final fit of ``AutoGridParams(model="lsq")``.
+    ``share.features`` / ``share.labels`` are the rows' features and targets, as for `ConsensusLSQ`."""
+
+    def __init__(self, *args: Any, lam: float, **kwargs: Any) -> None:
+        self.lsq_params = LSQParams(lam=lam)  # (only lam is read: the consensus settings are the given ADMMParams)
+        super().__init__(*args, **kwargs)
+
+    _build_qp = ConsensusLSQ._build_qp
+    _weight_matters = ConsensusLSQ._weight_matters
+
+
+def lsq_sub_params(lam: float, *, rho: float, relax: float, tol: float, max_rounds: int, diameter: int) -> ADMMParams:
+    """The consensus settings of autogrid's least-squares sub-machines: LSQParams' (no relay hub, no
+    end-game, no certified guard) with autogrid's tolerance, cap and diameter."""
+    return LSQParams(lam=lam, rho=rho, relax=relax, tol=tol, max_rounds=max_rounds, diameter=diameter).admm

@@ -42,6 +42,11 @@ def check_lsq_lambda(lam: float) -> None:
         raise ValueError(f"the least-squares ridge weight lam must be a finite positive number, got {lam!r}")
 
 
+def model_words(lam: float) -> str:
+    """result.json's ``model`` of a least-squares fleet (fixed grid or autogrid), in words."""
+    return f"LiDAR least squares (pair: outside +1, return 0, inside -1), lam {lam:g}"
+
+
 def lidar_pairs(labels: np.ndarray) -> np.ndarray:
     """Start indices i of the LiDAR pairs in one robot's labels: rows (i, i + 1) labelled (+1, -1),
     read left to right, a row in at most one pair."""

@@ -21,7 +21,7 @@ from agents.ct_admm import ContinuousTimeADMM, CTADMMParams
 from agents.extension import load_algorithm
 from agents.kernel import GridBasis
 from agents.lsq_admm import ConsensusLSQ, LSQParams
-from agents.lsq_model import lsq_rows, solve_central_lsq
+from agents.lsq_model import lsq_rows, model_words, solve_central_lsq
 from agents.newton import DistributedNewton, NewtonParams, frame_size
 from agents.relay_hub import RelayHubADMM, relay_form, relay_frame_dim
 from agents.params import params_from
@@ -335,7 +335,7 @@ class FleetSpec:
         """The model a fixed-grid fleet fits, in words (result.json's ``model``); None for autogrid
         (its margin is chosen by the fleet) and for a user's algorithm."""
         if self.algorithm == "lsq":
-            return f"LiDAR least squares (pair: outside +1, return 0, inside -1), lam {self.algorithm_params.lam:g}"
+            return model_words(self.algorithm_params.lam)
         if not self.fixed_grid or self.custom:
             return None
         return "hard-margin SVM" if self.C is None else f"soft-margin SVM, C {self.C:g}"

@@ -288,8 +288,14 @@ def _autogrid_references(world: World, spec: Any, robots: list[dict[str, Any]], 
     data -- or, with robots absent (`launch`), of the participants' data."""
     from launcher import report
 
+    params = spec.autogrid_params
+    if params.lsq:  # the least-squares model's exact fit, each robot's pairs read in its own data
+        kept = _participants_robots(world, extra)
+        robot_of = np.concatenate([np.full(len(lab), i) for i, _, lab in kept])
+        return report.autogrid_lsq_references(robots, np.vstack([p for _, p, _ in kept]),
+                                              np.concatenate([lab for _, _, lab in kept]), robot_of, params.lsq_lambda)
     pts, labels = _participants_data(world, extra)
-    return report.autogrid_references(robots, pts, labels, C=spec.C, soft_C=spec.autogrid_params.soft_C)
+    return report.autogrid_references(robots, pts, labels, C=spec.C, soft_C=params.soft_C)
 
 
 def _participants_data(world: World, extra: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:

@@ -390,6 +390,10 @@ OPTIONS: tuple[Option, ...] = (
     Option("narrow-ratio", FLOAT, FROM_PARAMS, "autogrid: the points refinement adds near the boundary have "
            "kernel width sigma / this, the level-0 lattice's sigma (issue 15: a width per grid level); 1 (default): "
            "one width", group=MODEL, section="model", check=at_least(1), feeds={"autogrid": "narrow_ratio"}),
+    Option("model", STR, FROM_PARAMS, "autogrid: what the fleet fits: svm (the margin, refined grids) or lsq (the "
+           "LiDAR least-squares model, --lsq-lambda: sigma by the held-out squared residual of whole pairs, one fit on "
+           "its level-0 lattice; docs/autogrid.md)", group=MODEL, section="model", choices=("svm", "lsq"),
+           feeds={"autogrid": "model"}),
     Option("topology", STR, "complete", " | ".join(TOPOLOGIES), group=ALGORITHM, section="algorithm",
            choices=TOPOLOGIES, metavar="TOPOLOGY"),
     Option("comm-range", FLOAT, None, f"link robots within this distance (geometric topology; default 12 "
@@ -425,9 +429,9 @@ OPTIONS: tuple[Option, ...] = (
            f"{param_default('admm', 'certify'):g} on the relay hub); 0: the stopping rule alone. A complete graph runs "
            "the exact end-game by default instead; giving --certify there keeps this guard",
            group=ALGORITHM, section="algorithm", check=_finite_non_negative, show_default=False),
-    Option("lsq-lambda", FLOAT, FROM_PARAMS, "lsq: the ridge weight lam of the LiDAR least-squares model "
+    Option("lsq-lambda", FLOAT, FROM_PARAMS, "lsq and autogrid --model lsq: the ridge weight lam of the LiDAR least-squares model "
            "(docs/algorithm.md, \"The LiDAR least-squares model\"): sum of squared residuals + lam ||f||_H^2",
-           group=ALGORITHM, section="algorithm", check=_finite_positive, feeds={"lsq": "lam"}),
+           group=ALGORITHM, section="algorithm", check=_finite_positive, feeds={"lsq": "lam", "autogrid": "lsq_lambda"}),
     Option("ct-step", DURATION, FROM_PARAMS, "ct-admm: integration step of the flow, the paper's",
            group=ALGORITHM, section="algorithm", check=positive, feeds={"ct-admm": "step"}),
     Option("ct-period", DURATION, FROM_PARAMS, "ct-admm: communication period T_sp, the paper's",

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from agents.kernel import GridBasis
+from agents.lsq_model import model_words, solve_central_lsq
 from agents.problem import CentralSolution, solve_central
 from launcher import scenario
 from launcher.cores import runs_alone, usable_cores
@@ -379,6 +380,24 @@ def autogrid_references(
     return out
 
 
+def autogrid_lsq_references(robots: list[dict[str, Any]], points: np.ndarray, labels: np.ndarray,
+                            robot_of: np.ndarray, lam: float) -> dict[int, Reference]:
+    """`autogrid_references` of a least-squares fleet (model "lsq"): the exact least-squares fit
+    (agents/lsq_model.py solve_central_lsq) of all rows on each robot's final grid and sigma."""
+    solved: dict[tuple[bytes, float], Reference] = {}
+    out: dict[int, Reference] = {}
+    for r in robots:
+        if not has_function(r):
+            continue
+        grid = np.asarray(r["grid"], dtype=float).reshape(-1, 2)
+        key = (grid.tobytes(), float(r["sigma"]))
+        if key not in solved:
+            basis = GridBasis(grid, key[1])
+            solved[key] = Reference(basis, solve_central_lsq(basis, points, labels, lam, robot_of=robot_of), None)
+        out[int(r["id"])] = solved[key]
+    return out
+
+
 def reference_exact(ref: Reference | None) -> bool:
     """True when the central solve dropped no eigenvalue of K_G (rank M): the exact QP optimum."""
     return ref is not None and ref.basis.rank == ref.basis.size
@@ -501,6 +520,9 @@ def build_autogrid_result(
         "rounds": max((int(r["rounds"]) for r in robots), default=0),
         "wall_s": wall_s,
         "algorithm": "autogrid",
+        # the least-squares model's fleet says so (an SVM fleet's result is as it was: no model key)
+        **({"model": model_words(first["lsq_lambda"]), "lsq_lambda": first["lsq_lambda"]}
+           if first.get("model") == "lsq" else {}),
         "sigma": first.get("sigma"),
         "C": None if ref0 is None else ref0.C,
         "grid": first.get("grid") or [],
@@ -1050,7 +1072,8 @@ def summary_table(result: dict[str, Any]) -> Any:
     if result["algorithm"] == "autogrid":
         sizes = " -> ".join(str(h["size"]) for h in result.get("grid_history") or [])
         table.caption += (
-            f"\nsigma {fmt(result['sigma'], '.4g')}, grids {sizes or '-'} points, {result.get('margin')} margin, "
+            f"\nsigma {fmt(result['sigma'], '.4g')}, grids {sizes or '-'} points, "
+            f"{'least-squares fit' if result.get('margin') == 'lsq' else str(result.get('margin')) + ' margin'}, "
             f"robots {'agree bit for bit' if result.get('robots_agree') else 'DO NOT agree'}"
         )
         if result.get("message"):

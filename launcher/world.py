@@ -178,6 +178,18 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         seed=opts.seed,
         timing=opts.timing,
     )
+    if opts.model == "lsq" and not autogrid:
+        raise scenario.ScenarioError(
+            f"--model lsq: the model autogrid fits; this run is --algorithm {opts.algorithm} on a fixed grid (for the "
+            "least-squares model there: --algorithm lsq)")
+    if autogrid and opts.model == "lsq":
+        _check_lsq(opts, robots)
+        if opts.narrow_ratio is not None and opts.narrow_ratio != 1:
+            raise scenario.ScenarioError("--narrow-ratio: the lsq model fits on one level-0 lattice of one width "
+                                         "(no refinement); drop --narrow-ratio")
+        if opts.rho is not None:  # (--rho feeds the SVM model's penalty; the lsq model's is lsq_rho, of another scale)
+            raise scenario.ScenarioError("--rho: autogrid's lsq model runs its own penalty (lsq_rho, 1: a least-squares "
+                                         "step's curvature is of another scale than the margin's); drop --rho")
     if autogrid:
         _check_autogrid(opts, spec)
     if opts.algorithm == "newton" and spec.dim > MAX_DIM:

@@ -308,6 +308,7 @@ def undocumented_keys(result: dict, schema: str) -> list[str]:
 RUNS = {  # in-process runs of about a second, one per kind of result.json
     "admm (paper preset)": ("simulate", {"preset": "paper"}),
     "autogrid (small)": ("simulate", {"robots": 2, "points": 8, "max_grid_points": 16}),
+    "autogrid, least-squares model": ("simulate", {"model": "lsq", "robots": 2, "points": 8}),
     "free sync": ("simulate", {"preset": "paper", "sync": "free"}),
     "a user's fleet algorithm": ("simulate", {"algorithm": "examples.average_consensus:Average"}),
     "central": ("central", {}),

@@ -133,14 +133,15 @@ def test_bad_lsq_lambda_exits_2_naming_the_flag(value, tmp_path, capsys):
     assert code == 2 and "--lsq-lambda" in err[-1]
 
 
-def test_lsq_refuses_a_margin_and_data_without_pairs(tmp_path, capsys):
-    code, err = cli_exit_and_stderr(["simulate", "--algorithm", "lsq", "--preset", "paper", "--C", "10",
-                                     "--out", str(tmp_path / "c")], capsys)
+@pytest.mark.parametrize("words", [["--algorithm", "lsq", "--preset", "paper"],
+                                   ["--algorithm", "autogrid", "--model", "lsq"]], ids=["fixed grid", "autogrid"])
+def test_lsq_refuses_a_margin_and_data_without_pairs(words, tmp_path, capsys):
+    """The fixed-grid fleet and autogrid's least-squares model (tests/test_autogrid_lsq.py) alike."""
+    code, err = cli_exit_and_stderr(["simulate", *words, "--C", "10", "--out", str(tmp_path / "c")], capsys)
     assert code == 2 and "--C" in err[-1]
     data = tmp_path / "nopairs.csv"  # inside before outside: no (+1, -1) pair in any robot's rows
     data.write_text("robot,x,y,label\n0,0,0,-1\n0,3,3,1\n1,0.5,0,-1\n1,3,-3,1\n")
-    code, err = cli_exit_and_stderr(["simulate", "--algorithm", "lsq", "--preset", "paper", "--data", str(data),
-                                     "--out", str(tmp_path / "d")], capsys)
+    code, err = cli_exit_and_stderr(["simulate", *words, "--data", str(data), "--out", str(tmp_path / "d")], capsys)
     assert code == 2 and str(data) in err[-1] and "LiDAR pair" in err[-1]
 
 

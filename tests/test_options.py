@@ -200,7 +200,7 @@ def test_flags_reach_the_typed_params_of_the_fleet_file(algorithm):
     expected = {}
     for option, param in fed:
         value = {"relax": "1.5", "max-grid-points": "120", "ct-period": "20ms", "ct-step": "2ms",
-                 "narrow-ratio": "3"}.get(option.name)
+                 "narrow-ratio": "3", "model": "svm"}.get(option.name)  # (narrow-ratio 3: the svm model's)
         text = value or {INT: "900", FLOAT: "0.002", DURATION: "4s"}[option.kind]
         words += [option.flag, text]
         expected[param] = option.parse(text)
