@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import shapely
 
-from agents.autogrid_rules import coarse_lattice
+from agents import autogrid_rules
+from agents.autogrid_rules import AutoGridParams, coarse_lattice
 from agents.kernel import GridBasis
 from agents.lsq_model import solve_central_lsq
 from agents.spec import Timing, build_core
@@ -158,3 +159,29 @@ def test_launch_equals_simulate_bit_for_bit(tmp_path):
         assert r["stopped"] == "finished" and (r["rounds"], r["converged"]) == (w["rounds"], True)
         assert (r["x"], r["gamma"], r["sigma"], r["sigma_validation"]) == (w["x"], w["gamma"], w["sigma"],
                                                                             w["sigma_validation"])
+
+
+# -- issue 10's frame rule --------------------------------------------------------------------------
+@pytest.mark.parametrize("hub_frames", [False, True], ids=["sparse", "complete"])
+def test_sweep_frames_stay_within_16_function_space_vectors(hub_frames):
+    """The default lsq sweep (25 tasks; with the hub's w 6820 floats in one pass) fits 16 (max_points + 1)."""
+    params = AutoGridParams(model="lsq", hub_frames=hub_frames)
+    assert params.dim <= 16 * (params.max_points + 1)
+    assert sum(params.sweep_blocks()) <= params.dim
+    groups = {params.sweep_group(fold) for fold in range(params.sweep_folds)}
+    assert groups == set(range(params.sweep_groups)) and (params.sweep_groups > 1) == hub_frames
+
+
+def test_sweep_in_groups_of_folds_is_the_one_pass_sweep_bit_for_bit(monkeypatch):
+    """The folds advanced in two groups (complete graph) give the one-pass sweep's scores and fit, bit for bit."""
+    world, spec = _spec()
+    assert spec.autogrid_params.sweep_groups == 2
+    grouped = _fleet(world, spec)
+    monkeypatch.setattr(autogrid_rules, "FRAME_BUDGET", 10**6)  # room for every task at once
+    assert spec.autogrid_params.sweep_groups == 1
+    one_pass = _fleet(world, spec)
+    for a, b in zip(grouped, one_pass):
+        without_rounds = lambda records: [{k: v for k, v in r.items() if k != "rounds"} for r in records]
+        assert without_rounds(a["sigma_validation"]) == without_rounds(b["sigma_validation"])
+        assert (a["x"], a["gamma"], a["sigma"]) == (b["x"], b["gamma"], b["sigma"])
+        assert a["rounds"] > b["rounds"]  # the groups' slowest tasks in turn
