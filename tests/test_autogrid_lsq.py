@@ -1,6 +1,7 @@
 """autogrid --model lsq: the fleet runs the least-squares rule of benchmarks/lsq_emulation.py (its
 specification) from its own data -- the same choice of sigma, the exact fit on the chosen lattice --
-and the shells' checks. The SVM model (the default) is pinned by tests/test_autogrid*.py."""
+and the shells' checks. It is autogrid's default model; the SVM model (--model svm) is pinned by
+tests/test_autogrid*.py."""
 
 from __future__ import annotations
 
@@ -86,12 +87,13 @@ def world_box(world) -> tuple[np.ndarray, np.ndarray]:
     return points.min(axis=0), points.max(axis=0)
 
 
-def test_model_svm_is_the_default_autogrid():
-    """--model svm writes the parameters the default writes: today's autogrid, the same fleet file."""
+def test_model_lsq_is_the_default_autogrid():
+    """--model lsq writes the parameters the default writes (the same fleet file); --model svm another model."""
     _, default = build_world(Options(fleet_id="m"))
+    _, lsq = build_world(Options(fleet_id="m", model="lsq"))
     _, svm = build_world(Options(fleet_id="m", model="svm"))
-    assert default.autogrid_params == svm.autogrid_params and default.autogrid_params.model == "svm"
-    assert not default.autogrid_params.lsq
+    assert default.algorithm == "autogrid" and default.autogrid_params == lsq.autogrid_params
+    assert default.autogrid_params.lsq and not svm.autogrid_params.lsq
 
 
 def test_crash_and_restart_in_the_sweep_and_the_fit_end_on_the_clean_answer():
@@ -130,11 +132,13 @@ def test_lsq_model_refuses_two_widths_and_a_fixed_grid(tmp_path, capsys):
                          (["--rho", "2"], "--rho")):
         code, err = cli_exit_and_stderr(["simulate", "--model", "lsq", *flags, "--out", str(tmp_path / "n")], capsys)
         assert code == 2 and named in err[-1]
+    for flags, named in ((["--narrow-ratio", "3"], "--narrow-ratio"), (["--rho", "2"], "--rho")):  # the default model
+        code, err = cli_exit_and_stderr(["simulate", *flags, "--out", str(tmp_path / "d")], capsys)
+        assert code == 2 and named in err[-1] and "--model svm" in err[-1]
 
 
 def test_simulate_reports_the_model_its_choice_and_its_exact_reference(tmp_path, capsys):
-    code, _ = cli_exit_and_stderr(["simulate", "--algorithm", "autogrid", "--model", "lsq", "--lsq-lambda", "0.2",
-                                   "--out", str(tmp_path / "r")], capsys)
+    code, _ = cli_exit_and_stderr(["simulate", "--lsq-lambda", "0.2", "--out", str(tmp_path / "r")], capsys)  # (the default model)
     result = json.loads((tmp_path / "r" / "result.json").read_text())
     assert code == 0 and result["converged"] and "least squares" in result["model"] and result["lsq_lambda"] == 0.2
     assert len(result["sigma_validation"]) == len(emulation.CANDIDATES)
