@@ -550,7 +550,8 @@ def choose_lsq_sigma(records: list[dict[str, Any]], diag: float, params: AutoGri
         f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: the smallest mean held-out squared residual per "
         f"LiDAR pair ({table}); {params.sweep_folds} folds of whole pairs (a robot's k-th pair in fold (k + id) mod "
         f"{params.sweep_folds}), every candidate and fold the least-squares fit (lam = {params.lsq_lambda:g}) of the "
-        f"other folds' rows on its level-0 lattice at {params.coarse_spacing:g} sigma, all solved in the same rounds, "
+        f"other folds' rows on its level-0 lattice at {params.coarse_spacing:g} sigma, "
+        f"{'all solved in the same rounds' if params.sweep_groups == 1 else f'solved in {params.sweep_groups} groups of folds'}, "
         f"residuals summed by max-consensus over one slot per robot id; diag = {diag:.6g} = diagonal of the data's "
         "bounding box"
     )
