@@ -301,7 +301,9 @@ class AdaptiveGridCore(RoundCore):
             start=self._warm, edges=self._carry if p.warm_duals else None, hub_frames=p.hub_frames,
             # (the carried duals are soft_C's: a user's other C starts from zero)
             hub_duals=self._soft_duals if mode == "soft" and p.warm_duals and C == p.soft_C else None,
-            gone=self.gone,
+            # a soft margin weighs |x|^2 by 1 / (robots left): on a complete graph no `gone` list is heard (the
+            # robots saw the drops themselves), so a sub-machine built after one is handed them (as the lsq fit)
+            gone=self.gone if self.floods_gone else tuple(sorted(self.dropped)),
         )
         self._carry = {}
         self._mark(ADMM)

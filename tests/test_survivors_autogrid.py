@@ -92,3 +92,16 @@ def test_an_autogrid_survivor_restarted_after_the_news_goes_on_bit_for_bit(soft_
     for i, c in clean.items():
         assert c.converged and again[i].round == c.round and again[i].gone == c.gone == (1,)
         np.testing.assert_array_equal(again[i].values, c.values)
+
+
+def test_a_complete_soft_autogrid_fleet_losing_a_robot_ends_on_its_survivors_exact_answer():
+    """A complete graph floods no lists (every survivor sees the drop itself), so a sub-machine autogrid
+    builds after the loss (here its grid refinements) was handed none and weighed |x|^2 by 1 / N: the
+    survivors settled 0.19-0.26 from their answer, NOT converged. It is now handed the robots dropped."""
+    world, spec, _ = make_run(fleet_id="survivors-autogrid-complete", timing=TIMING, robots=4, C=10.0,
+                              algorithm="autogrid", model="svm", grid=PAPER["grid"], sigma=PAPER["sigma"])
+    spec = spec_for_run(spec, [CrashPlan(1, 40)], restart=False, restart_after=0.5)
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, 40)], restart=False)
+    assert [r["id"] for r in out.robots] == [0, 2, 3]
+    assert all(r["converged"] and r["stopped"] == "finished" for r in out.robots)
+    assert survivors_error(world, out.robots, dead=1, C=10.0) < 1e-3
