@@ -8,6 +8,12 @@ vectors only. With params.hub_frames (a complete graph) the block is followed by
 (slot + 1 floats: x zero-padded, gamma), which the sub-machine sends beside v (agents/admm.py).
 Every robot's sub-machine of a task stops in the same round (its own flags protocol); a stopped
 sub-machine keeps sending its last value, so the sweep costs the slowest task, not the sum of all.
+Issue 10's rule bounds a frame by 16 (max_points + 1) floats: where every task's block together would
+not fit (the lsq model's 25 tasks with the hub's w: 6820 floats for the default budget) the folds run in
+groups one after the other (`AutoGridParams.sweep_groups`, 2 there: folds 0-2, then 3-4, 4092 floats),
+each group's blocks from the frame's start; the next group takes over D rounds after the last task of
+the one before stopped. Every task is the same sub-machine as in one pass, so the scores and the choice
+are the same; the sweep costs the sum of its groups' slowest tasks.
 
 Early drop (issue 10): when a task stops, each robot sets its verdict to 1 if the task's iterate
 misclassifies one of its held-out points or its inside region is not one solid piece, else 0;
@@ -66,6 +72,7 @@ class SweepTask:
     verdict: float = 0.0  # 1: this task has a held-out error or a region not solid (max over robots)
     since: int = -1  # rounds since the task stopped (-1: running); verdict fleet-wide at >= diameter
     dropped: bool = False
+    group: int = 0  # the group of folds it is advanced in (AutoGridParams.sweep_groups)
     held_pairs: np.ndarray | None = None  # the lsq model: (outside, inside) of this robot's held-out pairs, (k, 2, 2)
 
 
@@ -182,7 +189,7 @@ class SigmaSweep:
                 box, _, grid = coarse_lattice(bounds, sigma, params.coarse_spacing, slot)
                 models.append(SweepModel(float(d), sigma, box, GridBasis(grid, sigma), slot))
         self.models = models
-        offset = 0
+        offsets = [0] * params.sweep_groups  # each group of folds lays its blocks from the frame's start
         for cand, model in enumerate(models):
             basis, slot = model.basis, model.slot
             self._raster[cand] = _RasterBasis(basis)
@@ -204,9 +211,10 @@ class SigmaSweep:
                     fold_share = share.with_data(share.neighbours, feats, labels[~held], params.soft_C)
                     sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames,
                                    start=model.start, gone=gone)
+                group = params.sweep_group(fold) if not self._given_models else 0
                 self.tasks.append(SweepTask(cand, fold, model.divisor, model.sigma, model.box, basis, held, sub,
-                                            offset, slot, held_pairs=pairs))
-                offset += slot + 3 + (slot + 1 if params.hub_frames else 0)
+                                            offsets[group], slot, group=group, held_pairs=pairs))
+                offsets[group] += slot + 3 + (slot + 1 if params.hub_frames else 0)
 
     @property
     def finished(self) -> bool:
@@ -214,12 +222,25 @@ class SigmaSweep:
 
     @property
     def residual(self) -> float:
-        return max((t.sub.residual for t in self.tasks if not t.sub.finished), default=0.0)
+        return max((t.sub.residual for t in self._running() if not t.sub.finished), default=0.0)
+
+    def _running(self) -> list[SweepTask]:
+        """The tasks of the group of folds being advanced (AutoGridParams.sweep_groups): the first group
+        with a task not dropped and not stopped D rounds ago (its verdict spread over D hops), so the next
+        group takes over the frame's blocks in the same round on every robot. (D, not `reach`: a constant,
+        so a group once left is never taken up again; a verdict that needed more hops is not spread and
+        its candidate is not dropped early -- the choice stays the full sweep's.)"""
+        last = max((t.group for t in self.tasks), default=0)
+        for group in range(last):
+            tasks = [t for t in self.tasks if t.group == group]
+            if not all(t.dropped or t.since >= self.params.diameter for t in tasks):
+                return tasks
+        return [t for t in self.tasks if t.group == last]
 
     def stacked(self) -> np.ndarray:
-        """This robot's frame vector: every task's (x, gamma, flags) in its block."""
+        """This robot's frame vector: every running task's (x, gamma, flags) in its block."""
         v = np.zeros(self.dim)
-        for t in self.tasks:
+        for t in self._running():
             vals = t.sub.values
             v[t.offset : t.offset + t.basis.size] = vals[:-1]
             v[t.offset + t.slot] = vals[-1]
@@ -235,7 +256,7 @@ class SigmaSweep:
         """One round of every unfinished task from the neighbours' stacked round-k vectors (and the
         robots each neighbour knew dropped for good in that round: `gone`, for the edge form)."""
         gone = gone or {}
-        for t in self.tasks:
+        for t in self._running():
             if t.since >= 0:  # stopped: spread the verdict (max-consensus)
                 t.verdict = max([t.verdict, *(float(v[t.offset + t.slot + 2]) for v in theirs.values())])
                 t.since += 1

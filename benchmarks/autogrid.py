@@ -45,6 +45,7 @@ from sklearn.svm import SVC  # noqa: E402
 
 from agents.autogrid import AdaptiveGridCore, AutoGridParams  # noqa: E402
 from agents.kernel import GridBasis  # noqa: E402
+from agents.lsq_model import solve_central_lsq  # noqa: E402
 from agents.problem import solve_central  # noqa: E402
 from launcher import scenario  # noqa: E402
 from launcher.world import Options, build_world  # noqa: E402
@@ -63,7 +64,7 @@ SWEEP = (2, 4, 6, 8, 12, 16)  # SVC: a superset of the fleet's candidates diag/{
 #: issue 15, the sigma rule chosen by central emulation (benchmarks/results/autogrid.md, "The sigma
 #: rule"): candidates diag/{4, 8, 16, 24}, 4 folds, ties -> the larger sigma, refined points sigma / 3;
 #: (with holes_allowed: the held-out winner; not the default -- make demo 15-19 s, benchmarks/results/autogrid.md)
-PROPOSED = {"validate_divisors": (4.0, 8.0, 16.0, 24.0), "validate_folds": 4, "sigma_ties": "larger",
+PROPOSED = {"model": "svm", "validate_divisors": (4.0, 8.0, 16.0, 24.0), "validate_folds": 4, "sigma_ties": "larger",
             "narrow_ratio": 3.0}
 #: issue 15 step 6 (--sigma4; benchmarks/results/autogrid.md "step 6"): PROPOSED with holes allowed and the two
 #: widths only when the sweep held out >= 16 points per fold (3 x 20 points: 8-12, one width; 5 x 40: 23-37, r = 3)
@@ -75,7 +76,7 @@ SIGMA4_SPARSE = {**SIGMA4, "sparse_units": 60, "sparse_folds": 2}
 #: widths the fleet tests one width against two on its held-out folds and keeps two only when they make fewer errors
 SIGMA5 = {**SIGMA4_SPARSE, "narrow_by_holdout": True}
 #: the default before issue 15 (--previous): diag/{4, 6, 8, 12, 16}, 2 folds, ties -> smaller, no holes, one width
-PREVIOUS = {"validate_divisors": (4.0, 6.0, 8.0, 12.0, 16.0), "validate_folds": 2, "sigma_ties": "smaller",
+PREVIOUS = {"model": "svm", "validate_divisors": (4.0, 6.0, 8.0, 12.0, 16.0), "validate_folds": 2, "sigma_ties": "smaller",
             "holes_allowed": False, "narrow_ratio": 1.0}
 
 
@@ -108,6 +109,12 @@ def error_vs_central(world, core, params):
     margin (nan when the central solve fails)."""
     grid, c, gamma = core.function()
     basis = core._basis  # the final grid at its widths (one or two: AutoGridParams.narrow_ratio)
+    if params.lsq:  # the exact least-squares fit of every robot's rows (pairs read in each robot's own data)
+        robot_of = np.concatenate([np.full(len(r.labels), r.id) for r in world.robots])
+        points = np.vstack([r.points for r in world.robots])
+        labels = np.concatenate([r.labels for r in world.robots])
+        central = solve_central_lsq(basis, points, labels, params.lsq_lambda, robot_of=robot_of)
+        return basis, basis.function_error(c, gamma, central.c, central.gamma)
     central = solve_central(basis, world.points, world.labels, None if core.margin == "hard" else params.soft_C)
     return basis, basis.function_error(c, gamma, central.c, central.gamma) if central.solved else float("nan")
 
@@ -128,6 +135,8 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None
     free = {} if free_space is None else {"free_space": free_space}
     world, spec = build_world(Options(fleet_id="bench", robots=robots, points=points, **kwargs, **free))
     params = AutoGridParams(diameter=spec.params["diameter"], **{**params_kw, **(extra or {})})
+    if params.lsq:  # the fleet file's frames (the hub's w on a complete graph: the sweep's folds in two groups)
+        params = dataclasses.replace(params, hub_frames=spec.autogrid_params.hub_frames)
     started = time.perf_counter()
     cores = run_fleet(world, spec, params)
     wall = time.perf_counter() - started
@@ -142,9 +151,10 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None
     val = core.sigma_validation
     chosen = next((r for r in val if r["sigma"] == core.sigma), None)
     # what other deterministic rules on the same tallies would have picked (SVC at that sigma)
-    by_old = min(val, key=lambda r: (r["errors"], -r["sigma"])) if val else None  # the previous rule: ties -> larger
-    solid = [r for r in val if r["solid"]] or val
-    by_large = min(solid, key=lambda r: (r["errors"], -r["sigma"])) if val else None  # solid, ties -> larger
+    svm = val and not params.lsq  # (the lsq model's records hold scores: no errors, no solid check)
+    by_old = min(val, key=lambda r: (r["errors"], -r["sigma"])) if svm else None  # the previous rule: ties -> larger
+    solid = [r for r in val if r.get("solid")] or val
+    by_large = min(solid, key=lambda r: (r["errors"], -r["sigma"])) if svm else None  # solid, ties -> larger
     best, best_sigma = max(sweep)
     cv = StratifiedKFold(5, shuffle=True, random_state=0)
     cv_scores = [
@@ -157,7 +167,8 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None
         "n": len(world.labels),
         "sigma": core.sigma,
         "divisor": diag / core.sigma,
-        "val": " ".join(f"{r['errors']}{'' if r['solid'] else '*'}" for r in val) + (f" /{val[0]['held_out']}" if val else ""),
+        "val": (" ".join(f"{r['score']:.3f}" for r in val) if params.lsq else
+                " ".join(f"{r['errors']}{'' if r['solid'] else '*'}" for r in val) + (f" /{val[0]['held_out']}" if val else "")),
         "val_rounds": max((r["rounds"] for r in val), default=0) + params.diameter,  # one pass + tally
         "chosen": chosen,
         "old_div": None if by_old is None else by_old["divisor"],
@@ -165,11 +176,11 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None
         "reason": core.sigma_reason,
         "large_div": None if by_large is None else by_large["divisor"],
         "svc_large": None if by_large is None else svc_iou(world, bounds, by_large["sigma"]),
-        "sizes": "→".join(str(h["size"]) for h in core.grid_history if "norm2" in h or h["status"] in ("hard-infeasible", "hard-not-converged")),
+        "sizes": str(len(grid)) if params.lsq else "→".join(str(h["size"]) for h in core.grid_history if "norm2" in h or h["status"] in ("hard-infeasible", "hard-not-converged")),
         "rank_ok": basis.rank == len(grid),
         "converged": all(k.converged for k in cores),
         "gap": max(k.disagreement for k in cores) if all(k.disagreement is not None for k in cores) else float("nan"),
-        "margin": core.margin,
+        "margin": "lsq" if params.lsq else core.margin,
         "rounds": core.round,
         "wall": wall,
         "err": err,
@@ -352,6 +363,7 @@ def _rule(args) -> dict | None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="3 robots x 20 points")
+    ap.add_argument("--svm", action="store_true", help="the SVM model (autogrid's default before branch lsqdefault)")
     ap.add_argument("--jobs", type=int, default=2, help="shapes measured in parallel (processes)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks/results/autogrid.md"))
     ap.add_argument("--shapes", default="", help="comma-separated subset of shape names (default: all)")
@@ -394,7 +406,7 @@ def main() -> None:
         print("\n".join(outline_table(rows)))
         return
     robots, points = (3, 20) if args.quick else (6, 40)
-    params_kw = {"tol": 1e-3, "max_points": 200}
+    params_kw = {"tol": 1e-3, "max_points": 200, **({"model": "svm"} if args.svm else {})}
     if args.narrow_ratio is not None:
         params_kw["narrow_ratio"] = args.narrow_ratio
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
@@ -453,12 +465,17 @@ def main() -> None:
         "",
         f"Mean IoU: fleet {mean['ours']:.3f}, SVC same sigma {mean['svc_same']:.3f}, "
         f"SVC best of sweep {mean['svc_best']:.3f}, SVC 5-fold CV {mean['svc_cv']:.3f}.",
-        f"Previous rule on the same tallies (fewest errors, ties -> the larger sigma, no solid check): SVC at its sigma, mean "
-        f"{np.mean([r['svc_old'] for r in rows]):.3f} ("
-        + ", ".join(f"{r['name'].split()[0]} diag/{r['old_div']:g}" for r in rows) + ").",
-        f"Solid check with ties -> the larger sigma, same tallies: SVC at its sigma, mean "
-        f"{np.mean([r['svc_large'] for r in rows]):.3f} ("
-        + ", ".join(f"{r['name'].split()[0]} diag/{r['large_div']:g}" for r in rows) + ").",
+    ]
+    if all(r["svc_old"] is not None for r in rows):  # (the SVM model's tallies: errors and solid flags)
+        lines += [
+            f"Previous rule on the same tallies (fewest errors, ties -> the larger sigma, no solid check): SVC at its "
+            f"sigma, mean {np.mean([r['svc_old'] for r in rows]):.3f} ("
+            + ", ".join(f"{r['name'].split()[0]} diag/{r['old_div']:g}" for r in rows) + ").",
+            f"Solid check with ties -> the larger sigma, same tallies: SVC at its sigma, mean "
+            f"{np.mean([r['svc_large'] for r in rows]):.3f} ("
+            + ", ".join(f"{r['name'].split()[0]} diag/{r['large_div']:g}" for r in rows) + ").",
+        ]
+    lines += [
         "",
         "Reason reported by the fleet (first shape): " + rows[0]["reason"],
         "",

@@ -390,9 +390,11 @@ OPTIONS: tuple[Option, ...] = (
     Option("narrow-ratio", FLOAT, FROM_PARAMS, "autogrid: the points refinement adds near the boundary have "
            "kernel width sigma / this, the level-0 lattice's sigma (issue 15: a width per grid level); 1 (default): "
            "one width", group=MODEL, section="model", check=at_least(1), feeds={"autogrid": "narrow_ratio"}),
-    Option("model", STR, FROM_PARAMS, "autogrid: what the fleet fits: svm (the margin, refined grids) or lsq (the "
-           "LiDAR least-squares model, --lsq-lambda: sigma by the held-out squared residual of whole pairs, one fit on "
-           "its level-0 lattice; docs/autogrid.md)", group=MODEL, section="model", choices=("svm", "lsq"),
+    # (default None, not FROM_PARAMS: a fixed-grid run refuses --model only when it is given)
+    Option("model", STR, None, "autogrid: what the fleet fits: lsq (default: the LiDAR least-squares model, "
+           "--lsq-lambda: sigma by the held-out squared residual of whole pairs, one fit on its level-0 lattice) or svm "
+           "(the margin, refined grids; label-only data, --C); docs/autogrid.md", group=MODEL, section="model",
+           choices=("svm", "lsq"),
            feeds={"autogrid": "model"}),
     Option("topology", STR, "complete", " | ".join(TOPOLOGIES), group=ALGORITHM, section="algorithm",
            choices=TOPOLOGIES, metavar="TOPOLOGY"),

@@ -56,6 +56,8 @@ if TYPE_CHECKING:
 DEFAULT_MAX_GRID_POINTS = AutoGridParams().max_points
 #: autogrid's round cap over all its phases when --max-rounds is not given
 DEFAULT_MAX_TOTAL_ROUNDS = AutoGridParams().max_total_rounds
+#: the model autogrid fits when --model is not given (the least-squares model: docs/autogrid.md)
+DEFAULT_MODEL = AutoGridParams().model
 #: the admm / ct-admm round cap when --max-rounds is not given (autogrid: its own cap over all phases)
 DEFAULT_MAX_ROUNDS = ADMMParams().max_rounds
 
@@ -182,14 +184,14 @@ def build_world(opts: Options) -> tuple[World, FleetSpec]:
         raise scenario.ScenarioError(
             f"--model lsq: the model autogrid fits; this run is --algorithm {opts.algorithm} on a fixed grid (for the "
             "least-squares model there: --algorithm lsq)")
-    if autogrid and opts.model == "lsq":
-        _check_lsq(opts, robots)
+    if autogrid and (opts.model or DEFAULT_MODEL) == "lsq":  # (the default model: its refusals name the SVM's flag)
+        _check_lsq(opts, robots, svm_fix=SVM_FIX)
         if opts.narrow_ratio is not None and opts.narrow_ratio != 1:
             raise scenario.ScenarioError("--narrow-ratio: the lsq model fits on one level-0 lattice of one width "
-                                         "(no refinement); drop --narrow-ratio")
+                                         f"(no refinement); drop --narrow-ratio, {SVM_FIX}")
         if opts.rho is not None:  # (--rho feeds the SVM model's penalty; the lsq model's is lsq_rho, of another scale)
             raise scenario.ScenarioError("--rho: autogrid's lsq model runs its own penalty (lsq_rho, 1: a least-squares "
-                                         "step's curvature is of another scale than the margin's); drop --rho")
+                                         f"step's curvature is of another scale than the margin's); drop --rho, {SVM_FIX}")
     if autogrid:
         _check_autogrid(opts, spec)
     if opts.algorithm == "newton" and spec.dim > MAX_DIM:
@@ -227,16 +229,25 @@ def _checked_diameter(opts: Options, n_robots: int, neighbours: dict[int, tuple[
     return diameter
 
 
-def _check_lsq(opts: Options, robots: list[scenario.RobotData]) -> None:
+#: what autogrid's lsq refusals suggest: the SVM model, which has a margin (--C, --rho, --narrow-ratio) and fits
+#: label-only data
+SVM_FIX = "or add --model svm (autogrid's margin model)"
+
+
+def _check_lsq(opts: Options, robots: list[scenario.RobotData], *, svm_fix: str | None = None) -> None:
     """The least-squares model reads LiDAR pairs and has no margin: a --C, or data without a single
-    pair (consecutive +1, -1 rows of one robot), is refused by name instead of fitting labels alone."""
+    pair (consecutive +1, -1 rows of one robot), is refused by name instead of fitting labels alone.
+    `svm_fix`: autogrid's way out (the SVM model), else the fixed-grid one (--algorithm admm)."""
     if opts.C is not None:
-        raise scenario.ScenarioError("--C: the lsq model has no margin (its weight is --lsq-lambda); drop --C")
+        raise scenario.ScenarioError("--C: the lsq model has no margin (its weight is --lsq-lambda); drop --C"
+                                     + (f", {svm_fix}" if svm_fix else ""))
     if not any(len(lidar_pairs(r.labels)) for r in robots):
         source = opts.data if opts.data is not None else "the scan"
+        fix = ("add --model svm, which fits label-only data" if svm_fix
+               else "use --algorithm admm for labelled points alone")
         raise scenario.ScenarioError(
             f"{source}: no LiDAR pair (a +1 row followed by a -1 row of the same robot) in the data: the lsq model "
-            "fits the returns between pairs; use --algorithm admm for labelled points alone")
+            f"fits the returns between pairs; {fix}")
 
 
 def _check_polish(opts: Options, spec: FleetSpec) -> None:

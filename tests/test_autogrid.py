@@ -90,12 +90,12 @@ def fast_params(spec, **kw):
     kw.setdefault("tol", 1e-4)
     kw.setdefault("max_points", 120)
     kw.setdefault("validate_divisors", ())  # the fixed rule diag / 8 unless a test sweeps sigma
-    return AutoGridParams(diameter=spec.params["diameter"], **kw)
+    return AutoGridParams(model="svm", diameter=spec.params["diameter"], **kw)
 
 
 @pytest.fixture(scope="module")
 def blob():
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     params = fast_params(spec)
     cores = run_fleet(make_cores(robots_of(spec), params))
     return world, spec, params, cores
@@ -150,7 +150,7 @@ def test_scale_free_millimetres_give_the_same_shape_scaled(blob):
 
 
 def test_fig5_coarse_shifted_start_grid_ends_separating_all_data():
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     bounds = scenario.parse_bounds(_shifted_bounds(world.bounds, "4x2", (0.5, 0.0)))
     start = scenario.make_grid(4, 2, bounds)
     assert solve_central(GridBasis(start, 1.0), world.points, world.labels).status == "infeasible"
@@ -178,7 +178,7 @@ def test_inseparable_data_falls_back_to_a_soft_margin_and_says_so():
     }
     # (the round-cap detector alone: ill_multiplier 0; with the conditioning test the diverging iterate
     # switches earlier, tests/test_autogrid_illcond.py)
-    params = AutoGridParams(diameter=1, max_points=40, max_refinements=2, hard_rounds=300, soft_rounds=3000,
+    params = AutoGridParams(model="svm", diameter=1, max_points=40, max_refinements=2, hard_rounds=300, soft_rounds=3000,
                             ill_multiplier=0.0)
     cores = run_fleet(make_cores(robots, params))
     for core in cores:
@@ -192,7 +192,7 @@ def test_inseparable_data_falls_back_to_a_soft_margin_and_says_so():
 def test_local_infeasibility_is_voted_without_running_admm():
     pts = np.array([[0.0, 0.0], [0.0, 0.0], [3.0, 1.0]])
     robots = {0: ((1,), pts[:2], np.array([1, -1])), 1: ((0,), pts[2:], np.array([1]))}
-    params = AutoGridParams(diameter=1, max_points=20, max_refinements=0)
+    params = AutoGridParams(model="svm", diameter=1, max_points=20, max_refinements=0)
     cores = run_fleet(make_cores(robots, params))
     first = cores[0].grid_history[0]
     assert first["status"] == "hard-infeasible" and first["detected_by"].startswith("vote")
@@ -200,9 +200,9 @@ def test_local_infeasibility_is_voted_without_running_admm():
 
 
 def test_lone_robot_runs_every_phase_at_once():
-    world, _ = build_world(Options(fleet_id="t", robots=1))
+    world, _ = build_world(Options(model="svm", fleet_id="t", robots=1))
     r = world.robots[0]
-    core = AdaptiveGridCore(RobotShare(0, (), r.points, r.labels), AutoGridParams(diameter=0, max_points=80))
+    core = AdaptiveGridCore(RobotShare(0, (), r.points, r.labels), AutoGridParams(model="svm", diameter=0, max_points=80))
     assert core.finished and core.converged and core.round == 0
     grid, c, gamma = core.function()
     central = solve_central(GridBasis(grid, core.sigma), r.points, r.labels)
@@ -216,7 +216,7 @@ def _lockstep(cores, rounds):
 
 @pytest.fixture(scope="module")
 def small_run():
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     params = fast_params(spec, max_points=60, max_refinements=1, tol=1e-3)
     robots = robots_of(spec)
     return robots, params, run_fleet(make_cores(robots, params))
@@ -295,8 +295,8 @@ def iou_table():
 
     rows = {}
     for name, kw in IOU_SHAPES.items():
-        world, spec = build_world(Options(fleet_id="t", robots=3, points=20, **kw))
-        params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=100)
+        world, spec = build_world(Options(model="svm", fleet_id="t", robots=3, points=20, **kw))
+        params = AutoGridParams(model="svm", diameter=spec.params["diameter"], tol=1e-3, max_points=100)
         cores = run_fleet(make_cores(robots_of(spec), params))
         core = cores[0]
         x0, x1, y0, y1 = scenario.shape_bounds(world.shape)
@@ -390,7 +390,7 @@ def test_loss_delay_and_reordering_change_nothing():
     # same bit for bit as without faults
     from protocol.links import LinkFaults
 
-    world, spec = build_world(Options(fleet_id="t", robots=3, topology="line"))
+    world, spec = build_world(Options(model="svm", fleet_id="t", robots=3, topology="line"))
     params = fast_params(spec, tol=1e-3, max_points=60, max_refinements=1, hard_rounds=800)
     assert params.diameter == 2
     clean = run_fleet(make_cores(robots_of(spec), params))
@@ -408,7 +408,7 @@ def test_loss_delay_and_reordering_change_nothing():
 
 @pytest.fixture(scope="module")
 def sweep_runs():
-    world, spec = build_world(Options(fleet_id="t", shape="star", points=25))
+    world, spec = build_world(Options(model="svm", fleet_id="t", shape="star", points=25))
     params = _sweep_params(spec)
     assert params.validates and params.validate_divisors == (4.0, 6.0, 8.0, 12.0, 16.0)
     robots = robots_of(spec)
@@ -503,7 +503,7 @@ def _sweep_params(spec, **kw):
     # last bits (and stop round) are not scale-invariant, so x1000 could swap a near tie at the
     # budget's cut; the level-0 lattice is (test_sigma_sweep_is_scale_free)
     return AutoGridParams(
-        diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0, **kw
+        model="svm", diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0, **kw
     )
 
 
@@ -546,7 +546,7 @@ def test_solid_check_can_allow_holes_but_never_islands():
 
 
 def test_choose_sigma_skips_candidates_that_are_not_solid():
-    params = AutoGridParams()
+    params = AutoGridParams(model="svm")
     rec = lambda d, e, solid: {"divisor": d, "sigma": 10.0 / d, "errors": e, "held_out": 20, "solid": solid}
     records = [rec(4, 1, True), rec(8, 0, True), rec(12, 0, True), rec(16, 0, False)]
     sigma, why = choose_sigma(records, 10.0, params)
@@ -559,14 +559,14 @@ def test_choose_sigma_skips_candidates_that_are_not_solid():
 def test_choose_sigma_ties_can_go_to_the_larger_sigma():
     """Issue 15: with sigma_ties="larger" the same tallies pick the widest of the tied solid
     candidates (diag/8, not diag/12); a candidate with fewer errors still wins outright."""
-    params = AutoGridParams(sigma_ties="larger")
+    params = AutoGridParams(model="svm", sigma_ties="larger")
     rec = lambda d, e, solid: {"divisor": d, "sigma": 10.0 / d, "errors": e, "held_out": 20, "solid": solid}
     sigma, why = choose_sigma([rec(4, 1, True), rec(8, 0, True), rec(12, 0, True), rec(16, 0, False)], 10.0, params)
     assert sigma == 10.0 / 8 and "the larger sigma wins" in why
     sigma, _ = choose_sigma([rec(4, 1, True), rec(8, 2, True), rec(12, 0, True)], 10.0, params)
     assert sigma == 10.0 / 12
     with pytest.raises(ValueError, match="sigma_ties"):
-        AutoGridParams(sigma_ties="middle")
+        AutoGridParams(model="svm", sigma_ties="middle")
 
 
 # -- agreement measured, not manufactured (issue 18); exact references, grids near data (issue 10) --
@@ -593,7 +593,7 @@ def test_disagreement_is_measured_before_the_flood_and_reported(blob):
 def test_round_cap_is_neither_converged_nor_flooded():
     # a soft margin stopped at its round cap long before the robots agree: each robot keeps its
     # own function, and nobody claims convergence
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     params = fast_params(spec, C=10.0, soft_rounds=20, max_refinements=1)
     cores = run_fleet(make_cores(robots_of(spec), params))
     for core in cores:
@@ -608,7 +608,7 @@ def test_round_cap_is_neither_converged_nor_flooded():
 def test_soft_margin_cap_within_tolerance_is_not_converged():
     # the soft margin stopped by its cap, robots close enough to flood: the answer is shared, but
     # a capped solve is not a converged one
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     ref = run_fleet(make_cores(robots_of(spec), fast_params(spec, C=10.0, tol=1e-2)))
     needed = ref[0].grid_history[0]["rounds"]
     cap = needed - 10  # a few rounds short of the stopping rule: close, but capped
@@ -622,7 +622,7 @@ def test_soft_margin_cap_within_tolerance_is_not_converged():
 
 
 def test_total_round_cap_is_not_converged():
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     params = fast_params(spec, max_total_rounds=60)
     cores = run_fleet(make_cores(robots_of(spec), params))
     assert all(core.finished and not core.converged and core.round == 60 for core in cores)
@@ -707,7 +707,7 @@ def test_sweep_drops_wider_candidates_once_a_narrower_one_is_perfect():
     the wider ones still running are dropped. The choice, the seed and the final function are
     those of the full sweep, bit for bit; only the sweep's rounds change."""
     notch = Path(__file__).resolve().parent / "data/notch.csv"
-    world, spec = build_world(Options(fleet_id="t", shape_file=str(notch), robots=3, points=20))
+    world, spec = build_world(Options(model="svm", fleet_id="t", shape_file=str(notch), robots=3, points=20))
     robots = robots_of(spec)
     runs = {}
     for drop in (False, True):
@@ -745,7 +745,7 @@ def test_early_drop_drops_only_candidates_that_lose_every_tie(ties):
     from agents.autogrid_sweep import SigmaSweep
 
     sweep = object.__new__(SigmaSweep)
-    sweep.params = AutoGridParams(diameter=2, sigma_ties=ties)
+    sweep.params = AutoGridParams(model="svm", diameter=2, sigma_ties=ties)
     task = lambda cand, d, since, verdict: SimpleNamespace(cand=cand, fold=0, sigma=10.0 / d, since=since,
                                                            verdict=verdict, dropped=False)
     loser, winner = (0, 2) if ties == "smaller" else (2, 0)  # indices into diag/4, diag/8, diag/16
@@ -800,7 +800,7 @@ def test_two_widths_refined_points_narrow_exact_against_the_central_reference():
     the same two-width model (GridKernelSVC with the result's widths)."""
     from agents.estimator import GridKernelSVC
 
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     params = fast_params(spec, narrow_ratio=3.0, max_points=50, tol=1e-3)
     cores = run_fleet(make_cores(robots_of(spec), params))
     first = cores[0]
@@ -823,7 +823,7 @@ def test_widths_for_data_keeps_one_width_when_few_points_are_held_out():
     least that many points per fold; below it the run uses one width, the rest unchanged."""
     from agents.autogrid_rules import widths_for_data
 
-    params = AutoGridParams(narrow_ratio=3.0, narrow_min_held=16, validate_folds=4)
+    params = AutoGridParams(model="svm", narrow_ratio=3.0, narrow_min_held=16, validate_folds=4)
     sparse = [{"held_out": 4 * 15, "folds": 4}]  # 15 per fold
     dense = [{"held_out": 4 * 16, "folds": 4}]
     one, note = widths_for_data(params, sparse)
@@ -834,7 +834,7 @@ def test_widths_for_data_keeps_one_width_when_few_points_are_held_out():
     assert widths_for_data(dataclasses.replace(params, narrow_min_held=0), sparse)[0].narrow_ratio == 3.0
     assert widths_for_data(params, [])[0] is params
     with pytest.raises(ValueError):
-        AutoGridParams(narrow_min_held=-1)
+        AutoGridParams(model="svm", narrow_min_held=-1)
 
 
 def test_folds_for_data_runs_fewer_folds_below_the_unit_threshold():
@@ -842,7 +842,7 @@ def test_folds_for_data_runs_fewer_folds_below_the_unit_threshold():
     folds; at or above it, or with the threshold 0, the given params unchanged."""
     from agents.autogrid_rules import folds_for_data
 
-    params = AutoGridParams(validate_folds=4, sparse_units=60)
+    params = AutoGridParams(model="svm", validate_folds=4, sparse_units=60)
     few, note = folds_for_data(params, 59)
     assert few.validate_folds == 2 and "2 folds instead of 4" in note
     assert dataclasses.replace(few, validate_folds=4) == params
@@ -851,7 +851,7 @@ def test_folds_for_data_runs_fewer_folds_below_the_unit_threshold():
     assert folds_for_data(off, 10)[0] is off
     assert folds_for_data(dataclasses.replace(params, validate_folds=2), 10)[0].validate_folds == 2
     with pytest.raises(ValueError):
-        AutoGridParams(sparse_folds=0)
+        AutoGridParams(model="svm", sparse_folds=0)
 
 
 def test_sparse_fleet_runs_fewer_folds_one_width_and_resumes_bit_for_bit():
@@ -860,7 +860,7 @@ def test_sparse_fleet_runs_fewer_folds_one_width_and_resumes_bit_for_bit():
     run keeps one width, every robot agrees, and restarts in the sweep and after the tally (the
     derived parameters re-derived from the restored counts) end bit for bit where the
     uninterrupted run ends."""
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     params = fast_params(spec, validate_divisors=(4.0,), validate_folds=2, sparse_units=60, sparse_folds=1,
                          validate_rounds=60, narrow_ratio=3.0, narrow_min_held=16, max_points=60, tol=1e-3)
     robots = robots_of(spec)
@@ -884,7 +884,7 @@ def test_choose_widths_keeps_two_widths_only_when_they_make_fewer_held_out_error
     on strictly fewer held-out errors; a tie keeps one width."""
     from agents.autogrid_rules import choose_widths
 
-    params = AutoGridParams(narrow_ratio=3.0, narrow_by_holdout=True)
+    params = AutoGridParams(model="svm", narrow_ratio=3.0, narrow_by_holdout=True)
     rec = lambda e: {"errors": e, "held_out": 40}  # noqa: E731
     assert choose_widths(params, [rec(3), rec(2)])[0] is params
     one, note = choose_widths(params, [rec(2), rec(2)])
@@ -899,7 +899,7 @@ def test_width_test_is_one_stacked_pass_agreed_by_every_robot_and_resumes_bit_fo
     final grid's widths follow the decision; restarts in both phases end bit for bit."""
     from agents.autogrid_sweep import held_mask
 
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     params = fast_params(spec, validate_divisors=(4.0,), validate_folds=2, validate_rounds=60, narrow_ratio=3.0,
                          narrow_by_holdout=True, max_points=60, tol=1e-3, max_refinements=1)
     robots = robots_of(spec)

@@ -27,14 +27,14 @@ def _params(spec, **kw) -> AutoGridParams:
     rounds, then one refined grid whose hard margin is tested."""
     kw = {"validate_divisors": (6.0,), "validate_folds": 1, "validate_rounds": 60, "max_points": 60,
           "max_refinements": 1, "tol": 1e-3, **kw}
-    return AutoGridParams(diameter=spec.params["diameter"], **kw)
+    return AutoGridParams(model="svm", diameter=spec.params["diameter"], **kw)
 
 
 def _fleets(same_robot: bool = False):
     """The default world (3 robots x 20 points, blob), and the same with one more point: robot 1 sees an
     inside point 3e-3 diag from robot 0's first outside point. The hard margin still separates them, at
     |x|^2 ~ 1e6 on a 30-point lattice (~300 without the pair; the soft margin's bound ~2e4)."""
-    world, spec = build_world(Options(fleet_id="t"))
+    world, spec = build_world(Options(model="svm", fleet_id="t"))
     robots = robots_of(spec)
     nb0, p0, l0 = robots[0]
     nb1, p1, l1 = robots[1]
@@ -67,7 +67,7 @@ def test_bound_holds_on_a_central_hard_margin():
     grid = np.array([[x, y] for x in np.linspace(pts[:, 0].min(), pts[:, 0].max(), 6)
                      for y in np.linspace(pts[:, 1].min(), pts[:, 1].max(), 5)])
     basis = GridBasis(grid, diag / 6)
-    params = AutoGridParams()
+    params = AutoGridParams(model="svm")
     for data, ill_conditioned in (((pts[:-1], labs[:-1]), False), ((pts, labs), True)):
         hard, soft = solve_central(basis, *data, None), solve_central(basis, *data, params.soft_C)
         xh = basis.sqrt @ hard.c
@@ -143,7 +143,7 @@ def test_infeasible_hard_margin_is_left_at_once_too():
         0: ((1,), pts[:3], np.array([-1, 1, 1])),
         1: ((0,), np.vstack([pts[:1], pts[3:]]), np.array([1, 1])),
     }
-    params = AutoGridParams(diameter=1, max_points=40, max_refinements=2, hard_rounds=300, soft_rounds=3000)
+    params = AutoGridParams(model="svm", diameter=1, max_points=40, max_refinements=2, hard_rounds=300, soft_rounds=3000)
     cores = run_fleet(make_cores(robots, params))
     statuses = [h["status"] for h in cores[0].grid_history]
     assert "hard-not-converged" not in statuses and "hard-ill-conditioned" in statuses
@@ -155,11 +155,11 @@ def test_infeasible_hard_margin_is_left_at_once_too():
 def test_ill_multiplier_is_checked():
     for bad in (0.5, -1.0, float("nan")):
         with pytest.raises(ValueError, match="ill_multiplier"):
-            AutoGridParams(ill_multiplier=bad)
+            AutoGridParams(model="svm", ill_multiplier=bad)
 
 
 def test_a_bound_that_overflows_means_no_test():
     # frames carry finite numbers only: an infinite bound would make every frame of the phase invalid
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # and no warning on the robot's stderr
-        assert ill_conditioned_norm2(np.array([1e200, 0.0]), 0.0, 3, AutoGridParams()) == 0.0
+        assert ill_conditioned_norm2(np.array([1e200, 0.0]), 0.0, 3, AutoGridParams(model="svm")) == 0.0

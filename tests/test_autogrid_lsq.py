@@ -1,6 +1,7 @@
 """autogrid --model lsq: the fleet runs the least-squares rule of benchmarks/lsq_emulation.py (its
 specification) from its own data -- the same choice of sigma, the exact fit on the chosen lattice --
-and the shells' checks. The SVM model (the default) is pinned by tests/test_autogrid*.py."""
+and the shells' checks. It is autogrid's default model; the SVM model (--model svm) is pinned by
+tests/test_autogrid*.py."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import numpy as np
 import pytest
 import shapely
 
-from agents.autogrid_rules import coarse_lattice
+from agents import autogrid_rules
+from agents.autogrid_rules import AutoGridParams, coarse_lattice
 from agents.kernel import GridBasis
 from agents.lsq_model import solve_central_lsq
 from agents.spec import Timing, build_core
@@ -85,12 +87,13 @@ def world_box(world) -> tuple[np.ndarray, np.ndarray]:
     return points.min(axis=0), points.max(axis=0)
 
 
-def test_model_svm_is_the_default_autogrid():
-    """--model svm writes the parameters the default writes: today's autogrid, the same fleet file."""
+def test_model_lsq_is_the_default_autogrid():
+    """--model lsq writes the parameters the default writes (the same fleet file); --model svm another model."""
     _, default = build_world(Options(fleet_id="m"))
+    _, lsq = build_world(Options(fleet_id="m", model="lsq"))
     _, svm = build_world(Options(fleet_id="m", model="svm"))
-    assert default.autogrid_params == svm.autogrid_params and default.autogrid_params.model == "svm"
-    assert not default.autogrid_params.lsq
+    assert default.algorithm == "autogrid" and default.autogrid_params == lsq.autogrid_params
+    assert default.autogrid_params.lsq and not svm.autogrid_params.lsq
 
 
 def test_crash_and_restart_in_the_sweep_and_the_fit_end_on_the_clean_answer():
@@ -129,11 +132,13 @@ def test_lsq_model_refuses_two_widths_and_a_fixed_grid(tmp_path, capsys):
                          (["--rho", "2"], "--rho")):
         code, err = cli_exit_and_stderr(["simulate", "--model", "lsq", *flags, "--out", str(tmp_path / "n")], capsys)
         assert code == 2 and named in err[-1]
+    for flags, named in ((["--narrow-ratio", "3"], "--narrow-ratio"), (["--rho", "2"], "--rho")):  # the default model
+        code, err = cli_exit_and_stderr(["simulate", *flags, "--out", str(tmp_path / "d")], capsys)
+        assert code == 2 and named in err[-1] and "--model svm" in err[-1]
 
 
 def test_simulate_reports_the_model_its_choice_and_its_exact_reference(tmp_path, capsys):
-    code, _ = cli_exit_and_stderr(["simulate", "--algorithm", "autogrid", "--model", "lsq", "--lsq-lambda", "0.2",
-                                   "--out", str(tmp_path / "r")], capsys)
+    code, _ = cli_exit_and_stderr(["simulate", "--lsq-lambda", "0.2", "--out", str(tmp_path / "r")], capsys)  # (the default model)
     result = json.loads((tmp_path / "r" / "result.json").read_text())
     assert code == 0 and result["converged"] and "least squares" in result["model"] and result["lsq_lambda"] == 0.2
     assert len(result["sigma_validation"]) == len(emulation.CANDIDATES)
@@ -158,3 +163,29 @@ def test_launch_equals_simulate_bit_for_bit(tmp_path):
         assert r["stopped"] == "finished" and (r["rounds"], r["converged"]) == (w["rounds"], True)
         assert (r["x"], r["gamma"], r["sigma"], r["sigma_validation"]) == (w["x"], w["gamma"], w["sigma"],
                                                                             w["sigma_validation"])
+
+
+# -- issue 10's frame rule --------------------------------------------------------------------------
+@pytest.mark.parametrize("hub_frames", [False, True], ids=["sparse", "complete"])
+def test_sweep_frames_stay_within_16_function_space_vectors(hub_frames):
+    """The default lsq sweep (25 tasks; with the hub's w 6820 floats in one pass) fits 16 (max_points + 1)."""
+    params = AutoGridParams(model="lsq", hub_frames=hub_frames)
+    assert params.dim <= 16 * (params.max_points + 1)
+    assert sum(params.sweep_blocks()) <= params.dim
+    groups = {params.sweep_group(fold) for fold in range(params.sweep_folds)}
+    assert groups == set(range(params.sweep_groups)) and (params.sweep_groups > 1) == hub_frames
+
+
+def test_sweep_in_groups_of_folds_is_the_one_pass_sweep_bit_for_bit(monkeypatch):
+    """The folds advanced in two groups (complete graph) give the one-pass sweep's scores and fit, bit for bit."""
+    world, spec = _spec()
+    assert spec.autogrid_params.sweep_groups == 2
+    grouped = _fleet(world, spec)
+    monkeypatch.setattr(autogrid_rules, "FRAME_BUDGET", 10**6)  # room for every task at once
+    assert spec.autogrid_params.sweep_groups == 1
+    one_pass = _fleet(world, spec)
+    for a, b in zip(grouped, one_pass):
+        without_rounds = lambda records: [{k: v for k, v in r.items() if k != "rounds"} for r in records]
+        assert without_rounds(a["sigma_validation"]) == without_rounds(b["sigma_validation"])
+        assert (a["x"], a["gamma"], a["sigma"]) == (b["x"], b["gamma"], b["sigma"])
+        assert a["rounds"] > b["rounds"]  # the groups' slowest tasks in turn

@@ -210,7 +210,8 @@ def test_gridstudy_says_the_shifted_grid_is_infeasible(tmp_path):
 SMALL_AUTO = ("--points", "15", "--max-grid-points", "60")  # 3 robots x 15 points, budget 60: a few seconds
 
 
-def test_default_simulate_chooses_grid_and_sigma_and_reaches_the_central_solve(tmp_path):
+def test_svm_simulate_chooses_grid_and_sigma_and_reaches_the_central_solve(tmp_path):
+    """autogrid --model svm (the default model is lsq: tests/test_autogrid_lsq.py) with no grid and no sigma."""
     import numpy as np
 
     from agents.kernel import GridBasis
@@ -218,7 +219,7 @@ def test_default_simulate_chooses_grid_and_sigma_and_reaches_the_central_solve(t
     from launcher import scenario
 
     out = tmp_path / "auto"
-    proc = run_cli("simulate", *SMALL_AUTO, "--out", str(out))
+    proc = run_cli("simulate", *SMALL_AUTO, "--model", "svm", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     result = json.loads((out / "result.json").read_text())
     assert result["algorithm"] == "autogrid" and result["converged"] and result["robots_agree"] is True
@@ -292,7 +293,7 @@ def test_fig5_coarse_start_grid_is_refined_until_it_separates_the_data(tmp_path)
     bounds = _shifted_bounds(world.bounds, "4x2", (0.5, 0.0))
     out = tmp_path / "fig5"
     proc = run_cli("simulate", "--algorithm", "autogrid", "--grid", "4x2", f"--grid-bounds={bounds}", "--sigma", "1",
-                   "--max-grid-points", "60", "--out", str(out))
+                   "--max-grid-points", "60", "--model", "svm", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     result = json.loads((out / "result.json").read_text())
     history = result["grid_history"]

@@ -165,8 +165,8 @@ def test_checkpoint_in_the_desynchronised_window_resumes_bit_for_bit():
 def _autogrid_fleet_into(phase: str, **params_kw):
     """A 4-robot complete autogrid fleet (star, 15 points each) run in lockstep until robot 0 is 10
     rounds into `phase`; returns (world, spec, params, cores, next round)."""
-    world, spec = build_world(Options(fleet_id="t", shape="star", points=15, robots=4))
-    params = AutoGridParams(diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0, **params_kw)
+    world, spec = build_world(Options(model="svm", fleet_id="t", shape="star", points=15, robots=4))
+    params = AutoGridParams(model="svm", diameter=spec.params["diameter"], tol=1e-3, max_points=60, max_refinements=0, **params_kw)
     cores = {
         i: AdaptiveGridCore(spec.share(i, points=True), params)
         for i in spec.robots

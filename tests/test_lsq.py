@@ -134,15 +134,22 @@ def test_bad_lsq_lambda_exits_2_naming_the_flag(value, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("words", [["--algorithm", "lsq", "--preset", "paper"],
-                                   ["--algorithm", "autogrid", "--model", "lsq"]], ids=["fixed grid", "autogrid"])
+                                   ["--algorithm", "autogrid", "--model", "lsq"], []],
+                         ids=["fixed grid", "autogrid", "default"])
 def test_lsq_refuses_a_margin_and_data_without_pairs(words, tmp_path, capsys):
-    """The fixed-grid fleet and autogrid's least-squares model (tests/test_autogrid_lsq.py) alike."""
+    """The fixed-grid fleet and autogrid's least-squares model (tests/test_autogrid_lsq.py), the default run's
+    model, alike; autogrid's refusals say how to get the margin model instead (--model svm)."""
+    autogrid = "--preset" not in words
     code, err = cli_exit_and_stderr(["simulate", *words, "--C", "10", "--out", str(tmp_path / "c")], capsys)
-    assert code == 2 and "--C" in err[-1]
+    assert code == 2 and "--C" in err[-1] and ("--model svm" in err[-1]) == autogrid
     data = tmp_path / "nopairs.csv"  # inside before outside: no (+1, -1) pair in any robot's rows
     data.write_text("robot,x,y,label\n0,0,0,-1\n0,3,3,1\n1,0.5,0,-1\n1,3,-3,1\n")
     code, err = cli_exit_and_stderr(["simulate", *words, "--data", str(data), "--out", str(tmp_path / "d")], capsys)
-    assert code == 2 and str(data) in err[-1] and "LiDAR pair" in err[-1]
+    assert code == 2 and str(data) in err[-1] and "LiDAR pair" in err[-1] and ("--model svm" in err[-1]) == autogrid
+    if autogrid:  # the same data with the margin model: label-only data is what it fits
+        code, err = cli_exit_and_stderr(["simulate", *words, "--model", "svm", "--data", str(data), "--C", "10",
+                                         "--out", str(tmp_path / "s")], capsys)
+        assert code == 0, err
 
 
 def test_simulate_reports_the_model_and_measures_against_its_own_reference(tmp_path, capsys):

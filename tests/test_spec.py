@@ -57,7 +57,7 @@ def test_build_core_gives_each_robot_its_raw_points_and_the_shared_params(auto):
 
 def test_params_are_autogrids_own_and_max_rounds_is_the_total_cap(auto):
     _, spec, _ = auto
-    other = dataclasses.replace(spec, sigma=0.7, C=5.0, params={**spec.params, "max_total_rounds": 1234})
+    other = dataclasses.replace(spec, sigma=0.7, C=5.0, params={**spec.params, "model": "svm", "max_total_rounds": 1234})  # (C: the SVM model's)
     p = other.autogrid_params
     assert (p.max_total_rounds, p.sigma, p.C) == (1234, 0.7, 5.0)
     for key in ("max_rounds", "ct_step", "gamma_penalty_x"):  # keys of other algorithms or typos: refused by name

@@ -23,7 +23,8 @@ def autogrid_fleet(robots: int, topology: str, *, C: float | None, dead: int = 1
     """(world, spec) of an autogrid fleet on a sparse graph, as a run losing ``dead`` for good gives it
     (the paper's sigma and start grid, as `--preset paper`: no sigma sweep, a fast test)."""
     world, spec, _ = make_run(fleet_id=f"survivors-autogrid-{topology}", timing=TIMING, robots=robots,
-                              topology=topology, C=C, algorithm="autogrid", grid=PAPER["grid"], sigma=PAPER["sigma"])
+                              topology=topology, C=C, algorithm="autogrid", model="svm", grid=PAPER["grid"],
+                              sigma=PAPER["sigma"])
     return world, spec_for_run(spec, [CrashPlan(dead, 40)], restart=False, restart_after=0.5)
 
 
@@ -63,7 +64,7 @@ def test_a_hard_autogrid_six_ring_falling_back_to_soft_after_a_loss_converges():
     assert [r["id"] for r in out.robots] == [0, 2, 3, 4, 5]
     assert all(r["converged"] and r["stopped"] == "finished" for r in out.robots)
     assert len({r["rounds"] for r in out.robots}) == 1 and len({tuple(map(tuple, r["phases"])) for r in out.robots}) == 1
-    C = None if out.robots[0]["margin"] == "hard" else AutoGridParams().soft_C
+    C = None if out.robots[0]["margin"] == "hard" else AutoGridParams(model="svm").soft_C
     assert survivors_error(world, out.robots, dead=1, C=C) < 1e-3
 
 
