@@ -425,6 +425,15 @@ def _rim(inside: np.ndarray) -> bool:
     return bool(inside[0].any() or inside[-1].any() or inside[:, 0].any() or inside[:, -1].any())
 
 
+def dataset_world(item: tuple[str, dict, dict]):
+    """(name, world, spec, AutoGridParams with the item's overrides, the data box, its diagonal) of one data set."""
+    name, kw, pkw = item
+    world, spec = build_world(Options(fleet_id="bench", **kw))
+    params = dataclasses.replace(spec.autogrid_params, **pkw)
+    lo, hi = world.points.min(axis=0), world.points.max(axis=0)
+    return name, world, spec, params, (lo[0], hi[0], lo[1], hi[1]), float(np.hypot(*(hi - lo)))
+
+
 def fill_one(item: tuple[str, dict, dict]) -> dict:
     """Per data set: SVC (C = 1e6) at diag/k raw and filled (IoU, 5-fold CV raw and filled, pieces), and the
     fleet-style sweep (exact central soft solves per candidate and fold on its coarse lattice) with each
@@ -436,12 +445,8 @@ def fill_one(item: tuple[str, dict, dict]) -> dict:
 
     from agents.autogrid_rules import lattice_box
     from agents.kernel import _squared_distances as sqd
-    name, kw, pkw = item
-    world, spec = build_world(Options(fleet_id="bench", **kw))
-    params = dataclasses.replace(spec.autogrid_params, **pkw)
+    name, world, spec, params, bounds, diag = dataset_world(item)
     p, y = world.points, world.labels
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    bounds, diag = (lo[0], hi[0], lo[1], hi[1]), float(np.hypot(*(hi - lo)))
     res = 200
     q = scenario.make_grid(res, res, B.padded_bounds(world.shape))  # the IoU raster (benchmarks/autogrid.py)
     truth = shapely.contains_xy(world.shape, q[:, 0], q[:, 1])

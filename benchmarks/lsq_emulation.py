@@ -26,7 +26,6 @@ Exact solves (closed form, no iteration): deterministic.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import pickle
 import sys
 from pathlib import Path
@@ -84,15 +83,11 @@ def one(item: tuple[str, dict, dict]) -> dict:
     import autogrid as B
     from agents.autogrid_rules import coarse_lattice
     from agents.kernel import GridBasis
+    from autogrid_rules_emulation import dataset_world
     from launcher import scenario
-    from launcher.world import Options, build_world
 
-    name, kw, pkw = item
-    world, spec = build_world(Options(fleet_id="bench", **kw))
-    params = dataclasses.replace(spec.autogrid_params, **pkw)
+    name, world, spec, params, bounds, diag = dataset_world(item)
     p, y = world.points, world.labels
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    bounds, diag = (lo[0], hi[0], lo[1], hi[1]), float(np.hypot(*(hi - lo)))
     q = scenario.make_grid(RES, RES, B.padded_bounds(world.shape))
     truth = shapely.contains_xy(world.shape, q[:, 0], q[:, 1])
 
