@@ -225,10 +225,11 @@ class AutoGridParams:
 
     @property
     def sweep_groups(self) -> int:
-        """Groups of folds the sweep advances one after the other (issue 10's frame rule): one, unless
-        every task's block together would exceed FRAME_BUDGET (max_points + 1) floats -- the lsq model's
-        25 tasks with the hub's w on a complete graph, 6820 floats for the default budget -- then the
-        fewest that fit. Each task is the same sub-machine either way: only the rounds change."""
+        """Groups of folds the sweep's frame is sized for (issue 10's frame rule): one, unless every
+        task's block together would exceed FRAME_BUDGET (max_points + 1) floats -- the lsq model's 25 tasks
+        with the hub's w on a complete graph, 6820 floats for the default budget -- then the fewest that
+        fit; the frame holds the first group's blocks and the tasks share it round by round
+        (agents/autogrid_sweep.py). Each task is the same sub-machine either way: only the rounds change."""
         folds, per_fold = self.sweep_folds, sum(self._fold_blocks())
         budget = FRAME_BUDGET * (self.max_points + 1)
         return next((g for g in range(1, folds + 1) if math.ceil(folds / g) * per_fold <= budget), folds)
@@ -551,7 +552,7 @@ def choose_lsq_sigma(records: list[dict[str, Any]], diag: float, params: AutoGri
         f"LiDAR pair ({table}); {params.sweep_folds} folds of whole pairs (a robot's k-th pair in fold (k + id) mod "
         f"{params.sweep_folds}), every candidate and fold the least-squares fit (lam = {params.lsq_lambda:g}) of the "
         f"other folds' rows on its level-0 lattice at {params.coarse_spacing:g} sigma, "
-        f"{'all solved in the same rounds' if params.sweep_groups == 1 else f'solved in {params.sweep_groups} groups of folds'}, "
+        f"{'all solved in the same rounds' if params.sweep_groups == 1 else 'sharing a frame of fewer tasks round by round'}, "
         f"residuals summed by max-consensus over one slot per robot id; diag = {diag:.6g} = diagonal of the data's "
         "bounding box"
     )

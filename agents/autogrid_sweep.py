@@ -9,11 +9,16 @@ vectors only. With params.hub_frames (a complete graph) the block is followed by
 Every robot's sub-machine of a task stops in the same round (its own flags protocol); a stopped
 sub-machine keeps sending its last value, so the sweep costs the slowest task, not the sum of all.
 Issue 10's rule bounds a frame by 16 (max_points + 1) floats: where every task's block together would
-not fit (the lsq model's 25 tasks with the hub's w: 6820 floats for the default budget) the folds run in
-groups one after the other (`AutoGridParams.sweep_groups`, 2 there: folds 0-2, then 3-4, 4092 floats),
-each group's blocks from the frame's start; the next group takes over D rounds after the last task of
-the one before stopped. Every task is the same sub-machine as in one pass, so the scores and the choice
-are the same; the sweep costs the sum of its groups' slowest tasks.
+not fit (the lsq model's 25 tasks with the hub's w: 6820 floats for the default budget) the frame is sized
+for the first of `AutoGridParams.sweep_groups` groups of folds (2 there: folds 0-2, 4092 floats) and the
+tasks share it round by round (`_scheduled`): each task's block is its lattice's own size (2 (m + 1) + 2
+floats, not the slot), and every round the tasks with the fewest rounds done (ties: candidate, then fold)
+take the frame's room in that order, a task that does not fit waiting; a stopped task keeps its block D
+rounds (its verdict's max-consensus) and then frees it. A waiting task is simply not advanced: every
+robot pauses and resumes it in the same rounds (the order is a function of the tasks' agreed state), and
+a sub-machine's round is its own, so every task is the same sub-machine as in one pass: the scores and
+the choice are the same bit for bit, only the rounds change (the default run's sweep 80 rounds instead of
+124 when the folds ran in two groups one after the other; one pass: 62).
 
 Early drop (issue 10): when a task stops, each robot sets its verdict to 1 if the task's iterate
 misclassifies one of its held-out points or its inside region is not one solid piece, else 0;
@@ -72,7 +77,6 @@ class SweepTask:
     verdict: float = 0.0  # 1: this task has a held-out error or a region not solid (max over robots)
     since: int = -1  # rounds since the task stopped (-1: running); verdict fleet-wide at >= diameter
     dropped: bool = False
-    group: int = 0  # the group of folds it is advanced in (AutoGridParams.sweep_groups)
     held_pairs: np.ndarray | None = None  # the lsq model: (outside, inside) of this robot's held-out pairs, (k, 2, 2)
 
 
@@ -189,7 +193,9 @@ class SigmaSweep:
                 box, _, grid = coarse_lattice(bounds, sigma, params.coarse_spacing, slot)
                 models.append(SweepModel(float(d), sigma, box, GridBasis(grid, sigma), slot))
         self.models = models
-        offsets = [0] * params.sweep_groups  # each group of folds lays its blocks from the frame's start
+        # every task's block together over the frame: the tasks share it round by round (`_running`)
+        self._scheduled = params.sweep_groups > 1 and not self._given_models
+        offset = 0
         for cand, model in enumerate(models):
             basis, slot = model.basis, model.slot
             self._raster[cand] = _RasterBasis(basis)
@@ -211,10 +217,10 @@ class SigmaSweep:
                     fold_share = share.with_data(share.neighbours, feats, labels[~held], params.soft_C)
                     sub = WarmADMM(fold_share, sub_params, keep_trace=False, hub_frames=params.hub_frames,
                                    start=model.start, gone=gone)
-                group = params.sweep_group(fold) if not self._given_models else 0
+                task_slot = basis.size if self._scheduled else slot  # (scheduled: offsets set each round)
                 self.tasks.append(SweepTask(cand, fold, model.divisor, model.sigma, model.box, basis, held, sub,
-                                            offsets[group], slot, group=group, held_pairs=pairs))
-                offsets[group] += slot + 3 + (slot + 1 if params.hub_frames else 0)
+                                            offset, task_slot, held_pairs=pairs))
+                offset += self._block(self.tasks[-1]) if not self._scheduled else 0
 
     @property
     def finished(self) -> bool:
@@ -224,18 +230,34 @@ class SigmaSweep:
     def residual(self) -> float:
         return max((t.sub.residual for t in self._running() if not t.sub.finished), default=0.0)
 
+    def _block(self, t: SweepTask) -> int:
+        """Frame length of a task's block: x, gamma, flags, verdict (and the hub's w: x and gamma)."""
+        return t.slot + 3 + (t.slot + 1 if self.params.hub_frames else 0)
+
     def _running(self) -> list[SweepTask]:
-        """The tasks of the group of folds being advanced (AutoGridParams.sweep_groups): the first group
-        with a task not dropped and not stopped D rounds ago (its verdict spread over D hops), so the next
-        group takes over the frame's blocks in the same round on every robot. (D, not `reach`: a constant,
-        so a group once left is never taken up again; a verdict that needed more hops is not spread and
-        its candidate is not dropped early -- the choice stays the full sweep's.)"""
-        last = max((t.group for t in self.tasks), default=0)
-        for group in range(last):
-            tasks = [t for t in self.tasks if t.group == group]
-            if not all(t.dropped or t.since >= self.params.diameter for t in tasks):
-                return tasks
-        return [t for t in self.tasks if t.group == last]
+        """The tasks in this round's frame, their offsets set. One pass: every task, in its fixed block.
+        Scheduled (see the module docstring): the stopped tasks still spreading their verdict (fewer than
+        D rounds since the stop: they held room the round before, so they fit), then the unfinished tasks
+        by rounds done, candidate and fold, each while it fits; laid out in task order. D, not `reach`:
+        a task once left is never taken up again (a verdict that needed more hops is not spread and its
+        candidate is not dropped early -- the choice stays the full sweep's). A function of the tasks'
+        state alone, which every robot holds alike: the same tasks in the same blocks everywhere."""
+        if not self._scheduled:
+            return self.tasks
+        d = self.params.diameter
+        spreading = [t for t in self.tasks if 0 <= t.since < d and not t.dropped]
+        waiting = sorted((t for t in self.tasks if t.since < 0 and not t.dropped),
+                         key=lambda t: (t.sub.round, t.cand, t.fold))
+        room, chosen = self.dim, []
+        for t in spreading + waiting:
+            if self._block(t) <= room:
+                room -= self._block(t)
+                chosen.append(t)
+        chosen.sort(key=lambda t: (t.cand, t.fold))
+        offset = 0
+        for t in chosen:
+            t.offset, offset = offset, offset + self._block(t)
+        return chosen
 
     def stacked(self) -> np.ndarray:
         """This robot's frame vector: every running task's (x, gamma, flags) in its block."""

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import shapely
 
-from agents import autogrid_rules
+from agents import autogrid_rules, autogrid_sweep
 from agents.autogrid_rules import AutoGridParams, coarse_lattice
 from agents.kernel import GridBasis
 from agents.lsq_model import solve_central_lsq
@@ -176,11 +176,25 @@ def test_sweep_frames_stay_within_16_function_space_vectors(hub_frames):
     assert groups == set(range(params.sweep_groups)) and (params.sweep_groups > 1) == hub_frames
 
 
-def test_sweep_in_groups_of_folds_is_the_one_pass_sweep_bit_for_bit(monkeypatch):
-    """The folds advanced in two groups (complete graph) give the one-pass sweep's scores and fit, bit for bit."""
+def test_scheduled_sweep_is_the_one_pass_sweep_bit_for_bit(monkeypatch):
+    """The tasks sharing a frame sized for three folds round by round (complete graph) give the one-pass
+    sweep's scores and fit, bit for bit; every round's blocks are disjoint and within the frame rule."""
     world, spec = _spec()
-    assert spec.autogrid_params.sweep_groups == 2
+    params = spec.autogrid_params
+    assert params.sweep_groups == 2 and params.dim <= 16 * (params.max_points + 1)
+    running, layouts = autogrid_sweep.SigmaSweep._running, []
+
+    def checked(sweep):
+        tasks = running(sweep)
+        spans = sorted((t.offset, t.offset + sweep._block(t)) for t in tasks)
+        assert all(end <= start for (_, end), (start, _) in zip(spans, spans[1:])) and spans[-1][1] <= sweep.dim
+        layouts.append(len(tasks))
+        return tasks
+
+    monkeypatch.setattr(autogrid_sweep.SigmaSweep, "_running", checked)
     grouped = _fleet(world, spec)
+    assert 0 < min(layouts) and max(layouts) < params.sweep_folds * len(params.validate_divisors)  # (shared)
+    monkeypatch.undo()
     monkeypatch.setattr(autogrid_rules, "FRAME_BUDGET", 10**6)  # room for every task at once
     assert spec.autogrid_params.sweep_groups == 1
     one_pass = _fleet(world, spec)
@@ -188,4 +202,4 @@ def test_sweep_in_groups_of_folds_is_the_one_pass_sweep_bit_for_bit(monkeypatch)
         without_rounds = lambda records: [{k: v for k, v in r.items() if k != "rounds"} for r in records]
         assert without_rounds(a["sigma_validation"]) == without_rounds(b["sigma_validation"])
         assert (a["x"], a["gamma"], a["sigma"]) == (b["x"], b["gamma"], b["sigma"])
-        assert a["rounds"] > b["rounds"]  # the groups' slowest tasks in turn
+        assert a["rounds"] > b["rounds"]  # (a task waits while the frame is full)
