@@ -301,15 +301,19 @@ class AdaptiveGridCore(RoundCore):
             start=self._warm, edges=self._carry if p.warm_duals else None, hub_frames=p.hub_frames,
             # (the carried duals are soft_C's: a user's other C starts from zero)
             hub_duals=self._soft_duals if mode == "soft" and p.warm_duals and C == p.soft_C else None,
-            # a soft margin weighs |x|^2 by 1 / (robots left): on a complete graph no `gone` list is heard (the
-            # robots saw the drops themselves), so a sub-machine built after one is handed them (as the lsq fit)
-            gone=self.gone if self.floods_gone else tuple(sorted(self.dropped)),
+            gone=self._known_gone(),  # a soft margin weighs |x|^2 by 1 / (robots left)
         )
         self._carry = {}
         self._mark(ADMM)
         self._values, self._flags = self._sub_frame(), 0
         if mode == "hard":  # the bound rides in every frame of the phase: a restart re-derives the test from it
             self._values[-3] = self._ill_norm2
+
+    def _known_gone(self) -> tuple[int, ...]:
+        """The robots this robot knows dropped for good, for a sub-machine it builds now: the flooded list on a
+        sparse graph; on a complete graph, where no list travels (every robot saw the drops itself), its own
+        drops -- a sub-machine built after one runs the edge form among the survivors, weighed by this list."""
+        return self.gone if self.floods_gone else tuple(sorted(self.dropped))
 
     def _enter_lsq_fit(self) -> None:
         """The lsq model's one fit: every row of every robot on the chosen level-0 lattice, from zero."""
@@ -320,9 +324,7 @@ class AdaptiveGridCore(RoundCore):
             lsq_sub_params(p.lsq_lambda, rho=p.lsq_rho, relax=p.relax, tol=p.tol, max_rounds=p.soft_rounds,
                            diameter=p.diameter),
             lam=p.lsq_lambda, keep_trace=False, hub_frames=p.hub_frames,
-            # lam / (robots left): a complete graph's robots hear of no `gone` list, they saw the drops themselves
-            # (a sub-machine built after one runs the edge form among the survivors, weighed by this list)
-            gone=self.gone if self.floods_gone else tuple(sorted(self.dropped)),
+            gone=self._known_gone(),  # lam / (robots left)
         )
         self._mark(ADMM)
         self._values, self._flags = self._sub_frame(), 0

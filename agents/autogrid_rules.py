@@ -17,7 +17,7 @@ import numpy as np
 
 from agents.admm import FRAME_BUDGET
 from agents.kernel import GridBasis
-from agents.lsq_model import DEFAULT_LSQ_LAMBDA
+from agents.lsq_model import DEFAULT_LSQ_LAMBDA, check_lsq_lambda
 from agents.params import params_from
 from protocol.frames import MAX_DIM
 
@@ -173,8 +173,10 @@ class AutoGridParams:
             raise ValueError(f"relax must be in (0, 2), got {self.relax}")
         if self.model not in AUTOGRID_MODELS:
             raise ValueError(f"model must be one of {', '.join(AUTOGRID_MODELS)}, got {self.model!r}")
-        if not (isinstance(self.lsq_lambda, (int, float)) and math.isfinite(self.lsq_lambda) and self.lsq_lambda > 0):
-            raise ValueError(f"lsq_lambda must be a finite positive number, got {self.lsq_lambda!r}")
+        try:
+            check_lsq_lambda(self.lsq_lambda)
+        except ValueError as exc:
+            raise ValueError(f"lsq_lambda: {exc}") from None
         if self.model == "lsq":
             if self.C is not None:
                 raise ValueError("C: the lsq model has no margin (its weight is lsq_lambda)")

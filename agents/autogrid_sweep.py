@@ -55,7 +55,7 @@ from agents.autogrid_rules import PACK, TALLY_BLOCKS, AutoGridParams, coarse_lat
 from agents.autogrid_warm import WarmADMM
 from agents.kernel import GridBasis
 from agents.lsq_admm import WarmLSQ, lsq_sub_params
-from agents.lsq_model import lidar_pairs
+from agents.lsq_model import lidar_pairs, lsq_rows
 from agents.rounds import RobotShare
 from protocol.frames import StateUpdate
 
@@ -119,20 +119,6 @@ def pair_folds(labels: np.ndarray, robot_id: int, folds: int) -> tuple[np.ndarra
     pair (in data order) in fold (k + robot id) mod folds (benchmarks/lsq_emulation.py lidar_rows)."""
     starts = lidar_pairs(labels)
     return starts, (np.arange(len(starts)) + robot_id) % folds
-
-
-def lsq_fold_rows(points: np.ndarray, labels: np.ndarray, starts: np.ndarray, train: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The model's rows of the pairs kept for training (`train`, one flag per pair) and of every point
-    in no pair: outside +1, midpoint 0, inside -1 per pair (agents/lsq_model.py lsq_rows), loose rows
-    with their label."""
-    in_pair = np.zeros(len(points), dtype=bool)
-    in_pair[starts], in_pair[starts + 1] = True, True
-    out, inside = points[starts[train]], points[starts[train] + 1]
-    rows = np.vstack([out, 0.5 * (out + inside), inside, points[~in_pair]]).reshape(-1, 2)
-    n = len(out)
-    targets = np.concatenate([np.ones(n), np.zeros(n), -np.ones(n), np.asarray(labels, dtype=float)[~in_pair]])
-    return rows, targets
 
 
 def held_mask(units: np.ndarray, fold: int, params: AutoGridParams) -> np.ndarray:
@@ -203,7 +189,7 @@ class SigmaSweep:
                 pairs = None
                 if params.lsq:
                     held = np.zeros(len(points), dtype=bool)  # (unused: the pairs are held out)
-                    rows, targets = lsq_fold_rows(points, labels, starts, pair_fold != fold)
+                    rows, targets = lsq_rows(points, labels, keep=pair_fold != fold)
                     feats = basis.features(rows) if len(rows) else np.zeros((0, basis.size))
                     sub: WarmADMM = WarmLSQ(share.with_data(share.neighbours, feats, targets, None), sub_params,
                                             lam=params.lsq_lambda, keep_trace=False, hub_frames=params.hub_frames,

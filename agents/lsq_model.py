@@ -61,28 +61,29 @@ def lidar_pairs(labels: np.ndarray) -> np.ndarray:
     return np.asarray(starts, dtype=np.intp)
 
 
-def lsq_rows(points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def lsq_rows(points: np.ndarray, labels: np.ndarray, keep: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """The model's rows of one robot's data, in data order: (row points (n, 2), targets (n,)).
 
     A pair (outside, inside) gives outside +1, midpoint 0, inside -1; any other point one row,
-    its label as target (no midpoint: nothing says where its boundary is)."""
+    its label as target (no midpoint: nothing says where its boundary is). ``keep`` (one flag per
+    pair of `lidar_pairs`, None: all) leaves the other pairs out -- a fold's training rows, whose
+    held-out pairs are scored instead (agents/autogrid_sweep.py); points in no pair always stay."""
     points = np.asarray(points, dtype=float).reshape(-1, 2)
     labels = np.asarray(labels)
-    starts = set(lidar_pairs(labels).tolist())
-    rows: list[np.ndarray] = []
-    targets: list[float] = []
-    i = 0
-    while i < len(points):
-        if i in starts:
-            out, inside = points[i], points[i + 1]
-            rows += [out, 0.5 * (out + inside), inside]
-            targets += [1.0, BOUNDARY_TARGET, -1.0]
-            i += 2
-        else:
-            rows.append(points[i])
-            targets.append(float(labels[i]))
-            i += 1
-    return np.asarray(rows, dtype=float).reshape(-1, 2), np.asarray(targets, dtype=float)
+    starts = lidar_pairs(labels)
+    in_pair = np.zeros(len(points), dtype=bool)
+    in_pair[starts], in_pair[starts + 1] = True, True
+    if keep is not None:
+        starts = starts[np.asarray(keep, dtype=bool)]
+    loose = np.flatnonzero(~in_pair)
+    out, inside = points[starts], points[starts + 1]
+    rows = np.vstack([out, 0.5 * (out + inside), inside, points[loose]])
+    n = len(starts)
+    targets = np.concatenate([np.ones(n), np.full(n, BOUNDARY_TARGET), -np.ones(n), labels[loose].astype(float)])
+    # data order: a pair's three rows where the pair stands (keys 3s, 3s + 1, 3s + 2), a loose point i at 3i
+    order = np.argsort(np.concatenate([3 * starts, 3 * starts + 1, 3 * starts + 2, 3 * loose]), kind="stable")
+    return rows[order].reshape(-1, 2), targets[order]
 
 
 def design(features: np.ndarray) -> np.ndarray:

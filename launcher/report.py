@@ -359,12 +359,9 @@ def robot_C(robot: dict[str, Any], C: float | None, soft_C: float) -> float | No
     return C if C is not None else soft_C
 
 
-def autogrid_references(
-    robots: list[dict[str, Any]], points: np.ndarray, labels: np.ndarray, *, C: float | None, soft_C: float
-) -> dict[int, Reference]:
-    """Per robot id with a function: the central solve of (points, labels) on its final grid and
-    sigma, with its margin's penalty. Robots that agree share one solve. The solve is exact only
-    when K_G keeps full numerical rank (basis.rank == M): `reference_exact` says so."""
+def _references(robots: list[dict[str, Any]], penalty: Any, solve: Any) -> dict[int, Reference]:
+    """Per robot id with a function: ``solve(basis, penalty)`` on its final grid, sigma (and widths),
+    ``penalty(robot)`` the penalty of the problem it solved; robots that agree share one solve."""
     solved: dict[tuple[bytes, float, float | None, bytes | None], Reference] = {}
     out: dict[int, Reference] = {}
     for r in robots:
@@ -372,30 +369,30 @@ def autogrid_references(
             continue
         grid = np.asarray(r["grid"], dtype=float).reshape(-1, 2)
         widths = None if r.get("widths") is None else np.asarray(r["widths"], dtype=float)
-        key = (grid.tobytes(), float(r["sigma"]), robot_C(r, C, soft_C), None if widths is None else widths.tobytes())
+        key = (grid.tobytes(), float(r["sigma"]), penalty(r), None if widths is None else widths.tobytes())
         if key not in solved:
             basis = GridBasis(grid, float(r["sigma"]), widths=widths)
-            solved[key] = Reference(basis, solve_central(basis, points, labels, key[2]), key[2])
+            solved[key] = Reference(basis, solve(basis, key[2]), key[2])
         out[int(r["id"])] = solved[key]
     return out
+
+
+def autogrid_references(
+    robots: list[dict[str, Any]], points: np.ndarray, labels: np.ndarray, *, C: float | None, soft_C: float
+) -> dict[int, Reference]:
+    """Per robot id with a function: the central solve of (points, labels) on its final grid and
+    sigma, with its margin's penalty. Robots that agree share one solve. The solve is exact only
+    when K_G keeps full numerical rank (basis.rank == M): `reference_exact` says so."""
+    return _references(robots, lambda r: robot_C(r, C, soft_C),
+                       lambda basis, penalty: solve_central(basis, points, labels, penalty))
 
 
 def autogrid_lsq_references(robots: list[dict[str, Any]], points: np.ndarray, labels: np.ndarray,
                             robot_of: np.ndarray, lam: float) -> dict[int, Reference]:
     """`autogrid_references` of a least-squares fleet (model "lsq"): the exact least-squares fit
     (agents/lsq_model.py solve_central_lsq) of all rows on each robot's final grid and sigma."""
-    solved: dict[tuple[bytes, float], Reference] = {}
-    out: dict[int, Reference] = {}
-    for r in robots:
-        if not has_function(r):
-            continue
-        grid = np.asarray(r["grid"], dtype=float).reshape(-1, 2)
-        key = (grid.tobytes(), float(r["sigma"]))
-        if key not in solved:
-            basis = GridBasis(grid, key[1])
-            solved[key] = Reference(basis, solve_central_lsq(basis, points, labels, lam, robot_of=robot_of), None)
-        out[int(r["id"])] = solved[key]
-    return out
+    return _references(robots, lambda r: None,
+                       lambda basis, _: solve_central_lsq(basis, points, labels, lam, robot_of=robot_of))
 
 
 def reference_exact(ref: Reference | None) -> bool:
