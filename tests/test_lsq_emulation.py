@@ -63,3 +63,28 @@ def test_an_out_path_that_is_a_file_exits_2(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         lsq.main(["dev", str(target)])
     assert exit_info.value.code == 2 and "not a directory" in capsys.readouterr().err
+
+
+def test_rule_2_tries_only_what_fits_and_ties_go_to_the_larger_sigma():
+    near = {k: {"fits": True, "score": 0.4} for k in lsq.CANDIDATES_NEAR}
+    near[32] = {"fits": False}  # over the budget: never chosen, whatever it would have scored
+    near[24]["score"] = near[12]["score"] = 0.1
+    assert lsq.choice_near({"near": near}) == 12
+
+
+def test_rule_2_lattice_keeps_only_nodes_near_data_and_the_output_fills_enclosed_holes():
+    from scipy.spatial import cKDTree
+    points = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 3.0]])
+    sigma = 0.5
+    grid = lsq.near_lattice((0.0, 4.0, 0.0, 3.0), sigma, points)
+    assert len(grid) > 0 and np.all(cKDTree(points).query(grid)[0] <= lsq.NEAR * sigma)
+    # a ring of grid nodes whose f is negative on the ring only: the output fills the ring's inside
+    t = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    ring = np.column_stack([np.cos(t), np.sin(t)]) * 2.0
+    basis = GridBasis(ring, 0.4)
+    f = lambda q: -np.exp(-(cKDTree(ring).query(q)[0] ** 2) / 0.08) + 0.5  # noqa: E731  (< 0 near the ring)
+    gx, gy = np.meshgrid(np.linspace(-3, 3, 61), np.linspace(-3, 3, 61))
+    q = np.column_stack([gx.ravel(), gy.ravel()])
+    mask = lsq.output_mask(f, basis, q, (61, 61))
+    assert mask[30 * 61 + 30] and not (f(q[[30 * 61 + 30]]) < 0)[0]  # the centre: filled, though f > 0 there
+    assert not mask[0]  # the box's corner: outside
