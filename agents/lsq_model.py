@@ -14,6 +14,9 @@ one linear system: the exact reference is its closed-form solve (`solve_central_
 share is its own rows plus lam / N |x|^2 (as the SVM splits 1/2 |x|^2), so the shares sum to the
 fleet's objective; `LsqLocalStep` is the ADMM local step on that share, a linear solve factored once.
 
+The model's answer is its output region (`output_region`), not {f < 0}: far from every grid node f
+is only gamma, which says nothing, and an enclosed hollow no LiDAR ray from outside can reach is inside.
+
 Pure: no I/O, no clock. The functions take a `GridBasis` and assume nothing about how its grid and
 sigma were chosen (a fixed grid today; autogrid's may call them per grid).
 """
@@ -24,6 +27,8 @@ import math
 
 import numpy as np
 import scipy.linalg
+from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from agents.kernel import GridBasis
 from agents.problem import CentralSolution
@@ -33,6 +38,11 @@ DEFAULT_LSQ_LAMBDA = 0.1
 
 #: target of a pair's midpoint row: the LiDAR return lies on the outline, f = 0 there
 BOUNDARY_TARGET = 0.0
+
+#: the output region's reach, in kernel widths: f says something only within this many widths of a
+#: grid node (farther, every kernel term is below exp(-2) ~ 0.14 of its peak and f tends to gamma).
+#: The lead's rule 2, frozen on development data (benchmarks/lsq_emulation.py ``MASK``)
+OUTPUT_REACH = 2.0
 
 
 def check_lsq_lambda(lam: float) -> None:
@@ -45,6 +55,32 @@ def check_lsq_lambda(lam: float) -> None:
 def model_words(lam: float) -> str:
     """result.json's ``model`` of a least-squares fleet (fixed grid or autogrid), in words."""
     return f"LiDAR least squares (pair: outside +1, return 0, inside -1), lam {lam:g}"
+
+
+def output_region(values: np.ndarray, points: np.ndarray, shape: tuple[int, int], grid: np.ndarray,
+                  sigma: float, widths: np.ndarray | None = None) -> np.ndarray:
+    """The least-squares model's inside region on a raster: one flag per raster point.
+
+        region = fill_holes({f < 0} AND {within OUTPUT_REACH widths of a grid node})
+
+    ``values``: f at the raster ``points`` ((m, 2), row-major: x varies fastest, rows go up in y, as
+    launcher/scenario.py make_grid orders them), ``shape`` = (rows in y, points in x). Why: far from
+    every node f is only gamma, which may be slightly negative or positive and says nothing; and the
+    unobserved interior of a large part can come out as a hollow that no LiDAR ray from outside can
+    reach, so it is inside (scipy.ndimage.binary_fill_holes, its default structure: a hollow is a
+    4-connected outside component that does not touch the raster's edge). A node's reach is
+    OUTPUT_REACH times its own width (``widths``, one per node; None: sigma for every node)."""
+    values = np.asarray(values, dtype=float).ravel()
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    grid = np.asarray(grid, dtype=float).reshape(-1, 2)
+    if len(values) != len(points) or len(points) != shape[0] * shape[1]:
+        raise ValueError(f"output_region: {len(values)} values and {len(points)} points for a raster of shape {shape}")
+    node_widths = np.full(len(grid), float(sigma)) if widths is None else np.asarray(widths, dtype=float)
+    near = np.zeros(len(points), dtype=bool)
+    for w in np.unique(node_widths):  # nodes of one width: the nearest one decides
+        distance, _ = cKDTree(grid[node_widths == w]).query(points)
+        near |= distance <= OUTPUT_REACH * w
+    return ndimage.binary_fill_holes(((values < 0) & near).reshape(shape)).ravel()
 
 
 def lidar_pairs(labels: np.ndarray) -> np.ndarray:

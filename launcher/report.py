@@ -6,6 +6,9 @@ The schema of result.json is documented in docs/result-schema.md.
 A fixed-grid run (admm, ct-admm, central) is measured on the fleet file's basis (`build_result`).
 An autogrid fleet chose its own grid and sigma: each robot is measured on *its* final grid and
 sigma against the centralized solve there (`autogrid_references`, `build_autogrid_result`).
+A least-squares fleet's answer (`--algorithm lsq`, autogrid's model lsq) is its output region
+(agents/lsq_model.py `output_region`): its IoU and its drawn outline are the region's; the raw
+{f < 0} IoU is kept beside it (``iou_unfilled``).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from agents.kernel import GridBasis
-from agents.lsq_model import model_words, solve_central_lsq
+from agents.lsq_model import OUTPUT_REACH, model_words, output_region, solve_central_lsq
 from agents.problem import CentralSolution, solve_central
 from launcher import scenario
 from launcher.cores import runs_alone, usable_cores
@@ -259,14 +262,8 @@ def build_result(
     function, consensus = _errors(basis, fs, central)
     pts, labels = world.points, world.labels
     accuracy = min((float(np.mean(np.sign(basis.decision(pts, c, g)) == labels)) for c, g in fs), default=None)
-    iou = None
-    if world.shape is not None and fs:
-        shared = SharedKernels()  # one raster kernel matrix for every robot (bit for bit basis.decision)
-        ious = [
-            scenario.iou_on_raster(world.shape, lambda p, c=c, g=g: shared.decision(p, basis, c, g) < 0, world.bounds)
-            for c, g in fs
-        ]
-        iou = min(ious)
+    least_squares = algorithm == "lsq"
+    ious, unfilled = raster_ious(world, [(basis, c, g) for c, g in fs], least_squares=least_squares)
     robot_rows = []
     for r, (c, g) in zip(robots, fs, strict=True):
         row = {k: v for k, v in r.items() if k not in ("trace", "x", "round_times", "residuals")}
@@ -296,6 +293,7 @@ def build_result(
         "wall_s": wall_s,
         "algorithm": algorithm,
         **({} if model is None else {"model": model}),
+        **({"output_region": OUTPUT_REGION_WORDS} if least_squares else {}),
         "sigma": basis.sigma,
         "C": C,
         "grid": basis.grid.tolist(),
@@ -313,13 +311,50 @@ def build_result(
             "consensus_error": _num(consensus),
             "error_bound": _error_bound(robots),
             "train_accuracy": accuracy,
-            "iou": iou,
+            "iou": min(ious, default=None),
+            **({"iou_unfilled": min(unfilled, default=None)} if least_squares else {}),
             **bytes_metrics(robots),
         },
         "history": history(basis, robots, central),
     }
     result.update(extra or {})
     return result
+
+
+def raster_ious(world: World, functions: list[tuple[GridBasis, np.ndarray, float]], *, least_squares: bool
+                ) -> tuple[list[float], list[float]]:
+    """(IoU, raw IoU) of each function (basis, c, gamma) against the truth on scenario.iou_on_raster's
+    raster; both empty when the world has no shape (data from a file).
+
+    The IoU is that of the answer: {f < 0} for the SVM; for a least-squares fleet (``least_squares``)
+    its output region (agents/lsq_model.py `output_region`: within reach of a grid node, enclosed
+    hollows filled). The raw IoU is {f < 0}'s (for the SVM the same figures). One raster kernel
+    matrix per distinct basis (`SharedKernels`: bit for bit `GridBasis.decision`)."""
+    if world.shape is None or not functions:
+        return [], []
+    shared = SharedKernels()
+    shape = (scenario.IOU_RESOLUTION, scenario.IOU_RESOLUTION)
+
+    def answer(points: np.ndarray, b: GridBasis, c: np.ndarray, g: float) -> np.ndarray:
+        f = shared.decision(points, b, c, g)
+        return output_region(f, points, shape, b.grid, b.sigma, b.widths) if least_squares else f < 0
+
+    ious = [scenario.iou_on_raster(world.shape, lambda p, f=f: answer(p, *f), world.bounds) for f in functions]
+    if not least_squares:
+        return ious, ious
+    raw = [scenario.iou_on_raster(world.shape, lambda p, f=f: shared.decision(p, *f) < 0, world.bounds)
+           for f in functions]
+    return ious, raw
+
+
+#: result.json's ``output_region`` of a least-squares fleet: what its answer (and ``iou``) is, in words
+OUTPUT_REGION_WORDS = f"{{f < 0}} within {OUTPUT_REACH:g} kernel widths of a grid node, enclosed holes filled"
+
+
+def least_squares_result(result: dict[str, Any]) -> bool:
+    """A least-squares fleet's result (`--algorithm lsq`, autogrid's model lsq, `central --algorithm
+    lsq`; it says ``output_region``): its answer is the output region, not {f < 0}."""
+    return "output_region" in result
 
 
 def _error_bound(robots: list[dict[str, Any]]) -> float | None:
@@ -440,10 +475,10 @@ def disagreement_before_flood(robots: list[dict[str, Any]]) -> float | None:
 
 
 def _autogrid_rows(
-    world: World, robots: list[dict[str, Any]], references: dict[int, Reference]
-) -> tuple[list[dict[str, Any]], list[float], list[float], list[float]]:
+    world: World, robots: list[dict[str, Any]], references: dict[int, Reference], *, least_squares: bool
+) -> tuple[list[dict[str, Any]], list[float], list[float], tuple[list[float], list[float]]]:
     """Each robot's row, measured on its own grid: the rows and the function errors, training
-    accuracies and IoUs of the robots whose reference exists."""
+    accuracies and (IoUs, raw IoUs: `raster_ious`) of the robots whose reference exists."""
     pts, labels = world.points, world.labels
     rows, errors, accuracies = [], [], []
     measured = []  # (basis, c, gamma) of every robot with a reference: one raster for their IoUs
@@ -460,12 +495,7 @@ def _autogrid_rows(
                 row["function_error"] = b.function_error(c, g, ref.central.c, ref.central.gamma)
                 errors.append(row["function_error"])
         rows.append(row)
-    ious = []
-    if world.shape is not None:
-        shared = SharedKernels()
-        ious = [scenario.iou_on_raster(world.shape, lambda p, f=f: shared.decision(p, *f) < 0, world.bounds)
-                for f in measured]
-    return rows, errors, accuracies, ious
+    return rows, errors, accuracies, raster_ious(world, measured, least_squares=least_squares)
 
 
 def _autogrid_consensus(
@@ -503,7 +533,8 @@ def build_autogrid_result(
     with_f = [r for r in robots if has_function(r)]
     first = with_f[0] if with_f else (robots[0] if robots else {})
     ref0 = references.get(int(first["id"])) if with_f else None
-    rows, errors, accuracies, ious = _autogrid_rows(world, robots, references)
+    least_squares = first.get("model") == "lsq"
+    rows, errors, accuracies, (ious, unfilled) = _autogrid_rows(world, robots, references, least_squares=least_squares)
     agree = robots_agree(robots)
     gap = disagreement_before_flood(robots)
     consensus = _autogrid_consensus(robots, references, ref0, agree, gap)
@@ -518,8 +549,8 @@ def build_autogrid_result(
         "wall_s": wall_s,
         "algorithm": "autogrid",
         # the least-squares model's fleet says so (an SVM fleet's result is as it was: no model key)
-        **({"model": model_words(first["lsq_lambda"]), "lsq_lambda": first["lsq_lambda"]}
-           if first.get("model") == "lsq" else {}),
+        **({"model": model_words(first["lsq_lambda"]), "lsq_lambda": first["lsq_lambda"],
+            "output_region": OUTPUT_REGION_WORDS} if least_squares else {}),
         "sigma": first.get("sigma"),
         "C": None if ref0 is None else ref0.C,
         "grid": first.get("grid") or [],
@@ -546,6 +577,7 @@ def build_autogrid_result(
             "consensus_error": _num(consensus),
             "train_accuracy": min(accuracies, default=None),
             "iou": min(ious, default=None),
+            **({"iou_unfilled": min(unfilled, default=None)} if least_squares else {}),
             **bytes_metrics(robots),
         },
         "history": [],
@@ -576,16 +608,17 @@ def write_json(path: Path, obj: Any) -> None:
 # -- pictures ---------------------------------------------------------------------------------
 class SharedKernels:
     """Robots' functions on the same points with one kernel matrix per distinct (points, grid,
-    sigma), bit for bit `GridBasis.decision`: the robots of an agreed fleet share one matrix, and a
+    sigma, widths), bit for bit `GridBasis.decision`: the robots of an agreed fleet share one matrix, and a
     raster of 40,000-90,000 points against a grid of 141-300 points costs 0.2-0.5 s per matrix."""
 
     def __init__(self) -> None:
-        self._kernels: dict[tuple[bytes, bytes, float], np.ndarray] = {}
+        self._kernels: dict[tuple[bytes, bytes, float, bytes | None], np.ndarray] = {}
 
     def decision(self, points: np.ndarray, basis: GridBasis, c: np.ndarray, gamma: float) -> np.ndarray:
         """f(points) = k(points, G) c + gamma."""
         points = np.ascontiguousarray(points, dtype=float)
-        key = (points.tobytes(), np.ascontiguousarray(basis.grid).tobytes(), basis.sigma)
+        widths = None if basis.widths is None else np.ascontiguousarray(basis.widths).tobytes()
+        key = (points.tobytes(), np.ascontiguousarray(basis.grid).tobytes(), basis.sigma, widths)
         if key not in self._kernels:
             self._kernels[key] = basis.kernel_to_grid(points)
         return self._kernels[key] @ np.asarray(c, dtype=float) + float(gamma)
@@ -866,7 +899,8 @@ def plot_shapes(
     """The paper's Fig. 3: truth, each robot's data, grid points and every learned outline.
 
     ``bases`` (autogrid): each robot's own final basis; the grid drawn is ``result["grid"]`` (the
-    final grid) and, when the fleet started from a given grid, that start grid too.
+    final grid) and, when the fleet started from a given grid, that start grid too. A least-squares
+    fleet's outline is the boundary of its output region (`least_squares_result`), an SVM's f = 0.
     """
     fig, ax = _figure((7.5, 6), _SHAPES_RECT)
     x0, x1, y0, y1 = world.bounds
@@ -889,6 +923,11 @@ def plot_shapes(
         if row is not None and b is not None and row.get("c") is not None:
             drawn[robot.id] = (b, np.asarray(row["c"], dtype=float), float(row["gamma"]))
     values = dict(zip(drawn, raster_decisions(xs, ys, list(drawn.values())), strict=True))
+    if least_squares_result(result):  # the region's boundary: its mask as -1 inside, +1 outside, contoured at 0
+        raster = np.column_stack([gx.ravel(), gy.ravel()])
+        values = {i: np.where(output_region(f, raster, f.shape, drawn[i][0].grid, drawn[i][0].sigma,
+                                            drawn[i][0].widths).reshape(f.shape), -1.0, 1.0)
+                  for i, f in values.items()}
     for colour, robot in zip(colours, world.robots, strict=True):
         out = robot.labels > 0
         ax.scatter(*robot.points[out].T, marker="o", facecolors="none", edgecolors=[colour], s=28)
@@ -1056,6 +1095,7 @@ def summary_table(result: dict[str, Any]) -> Any:
     table.caption = (
         f"function error {fmt(m['function_error'], '.2e')}, consensus error {fmt(m['consensus_error'], '.2e')}\n"
         f"train accuracy {fmt(m['train_accuracy'], '.3f')}, IoU {fmt(m['iou'], '.3f')}"
+        + (f" (output region; raw {{f < 0}} {fmt(m['iou_unfilled'], '.3f')})" if "iou_unfilled" in m else "")
     )
     if result.get("model"):
         table.caption += f"\nmodel: {result['model']}"

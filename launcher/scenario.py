@@ -784,16 +784,21 @@ def _check_bounds(bounds: tuple[float, float, float, float]) -> tuple[float, flo
     return x0, x1, y0, y1
 
 
+#: points per side of the IoU raster (`iou_on_raster`): result.json's ``iou`` is measured on it
+IOU_RESOLUTION = 200
+
+
 def iou_on_raster(
     true_shape: Polygon,
     inside: Callable[[np.ndarray], np.ndarray],
     bounds: tuple[float, float, float, float],
-    resolution: int = 200,
+    resolution: int = IOU_RESOLUTION,
 ) -> float:
     """Intersection over union of the true interior and {x : inside(x)} on a raster of `bounds`.
 
-    `inside` gets all raster points at once as an (m, 2) array and returns m booleans. Both
-    sets empty counts as a perfect match (1.0).
+    `inside` gets all raster points at once as an (m, 2) array (make_grid's order: a
+    (resolution, resolution) raster, rows in y) and returns m booleans. Both sets empty counts as a
+    perfect match (1.0).
     """
     resolution = _positive_int(resolution, f"resolution {resolution!r} is not a positive integer")
     points = make_grid(resolution, resolution, bounds)
