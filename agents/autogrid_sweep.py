@@ -51,7 +51,16 @@ from typing import Any
 import numpy as np
 
 from agents.admm import ADMMParams
-from agents.autogrid_rules import PACK, TALLY_BLOCKS, AutoGridParams, coarse_lattice, solid_on_raster, tie_sign
+from agents.autogrid_rules import (
+    PACK,
+    TALLY_BLOCKS,
+    AutoGridParams,
+    coarse_lattice,
+    lattice_box,
+    lsq_lattices,
+    solid_on_raster,
+    tie_sign,
+)
 from agents.autogrid_warm import WarmADMM
 from agents.kernel import GridBasis
 from agents.lsq_admm import WarmLSQ, lsq_sub_params
@@ -114,6 +123,32 @@ class SweepModel:
     start: np.ndarray | None = None
 
 
+def lsq_models(bounds: tuple[float, float, float, float], diag: float, params: AutoGridParams,
+               marks: np.ndarray) -> tuple[list[SweepModel], list[dict[str, Any]]]:
+    """Rule 2's candidates from the fleet's agreed near-data marks (`lsq_near_marks`, max-consensus): (the models
+    the sweep tries, one record per candidate). A candidate's grid is its level-0 lattice's marked nodes; it is
+    tried when they fit max_points. None fits: the widest candidate on its lattice coarsened to the budget
+    (rule 1's `coarse_lattice`, benchmarks/lsq_emulation.py's fallback) is the only one tried."""
+    models, records, start = [], [], 0
+    for d, nodes in zip(params.lsq_divisors, lsq_lattices(bounds, diag, params)):
+        sigma = diag / d
+        kept = nodes[marks[start : start + len(nodes)] > 0]
+        start += len(nodes)
+        tried = 0 < len(kept) <= params.max_points
+        records.append({"divisor": float(d), "sigma": sigma, "lattice_points": len(nodes), "grid_points": len(kept),
+                        "grid": "near data", "tried": tried})
+        if tried:
+            models.append(SweepModel(float(d), sigma, lattice_box(bounds, sigma), GridBasis(kept, sigma), len(kept)))
+    if not models:
+        widest = min(range(len(records)), key=lambda i: records[i]["divisor"])
+        sigma = records[widest]["sigma"]
+        box, _, grid = coarse_lattice(bounds, sigma, params.coarse_spacing, params.max_points)
+        records[widest].update(grid_points=len(grid), grid="coarsened full lattice (no near-data lattice fits)",
+                               tried=True)
+        models.append(SweepModel(records[widest]["divisor"], sigma, box, GridBasis(grid, sigma), len(grid)))
+    return models, records
+
+
 def pair_folds(labels: np.ndarray, robot_id: int, folds: int) -> tuple[np.ndarray, np.ndarray]:
     """The lsq model's folds of one robot's data: (start index of each LiDAR pair, its fold), the k-th
     pair (in data order) in fold (k + robot id) mod folds (benchmarks/lsq_emulation.py lidar_rows)."""
@@ -153,7 +188,7 @@ class SigmaSweep:
         points, labels = share.features, share.labels  # autogrid's share: raw points
         # dim: the fleet's frame length (the given params', when folds_for_data ran fewer folds)
         self.robot_id, self.params, self.dim = share.robot_id, params, params.dim if dim is None else dim
-        n_models = max(len(params.validate_divisors), len(models or ()))
+        n_models = max(len(params.sweep_divisors), len(models or ()))
         self._slots = self.dim // (TALLY_BLOCKS * max(1, n_models))  # = the fleet's tally_slots
         self._points, self._labels = points, labels
         sub_params = ADMMParams(
@@ -179,8 +214,9 @@ class SigmaSweep:
                 box, _, grid = coarse_lattice(bounds, sigma, params.coarse_spacing, slot)
                 models.append(SweepModel(float(d), sigma, box, GridBasis(grid, sigma), slot))
         self.models = models
-        # every task's block together over the frame: the tasks share it round by round (`_running`)
-        self._scheduled = params.sweep_groups > 1 and not self._given_models
+        # every task's block together over the frame: the tasks share it round by round (`_running`); the lsq
+        # model's always (its frame, `lsq_sweep_frame`, is sized for no particular set of candidates)
+        self._scheduled = params.lsq or (params.sweep_groups > 1 and not self._given_models)
         offset = 0
         for cand, model in enumerate(models):
             basis, slot = model.basis, model.slot
