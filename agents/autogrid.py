@@ -32,6 +32,11 @@ in agents/autogrid_state.py. docs/autogrid.md tells the whole story; in short:
 6. REFINE (no communication): from the agreed f, every robot computes the same superset grid
    (nodes near the zero level set, in cells marked near data, no finer than the kernel can use).
 
+The least-squares model (params.model "lsq", rule 2 of benchmarks/lsq_emulation.py): BOUNDS, then MARKS
+(D rounds per chunk of the frame): a max-consensus of every robot's marks of the nodes of every candidate's
+level-0 lattice within lsq_near sigma of its data; VALIDATE / TALLY on the candidates whose kept nodes fit the
+budget; one ADMM fit of all rows on the chosen candidate's kept nodes; FLOOD.
+
 Frames have a fixed length per fleet (`AutoGridParams.dim`): on a grid, x in the first M
 entries, zeros, then the flood's gap (-3), gamma (-2) and a meta slot (-1: the vote, or the
 flooded vector's robot id). No I/O, no clock.

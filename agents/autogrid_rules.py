@@ -257,9 +257,8 @@ class AutoGridParams:
     @property
     def sweep_groups(self) -> int:
         """Groups of folds the sweep's frame is sized for (issue 10's frame rule): one, unless every
-        task's block together would exceed FRAME_BUDGET (max_points + 1) floats -- the lsq model's 25 tasks
-        with the hub's w on a complete graph, 6820 floats for the default budget -- then the fewest that
-        fit; the frame holds the first group's blocks and the tasks share it round by round
+        task's block together would exceed FRAME_BUDGET (max_points + 1) floats, then the fewest that
+        fit (the lsq model's frame is `lsq_sweep_frame`, shared by its tasks always); the frame holds the first group's blocks and the tasks share it round by round
         (agents/autogrid_sweep.py). Each task is the same sub-machine either way: only the rounds change."""
         folds, per_fold = self.sweep_folds, sum(self._fold_blocks())
         budget = FRAME_BUDGET * (self.max_points + 1)

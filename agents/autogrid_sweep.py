@@ -9,9 +9,9 @@ vectors only. With params.hub_frames (a complete graph) the block is followed by
 Every robot's sub-machine of a task stops in the same round (its own flags protocol); a stopped
 sub-machine keeps sending its last value, so the sweep costs the slowest task, not the sum of all.
 Issue 10's rule bounds a frame by 16 (max_points + 1) floats: where every task's block together would
-not fit (the lsq model's 25 tasks with the hub's w: 6820 floats for the default budget) the frame is sized
-for the first of `AutoGridParams.sweep_groups` groups of folds (2 there: folds 0-2, 4092 floats) and the
-tasks share it round by round (`_scheduled`): each task's block is its lattice's own size (2 (m + 1) + 2
+not fit, the frame is sized for the first of `AutoGridParams.sweep_groups` groups of folds (the SVM model;
+the lsq model's frame is `lsq_sweep_frame`, 4816 floats for the default budget, whose up to 35 tasks always
+share it) and the tasks share it round by round (`_scheduled`): each task's block is its lattice's own size (2 (m + 1) + 2
 floats, not the slot), and every round the tasks with the fewest rounds done (ties: candidate, then fold)
 take the frame's room in that order, a task that does not fit waiting; a stopped task keeps its block D
 rounds (its verdict's max-consensus) and then frees it. A waiting task is simply not advanced: every
@@ -32,9 +32,10 @@ wider candidate has stopped. The choice is the one the full sweep would make; on
 Tally (one max-consensus): per candidate, two slots per robot id: the exact integer
 errors + PACK * held_out + PACK^2 * not_solid (summed over folds by the robot) and the hinge loss.
 
-The least-squares model (params.model "lsq", the rule of benchmarks/lsq_emulation.py): the same tasks and
+The least-squares model (params.model "lsq", rule 2 of benchmarks/lsq_emulation.py): the same tasks and
 frames, each task the least-squares fit (`WarmLSQ`) of the rows of its training pairs on its candidate's
-level-0 lattice (spacing LSQ_SPACING_RATIO sigma); holdout_every folds of whole LiDAR pairs, a robot's k-th
+kept level-0 lattice (spacing LSQ_SPACING_RATIO sigma, the nodes near data: `lsq_models`; candidates over the
+budget have no task), the tasks always sharing the frame round by round (`lsq_sweep_frame`); holdout_every folds of whole LiDAR pairs, a robot's k-th
 pair in fold (k + robot id) mod holdout_every (points in no pair always train). A task's outcome is its
 held-out pairs' squared residual, (f(o) - 1)^2 + f(midpoint)^2 + (f(i) + 1)^2 summed, in the hinge slot, and
 their count in the packed integer (no errors, always solid); no verdict, no early drop (a continuous score
