@@ -456,14 +456,15 @@ class AdaptiveGridCore(RoundCore):
         return "seed"
 
     def _choose_lsq(self, sweep: SigmaSweep) -> str:
-        """Rule 2's choice from the agreed tally; the final fit's grid is the chosen candidate's (its kept nodes)."""
+        """Rule 2's choice from the agreed tally; the final fit's grid is the chosen candidate's (its kept nodes),
+        or a given start grid (as rule 1's)."""
         scores = {r["divisor"]: r for r in sweep.records(self._values)}
         self.sigma_validation = [{**r, **scores.get(r["divisor"], {"score": None})}
                                  for r in lsq_models(self.bounds, self._diag, self.params, self._near)[1]]
         self.sigma, self.sigma_reason = choose_lsq_sigma(self.sigma_validation, self._diag, self.params)
         model = next(m for m in sweep.models if m.sigma == self.sigma)
         self._box, self._h0 = model.box, self.params.coarse_spacing * self.sigma
-        self._set_grid(model.basis.grid)
+        self._set_grid(model.basis.grid if self._start_grid is None else self._start_grid.copy())
         self._mode = self.margin
         return "least squares"
 
