@@ -200,6 +200,21 @@ def test_survivors_of_a_loss_in_the_sweep_fit_their_own_data():
     assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
 
 
+def test_crash_and_restart_inside_chunked_marks_ends_on_the_clean_answer():
+    """max_points 20: the marks take several frames (chunks of D rounds); a robot killed in the third chunk resumes
+    from its checkpoint (the marks agreed so far and the chunk) and the fleet ends on the clean run's bits."""
+    _, spec = _spec(fleet_id="autolsq-chunks", timing=TIMING, topology="ring", robots=4, max_grid_points=20)
+    clean = {r["id"]: r for r in simulate_fleet(spec).robots}
+    marks = [r for p, r in clean[0]["phases"] if p == "marks"]
+    assert len(marks) >= 3
+    out = simulate_fleet(spec, crashes=[CrashPlan(2, marks[2] + 1)], restart=True, restart_after=0.5)
+    assert [c["fired"] for c in out.crash_log] == [True]
+    for r in out.robots:
+        want = clean[r["id"]]
+        assert (r["x"], r["gamma"], r["rounds"], r["grid"]) == (want["x"], want["gamma"], want["rounds"], want["grid"])
+        assert r["sigma_validation"] == want["sigma_validation"]  # (every candidate's kept nodes: the marks)
+
+
 @pytest.mark.parametrize("topology", ["complete", "ring"])
 def test_survivors_of_a_loss_in_the_marks_fit_their_own_data(topology):
     """Robot 1 dies for good in the near-data marks: the survivors agree on the marks without it (a max-consensus
