@@ -32,6 +32,11 @@ in agents/autogrid_state.py. docs/autogrid.md tells the whole story; in short:
 6. REFINE (no communication): from the agreed f, every robot computes the same superset grid
    (nodes near the zero level set, in cells marked near data, no finer than the kernel can use).
 
+The least-squares model (params.model "lsq", rule 2 of benchmarks/lsq_emulation.py): BOUNDS, then MARKS
+(D rounds per chunk of the frame): a max-consensus of every robot's marks of the nodes of every candidate's
+level-0 lattice within lsq_near sigma of its data; VALIDATE / TALLY on the candidates whose kept nodes fit the
+budget; one ADMM fit of all rows on the chosen candidate's kept nodes; FLOOD.
+
 Frames have a fixed length per fleet (`AutoGridParams.dim`): on a grid, x in the first M
 entries, zeros, then the flood's gap (-3), gamma (-2) and a meta slot (-1: the vote, or the
 flooded vector's robot id). No I/O, no clock.
@@ -60,6 +65,8 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     is_solid,
     lattice,
     lattice_box,
+    lsq_lattices,
+    lsq_near_marks,
     near_data_marks,
     refine_grid,
     folds_for_data,
@@ -70,7 +77,7 @@ from agents.autogrid_rules import (  # noqa: F401 -- re-exported: the public nam
     scale_from_bounds,
 )
 from agents.autogrid_state import load_state, save_state
-from agents.autogrid_sweep import SigmaSweep, SweepModel
+from agents.autogrid_sweep import SigmaSweep, SweepModel, lsq_models
 from agents.autogrid_warm import WarmADMM, carry_edges, carry_hub_duals, carry_vector, hub_duals, superset_maps
 from agents.kernel import GridBasis
 from agents.lsq_admm import WarmLSQ, lsq_sub_params
@@ -83,13 +90,13 @@ from protocol.frames import StateUpdate
 #: stands for "no data" in the max-consensus on bounds (frames carry finite values only)
 _NO_DATA = -1e300
 
-BOUNDS, VALIDATE, TALLY, SEED, WIDTHS, WTALLY, VOTE, ADMM, FLOOD, DONE = (
-    "bounds", "validate", "tally", "seed", "widths", "wtally", "vote", "admm", "flood", "done"
+BOUNDS, MARKS, VALIDATE, TALLY, SEED, WIDTHS, WTALLY, VOTE, ADMM, FLOOD, DONE = (
+    "bounds", "marks", "validate", "tally", "seed", "widths", "wtally", "vote", "admm", "flood", "done"
 )
 
 #: how a phase's rounds are computed: a max-consensus, the stacked sweep, the ADMM sub-machine,
 #: or the flood (lowest id's vector, largest gap)
-EXCHANGE = {BOUNDS: "max", VALIDATE: "sweep", TALLY: "max", SEED: "flood", WIDTHS: "sweep", WTALLY: "max",
+EXCHANGE = {BOUNDS: "max", MARKS: "max", VALIDATE: "sweep", TALLY: "max", SEED: "flood", WIDTHS: "sweep", WTALLY: "max",
             VOTE: "max", ADMM: "admm", FLOOD: "flood"}
 
 #: (phase, outcome of its last round) -> next phase. Counted phases (max, flood) end after their
@@ -118,6 +125,9 @@ TRANSITIONS = {
     (FLOOD, "disagree"): DONE,
     # the least-squares model (params.model "lsq"): no vote, no margin, no refinement
     (BOUNDS, "least squares"): ADMM,  # sigma given
+    (BOUNDS, "near-data marks"): MARKS,  # rule 2: every candidate's lattice nodes near some robot's data
+    (MARKS, "next chunk"): MARKS,  # the marks did not fit one frame: the next dim of them
+    (MARKS, "sweep sigma"): VALIDATE,  # the candidates whose kept nodes fit the budget
     (TALLY, "least squares"): ADMM,  # sigma by the held-out squared residual
 }
 
@@ -184,6 +194,9 @@ class AdaptiveGridCore(RoundCore):
         self._box: tuple[float, float, float, float] | None = None
         self._h0, self._level = 0.0, 0
         self._allowed: np.ndarray | None = None  # level-0 nodes marked near data by some robot
+        # the lsq model's rule 2: every candidate's near-data marks agreed so far (MARKS, chunk by chunk)
+        self._near: np.ndarray | None = None
+        self._chunk = 0
         self._mode = self.margin  # margin of the current ADMM phase
         self._left, self._phase_start = 0, 0
         self._sweep: SigmaSweep | None = None
@@ -244,6 +257,24 @@ class AdaptiveGridCore(RoundCore):
             v[4 + self.robot_id] = float(np.max(self._units, initial=-1) + 1)
         self._counted(BOUNDS, v)
 
+    def _enter_marks(self) -> None:
+        """Chunk `_chunk` of this robot's near-data marks on every lsq candidate's full lattice (one frame's
+        worth, dim floats; all seven candidates' ~1600-2500 nodes fit the default frame): a max-consensus."""
+        own = lsq_near_marks(self._points, lsq_lattices(self.bounds, self._diag, self.params), self._diag, self.params)
+        if self._near is None:
+            self._near = np.zeros(len(own))
+        part = own[self._chunk * self.dim : (self._chunk + 1) * self.dim]
+        v = np.zeros(self.dim)
+        v[: len(part)] = part
+        self._counted(MARKS, v)
+
+    def _finish_marks(self) -> str:
+        start = self._chunk * self.dim
+        end = min(len(self._near), start + self.dim)
+        self._near[start:end] = self._values[: end - start]
+        self._chunk += 1
+        return "next chunk" if end < len(self._near) else "sweep sigma"
+
     def _enter_validate(self) -> None:
         self._sweep = self._new_sweep()
         self._mark(VALIDATE)
@@ -251,8 +282,9 @@ class AdaptiveGridCore(RoundCore):
 
     def _new_sweep(self) -> SigmaSweep:
         share = self._share.with_data(self.neighbours, self._points, self._labels, None)
+        models = lsq_models(self.bounds, self._diag, self.params, self._near)[0] if self.params.lsq else None
         sweep = SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params, dim=self.dim,
-                           gone=self.gone)
+                           models=models, gone=self.gone)
         sweep.reach = self._reach()
         return sweep
 
@@ -396,7 +428,7 @@ class AdaptiveGridCore(RoundCore):
         if self.params.validates and self._diag > 0:
             self._held_units = int(np.sum(self._values[4 : 4 + self.params.tally_slots]))
             self.params = folds_for_data(self._given, self._held_units)[0]
-            return "sweep sigma"
+            return "near-data marks" if self.params.lsq else "sweep sigma"
         self.sigma, self.sigma_reason = scale_from_bounds(self.bounds, self.params)
         self._first_grid()
         return "least squares" if self.params.lsq else "sigma by rule"
@@ -408,9 +440,7 @@ class AdaptiveGridCore(RoundCore):
         sweep, self._sweep = self._sweep, None
         self.sigma_validation = sweep.records(self._values)
         if self.params.lsq:
-            self.sigma, self.sigma_reason = choose_lsq_sigma(self.sigma_validation, self._diag, self.params)
-            self._first_grid()
-            return "least squares"
+            return self._choose_lsq(sweep)
         self.sigma, self.sigma_reason = choose_sigma(self.sigma_validation, self._diag, self.params)
         self.params, note = widths_for_data(self.params, self.sigma_validation)
         self.sigma_reason += folds_for_data(self._given, self._held_units)[1] + note
@@ -424,6 +454,19 @@ class AdaptiveGridCore(RoundCore):
         self._edges_out = {}  # its duals belong to another problem (soft, 4/5 of the data): not carried
         self._soft_duals = hub_duals(task.sub)  # ... except into a soft solve: its hub duals (the same C)
         return "seed"
+
+    def _choose_lsq(self, sweep: SigmaSweep) -> str:
+        """Rule 2's choice from the agreed tally; the final fit's grid is the chosen candidate's (its kept nodes),
+        or a given start grid (as rule 1's)."""
+        scores = {r["divisor"]: r for r in sweep.records(self._values)}
+        self.sigma_validation = [{**r, **scores.get(r["divisor"], {"score": None})}
+                                 for r in lsq_models(self.bounds, self._diag, self.params, self._near)[1]]
+        self.sigma, self.sigma_reason = choose_lsq_sigma(self.sigma_validation, self._diag, self.params)
+        model = next(m for m in sweep.models if m.sigma == self.sigma)
+        self._box, self._h0 = model.box, self.params.coarse_spacing * self.sigma
+        self._set_grid(model.basis.grid if self._start_grid is None else self._start_grid.copy())
+        self._mode = self.margin
+        return "least squares"
 
     def _enter_seed(self) -> None:
         """Flood the lowest id's fold-0 vector; max-consensus of the near-data marks beside it."""
@@ -620,10 +663,10 @@ class AdaptiveGridCore(RoundCore):
             self._soft_duals = carry_hub_duals(self._soft_duals, old, self._basis)
         return True
 
-    _ENTER = {VALIDATE: _enter_validate, TALLY: _enter_tally, SEED: _enter_seed, WIDTHS: _enter_widths,
+    _ENTER = {MARKS: _enter_marks, VALIDATE: _enter_validate, TALLY: _enter_tally, SEED: _enter_seed, WIDTHS: _enter_widths,
               WTALLY: _enter_wtally, VOTE: _enter_vote, ADMM: _enter_admm, FLOOD: _enter_flood, DONE: _enter_done}
 
-    _FINISH = {BOUNDS: _finish_bounds, VALIDATE: _finish_validate, TALLY: _finish_tally, SEED: _finish_seed,
+    _FINISH = {BOUNDS: _finish_bounds, MARKS: _finish_marks, VALIDATE: _finish_validate, TALLY: _finish_tally, SEED: _finish_seed,
                WIDTHS: _finish_widths, WTALLY: _finish_wtally, VOTE: _finish_vote,
                ADMM: _finish_admm, FLOOD: _finish_flood}
 

@@ -40,6 +40,11 @@ TALLY_BLOCKS = 2
 LSQ_SPACING_RATIO = 1.0
 #: the least-squares model's ADMM penalty (agents/lsq_admm.py LSQParams.rho: its local curvature's scale)
 LSQ_RHO = 1.0
+#: rule 2 of the least-squares model (benchmarks/lsq_emulation.py CANDIDATES_NEAR, NEAR): the candidates
+#: sigma = diag / k, each on its level-0 lattice's nodes within LSQ_NEAR sigma of some robot's data point
+#: (narrow widths fit the budget once the lattice follows the data)
+LSQ_DIVISORS = (4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
+LSQ_NEAR = 1.5
 #: what autogrid fits: the soft/hard-margin SVM (refined grids) or the LiDAR least-squares model
 AUTOGRID_MODELS = ("svm", "lsq")
 
@@ -135,6 +140,11 @@ class AutoGridParams:
     model: str = "lsq"
     lsq_lambda: float = DEFAULT_LSQ_LAMBDA  # the least-squares model's ridge weight (agents/lsq_model.py)
     lsq_rho: float = LSQ_RHO  # its ADMM penalty (rho is the SVM's)
+    # rule 2 (docs/autogrid.md): the lsq model's sigma candidates diag / k (validate_divisors are the SVM's),
+    # each on the level-0 lattice's nodes within lsq_near sigma of some robot's data (agreed in MARKS); a
+    # candidate whose kept nodes exceed max_points is not tried
+    lsq_divisors: tuple[float, ...] = LSQ_DIVISORS
+    lsq_near: float = LSQ_NEAR
 
     def __post_init__(self) -> None:
         if not 0 <= self.diameter <= AUTOGRID_MAX_DIAMETER:
@@ -144,7 +154,8 @@ class AutoGridParams:
             raise ValueError(f"max_points must be at least 4, got {self.max_points}")
         if not (math.isfinite(self.narrow_ratio) and self.narrow_ratio >= 1):
             raise ValueError(f"narrow_ratio must be a number >= 1, got {self.narrow_ratio!r}")
-        for name in ("sigma_divisor", "spacing_ratio", "min_spacing", "near_data", "band", "rho", "tol", "soft_C", "lsq_rho"):
+        for name in ("sigma_divisor", "spacing_ratio", "min_spacing", "near_data", "band", "rho", "tol", "soft_C", "lsq_rho",
+                     "lsq_near"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
@@ -152,8 +163,9 @@ class AutoGridParams:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number or None, got {value!r}")
-        if any(not (math.isfinite(d) and d > 0) for d in self.validate_divisors):
-            raise ValueError(f"validate_divisors must be positive numbers, got {self.validate_divisors!r}")
+        for name in ("validate_divisors", "lsq_divisors"):
+            if any(not (math.isfinite(d) and d > 0) for d in getattr(self, name)):
+                raise ValueError(f"{name} must be positive numbers, got {getattr(self, name)!r}")
         if self.holdout_every < 2 or self.validate_rounds < 1:
             raise ValueError("holdout_every must be >= 2 and validate_rounds >= 1")
         if not 1 <= self.validate_folds <= self.holdout_every:
@@ -198,7 +210,24 @@ class AutoGridParams:
         sweep's stacked blocks, whichever is longer (at most 16 x (max_points + 1); twice that
         with `hub_frames`: w at [max_points : 2 max_points + 1])."""
         solve = 2 * self.max_points + 4 if self.hub_frames else self.max_points + 3
+        if self.lsq:
+            return max(solve, self.lsq_sweep_frame)
         return max(solve, sum(self.sweep_blocks()), sum(self.width_blocks()))
+
+    @property
+    def lsq_sweep_frame(self) -> int:
+        """The lsq sweep's frame (rule 2): room for every (candidate, fold) task's block at its largest
+        possible lattice, capped at issue 10's FRAME_BUDGET (max_points + 1) floats (4816 for the default
+        budget); the tasks share it round by round (agents/autogrid_sweep.py). 0 when sigma is given."""
+        if not self.validates:
+            return 0
+        need = self.sweep_folds * sum(self._fold_blocks())
+        return min(need, FRAME_BUDGET * (self.max_points + 1))
+
+    @property
+    def sweep_divisors(self) -> tuple[float, ...]:
+        """The sigma candidates the sweep tries: the SVM's validate_divisors, or the lsq model's lsq_divisors."""
+        return self.lsq_divisors if self.lsq else self.validate_divisors
 
     @property
     def lsq(self) -> bool:
@@ -223,14 +252,13 @@ class AutoGridParams:
         """Frame length of one fold's tasks, one per candidate: x, gamma, flags, verdict (and with
         `hub_frames` the hub's w: its x and gamma)."""
         extra = 1 if self.hub_frames else 0
-        return [self.sweep_slot(d) + 3 + extra * (self.sweep_slot(d) + 1) for d in self.validate_divisors]
+        return [self.sweep_slot(d) + 3 + extra * (self.sweep_slot(d) + 1) for d in self.sweep_divisors]
 
     @property
     def sweep_groups(self) -> int:
         """Groups of folds the sweep's frame is sized for (issue 10's frame rule): one, unless every
-        task's block together would exceed FRAME_BUDGET (max_points + 1) floats -- the lsq model's 25 tasks
-        with the hub's w on a complete graph, 6820 floats for the default budget -- then the fewest that
-        fit; the frame holds the first group's blocks and the tasks share it round by round
+        task's block together would exceed FRAME_BUDGET (max_points + 1) floats, then the fewest that
+        fit (the lsq model's frame is `lsq_sweep_frame`, shared by its tasks always); the frame holds the first group's blocks and the tasks share it round by round
         (agents/autogrid_sweep.py). Each task is the same sub-machine either way: only the rounds change."""
         folds, per_fold = self.sweep_folds, sum(self._fold_blocks())
         budget = FRAME_BUDGET * (self.max_points + 1)
@@ -260,7 +288,7 @@ class AutoGridParams:
     def tally_slots(self) -> int:
         """Robot ids must be below this: the tally has TALLY_BLOCKS slots per (id, candidate) (the
         width test's two models use the same slots when there are fewer than two candidates)."""
-        models = max(1, len(self.validate_divisors), 2 if self.width_blocks() else 1)
+        models = max(1, len(self.sweep_divisors), 2 if self.width_blocks() else 1)
         return self.dim // (TALLY_BLOCKS * models)
 
     @property
@@ -270,13 +298,13 @@ class AutoGridParams:
         sweep task."""
         d = self.diameter
         solve = self.validate_rounds + 3 * d + 1  # vote, ADMM, flood
-        sweep = d + self.validate_rounds + 2 * d if self.validates else d  # bounds, sweep, tally, seed
+        sweep = d + self.validate_rounds + 2 * d if self.validates else d  # bounds, sweep, tally, seed (lsq: marks)
         return min(self.max_total_rounds, sweep + solve)
 
     @property
     def validates(self) -> bool:
         """True when sigma is chosen by the held-out sweep."""
-        return self.sigma is None and len(self.validate_divisors) > 0
+        return self.sigma is None and len(self.sweep_divisors) > 0
 
 
     @staticmethod
@@ -544,21 +572,42 @@ def choose_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridPar
 
 
 def choose_lsq_sigma(records: list[dict[str, Any]], diag: float, params: AutoGridParams) -> tuple[float, str]:
-    """The lsq model's rule (benchmarks/lsq_emulation.py `choice`), the same on every robot from the agreed
-    tally: the smallest mean held-out squared residual per pair; ties -> the larger sigma. No solid check
-    (the model's f is a fit of the returns, not a margin: its region is what it is). Returns (sigma, reason)."""
-    best = min(records, key=lambda r: (r["score"], -r["sigma"]))
-    table = ", ".join(f"diag/{r['divisor']:g}: {r['score']:.6g}" for r in records)
+    """The lsq model's rule 2 (benchmarks/lsq_emulation.py `choice_near`), the same on every robot from the agreed
+    marks and tally: among the candidates tried (their near-data lattice fits the budget), the smallest mean
+    held-out squared residual per pair; ties -> the larger sigma. No solid check (the model's f is a fit of the
+    returns, not a margin: its region is what it is). Returns (sigma, reason)."""
+    best = min((r for r in records if r["tried"]), key=lambda r: (r["score"], -r["sigma"]))
+    table = ", ".join(
+        f"diag/{r['divisor']:g}: {r['grid_points']} nodes, " + (f"{r['score']:.6g}" if r["tried"] else "not tried")
+        for r in records)
+    fallback = "; no near-data lattice fits: " if best["grid"] != "near data" else "; "
     why = (
         f"sigma = diag/{best['divisor']:g} = {best['sigma']:.6g}: the smallest mean held-out squared residual per "
-        f"LiDAR pair ({table}); {params.sweep_folds} folds of whole pairs (a robot's k-th pair in fold (k + id) mod "
-        f"{params.sweep_folds}), every candidate and fold the least-squares fit (lam = {params.lsq_lambda:g}) of the "
-        f"other folds' rows on its level-0 lattice at {params.coarse_spacing:g} sigma, "
-        f"{'all solved in the same rounds' if params.sweep_groups == 1 else 'sharing a frame of fewer tasks round by round'}, "
-        f"residuals summed by max-consensus over one slot per robot id; diag = {diag:.6g} = diagonal of the data's "
-        "bounding box"
+        f"LiDAR pair among the candidates whose grid fits {params.max_points} points ({table}){fallback}grids: "
+        f"{best['grid']} (level-0 lattice at {params.coarse_spacing:g} sigma, the nodes within {params.lsq_near:g} "
+        f"sigma of some robot's data, agreed by max-consensus); {params.sweep_folds} folds of whole pairs (a robot's "
+        f"k-th pair in fold (k + id) mod {params.sweep_folds}), every candidate and fold the least-squares fit "
+        f"(lam = {params.lsq_lambda:g}) of the other folds' rows, sharing a frame of {params.dim} floats round by "
+        f"round, residuals summed by max-consensus over one slot per robot id; diag = {diag:.6g} = diagonal of the "
+        "data's bounding box"
     )
     return float(best["sigma"]), why
+
+
+def lsq_lattices(bounds: tuple[float, float, float, float], diag: float, params: AutoGridParams) -> list[np.ndarray]:
+    """Every lsq candidate's full level-0 lattice (rule 2's nodes before the near-data marks keep some)."""
+    out = []
+    for d in params.lsq_divisors:
+        sigma = diag / d
+        out.append(lattice(lattice_box(bounds, sigma), params.coarse_spacing * sigma, 0))
+    return out
+
+
+def lsq_near_marks(points: np.ndarray, lattices: list[np.ndarray], diag: float, params: AutoGridParams) -> np.ndarray:
+    """One robot's near-data marks on every candidate's lattice, concatenated in candidate order: 1.0 at the
+    nodes within lsq_near sigma of one of its points (the emulation's `<=`); a max-consensus gives the fleet's."""
+    return np.concatenate([near_data_marks(points, nodes, params.lsq_near * diag / d)
+                           for nodes, d in zip(lattices, params.lsq_divisors)])
 
 
 def folds_for_data(params: AutoGridParams, units: int) -> tuple[AutoGridParams, str]:

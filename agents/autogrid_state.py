@@ -19,9 +19,9 @@ if TYPE_CHECKING:
 #: plain fields (msgpack-able as they are)
 _PLAIN = ("phase", "sigma_reason", "margin", "message", "disagreement", "_diag", "_h0", "_level", "_mode",
           "_left", "_phase_start", "_sub_converged", "_admm_rounds", "_capped", "_agreed", "_best_norm2",
-          "_refinements", "_held_units", "_endgame")
+          "_refinements", "_held_units", "_endgame", "_chunk")
 #: float vectors (raw '<f8' bytes)
-_VECTORS = ("_warm", "_own", "_final", "_seed")
+_VECTORS = ("_warm", "_own", "_final", "_seed", "_near")
 
 
 def _edges_out(edges: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[int, list[bytes | None]]:

@@ -9,9 +9,9 @@ vectors only. With params.hub_frames (a complete graph) the block is followed by
 Every robot's sub-machine of a task stops in the same round (its own flags protocol); a stopped
 sub-machine keeps sending its last value, so the sweep costs the slowest task, not the sum of all.
 Issue 10's rule bounds a frame by 16 (max_points + 1) floats: where every task's block together would
-not fit (the lsq model's 25 tasks with the hub's w: 6820 floats for the default budget) the frame is sized
-for the first of `AutoGridParams.sweep_groups` groups of folds (2 there: folds 0-2, 4092 floats) and the
-tasks share it round by round (`_scheduled`): each task's block is its lattice's own size (2 (m + 1) + 2
+not fit, the frame is sized for the first of `AutoGridParams.sweep_groups` groups of folds (the SVM model;
+the lsq model's frame is `lsq_sweep_frame`, 4816 floats for the default budget, whose up to 35 tasks always
+share it) and the tasks share it round by round (`_scheduled`): each task's block is its lattice's own size (2 (m + 1) + 2
 floats, not the slot), and every round the tasks with the fewest rounds done (ties: candidate, then fold)
 take the frame's room in that order, a task that does not fit waiting; a stopped task keeps its block D
 rounds (its verdict's max-consensus) and then frees it. A waiting task is simply not advanced: every
@@ -32,9 +32,10 @@ wider candidate has stopped. The choice is the one the full sweep would make; on
 Tally (one max-consensus): per candidate, two slots per robot id: the exact integer
 errors + PACK * held_out + PACK^2 * not_solid (summed over folds by the robot) and the hinge loss.
 
-The least-squares model (params.model "lsq", the rule of benchmarks/lsq_emulation.py): the same tasks and
+The least-squares model (params.model "lsq", rule 2 of benchmarks/lsq_emulation.py): the same tasks and
 frames, each task the least-squares fit (`WarmLSQ`) of the rows of its training pairs on its candidate's
-level-0 lattice (spacing LSQ_SPACING_RATIO sigma); holdout_every folds of whole LiDAR pairs, a robot's k-th
+kept level-0 lattice (spacing LSQ_SPACING_RATIO sigma, the nodes near data: `lsq_models`; candidates over the
+budget have no task), the tasks always sharing the frame round by round (`lsq_sweep_frame`); holdout_every folds of whole LiDAR pairs, a robot's k-th
 pair in fold (k + robot id) mod holdout_every (points in no pair always train). A task's outcome is its
 held-out pairs' squared residual, (f(o) - 1)^2 + f(midpoint)^2 + (f(i) + 1)^2 summed, in the hinge slot, and
 their count in the packed integer (no errors, always solid); no verdict, no early drop (a continuous score
@@ -51,7 +52,16 @@ from typing import Any
 import numpy as np
 
 from agents.admm import ADMMParams
-from agents.autogrid_rules import PACK, TALLY_BLOCKS, AutoGridParams, coarse_lattice, solid_on_raster, tie_sign
+from agents.autogrid_rules import (
+    PACK,
+    TALLY_BLOCKS,
+    AutoGridParams,
+    coarse_lattice,
+    lattice_box,
+    lsq_lattices,
+    solid_on_raster,
+    tie_sign,
+)
 from agents.autogrid_warm import WarmADMM
 from agents.kernel import GridBasis
 from agents.lsq_admm import WarmLSQ, lsq_sub_params
@@ -114,6 +124,32 @@ class SweepModel:
     start: np.ndarray | None = None
 
 
+def lsq_models(bounds: tuple[float, float, float, float], diag: float, params: AutoGridParams,
+               marks: np.ndarray) -> tuple[list[SweepModel], list[dict[str, Any]]]:
+    """Rule 2's candidates from the fleet's agreed near-data marks (`lsq_near_marks`, max-consensus): (the models
+    the sweep tries, one record per candidate). A candidate's grid is its level-0 lattice's marked nodes; it is
+    tried when they fit max_points. None fits: the widest candidate on its lattice coarsened to the budget
+    (rule 1's `coarse_lattice`, benchmarks/lsq_emulation.py's fallback) is the only one tried."""
+    models, records, start = [], [], 0
+    for d, nodes in zip(params.lsq_divisors, lsq_lattices(bounds, diag, params)):
+        sigma = diag / d
+        kept = nodes[marks[start : start + len(nodes)] > 0]
+        start += len(nodes)
+        tried = 0 < len(kept) <= params.max_points
+        records.append({"divisor": float(d), "sigma": sigma, "lattice_points": len(nodes), "grid_points": len(kept),
+                        "grid": "near data", "tried": tried})
+        if tried:
+            models.append(SweepModel(float(d), sigma, lattice_box(bounds, sigma), GridBasis(kept, sigma), len(kept)))
+    if not models:
+        widest = min(range(len(records)), key=lambda i: records[i]["divisor"])
+        sigma = records[widest]["sigma"]
+        box, _, grid = coarse_lattice(bounds, sigma, params.coarse_spacing, params.max_points)
+        records[widest].update(grid_points=len(grid), grid="coarsened full lattice (no near-data lattice fits)",
+                               tried=True)
+        models.append(SweepModel(records[widest]["divisor"], sigma, box, GridBasis(grid, sigma), len(grid)))
+    return models, records
+
+
 def pair_folds(labels: np.ndarray, robot_id: int, folds: int) -> tuple[np.ndarray, np.ndarray]:
     """The lsq model's folds of one robot's data: (start index of each LiDAR pair, its fold), the k-th
     pair (in data order) in fold (k + robot id) mod folds (benchmarks/lsq_emulation.py lidar_rows)."""
@@ -153,7 +189,7 @@ class SigmaSweep:
         points, labels = share.features, share.labels  # autogrid's share: raw points
         # dim: the fleet's frame length (the given params', when folds_for_data ran fewer folds)
         self.robot_id, self.params, self.dim = share.robot_id, params, params.dim if dim is None else dim
-        n_models = max(len(params.validate_divisors), len(models or ()))
+        n_models = max(len(params.sweep_divisors), len(models or ()))
         self._slots = self.dim // (TALLY_BLOCKS * max(1, n_models))  # = the fleet's tally_slots
         self._points, self._labels = points, labels
         sub_params = ADMMParams(
@@ -179,8 +215,9 @@ class SigmaSweep:
                 box, _, grid = coarse_lattice(bounds, sigma, params.coarse_spacing, slot)
                 models.append(SweepModel(float(d), sigma, box, GridBasis(grid, sigma), slot))
         self.models = models
-        # every task's block together over the frame: the tasks share it round by round (`_running`)
-        self._scheduled = params.sweep_groups > 1 and not self._given_models
+        # every task's block together over the frame: the tasks share it round by round (`_running`); the lsq
+        # model's always (its frame, `lsq_sweep_frame`, is sized for no particular set of candidates)
+        self._scheduled = params.lsq or (params.sweep_groups > 1 and not self._given_models)
         offset = 0
         for cand, model in enumerate(models):
             basis, slot = model.basis, model.slot

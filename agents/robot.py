@@ -130,7 +130,10 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: attempt's) and frame length changed
 #: 12 since branch relayblock: the end-game's state holds whether its attempt went back to the narrow start
 #: block (`narrow`; a relay fleet's attempts start wide)
-CHECKPOINT_VERSION = 12
+#: 13 since branch nearlsq: an autogrid lsq robot's state holds rule 2's agreed near-data marks and their chunk
+#: (`_near`, `_chunk`) and its sweep's candidates, frame length and phases changed; a version-12 checkpoint would
+#: resume rule 1's sweep
+CHECKPOINT_VERSION = 13
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

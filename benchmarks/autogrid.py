@@ -167,9 +167,9 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None
         "n": len(world.labels),
         "sigma": core.sigma,
         "divisor": diag / core.sigma,
-        "val": (" ".join(f"{r['score']:.3f}" for r in val) if params.lsq else
+        "val": (" ".join(f"{r['score']:.3f}" if r["tried"] else f"-({r['grid_points']})" for r in val) if params.lsq else
                 " ".join(f"{r['errors']}{'' if r['solid'] else '*'}" for r in val) + (f" /{val[0]['held_out']}" if val else "")),
-        "val_rounds": max((r["rounds"] for r in val), default=0) + params.diameter,  # one pass + tally
+        "val_rounds": max((r.get("rounds", 0) for r in val), default=0) + params.diameter,  # one pass + tally (lsq: tried ones)
         "chosen": chosen,
         "old_div": None if by_old is None else by_old["divisor"],
         "svc_old": None if by_old is None else svc_iou(world, bounds, by_old["sigma"]),
@@ -426,7 +426,7 @@ def main() -> None:
                 flush=True,
             )
     rule = AutoGridParams(**{**params_kw, **(extra or {})})
-    divs = ", ".join(f"{d:g}" for d in rule.validate_divisors)
+    divs = ", ".join(f"{d:g}" for d in rule.sweep_divisors)
     lines = [
         f"# Automatic grid and sigma vs scikit-learn SVC ({robots} robots x {points} points, complete graph)",
         "",

@@ -13,7 +13,7 @@ import pytest
 import shapely
 
 from agents import autogrid_rules, autogrid_sweep
-from agents.autogrid_rules import AutoGridParams, coarse_lattice
+from agents.autogrid_rules import AutoGridParams, coarse_lattice, min_distance
 from agents.kernel import GridBasis
 from agents.lsq_model import solve_central_lsq
 from agents.spec import Timing, build_core
@@ -30,6 +30,7 @@ import lsq_emulation as emulation  # noqa: E402
 
 TIMING = Timing(retransmit_s=0.02, dead_after_s=6.0, max_wall_s=40.0, linger_s=1.0)
 LETTER_E = dict(robots=5, points=40, shape_file=str(ROOT / "benchmarks" / "outlines" / "letter_e.csv"))
+DIGIT_3 = dict(robots=5, points=40, shape_file=str(ROOT / "benchmarks" / "outlines" / "digit_3.csv"))
 
 
 def _spec(**kwargs):
@@ -52,34 +53,110 @@ def _exact(robots, result: dict):
     return basis, solve_central_lsq(basis, points, labels, result["lsq_lambda"], robot_of=robot_of)
 
 
-@pytest.mark.parametrize("kwargs", [{}, LETTER_E], ids=["default", "letter_e"])
-def test_fleet_makes_the_emulations_choice_and_its_exact_fit(kwargs, monkeypatch):
+def _cores(world, spec) -> list:
+    cores = [build_core(spec, i) for i in spec.robot_ids]
+    run_to_end(cores, limit=spec.autogrid_params.max_total_rounds)
+    return cores
+
+
+def _same_points(a, b) -> bool:
+    """a and b hold the same points (as sets, to 1e-9)."""
+    a, b = np.asarray(a, dtype=float).reshape(-1, 2), np.asarray(b, dtype=float).reshape(-1, 2)
+    return len(a) == len(b) and max(min_distance(a, b).max(), min_distance(b, a).max()) < 1e-9
+
+
+def _data(world):
+    """(data box as bounds, its diagonal, every robot's points) as the emulation reads them."""
+    lo, hi = world_box(world)
+    return (lo[0], hi[0], lo[1], hi[1]), float(np.hypot(*(hi - lo))), np.vstack([r.points for r in world.robots])
+
+
+@pytest.mark.parametrize("kwargs", [{}, LETTER_E, DIGIT_3], ids=["default", "letter_e", "digit_3"])
+def test_fleet_makes_rule_2s_choice_on_its_grid_and_its_exact_fit(kwargs):
+    """Rule 2 (benchmarks/lsq_emulation.py near_lattice, choice_near): every candidate's kept nodes are the
+    emulation's (the fleet's min_distance marks against its cKDTree, both `<=` 1.5 sigma), its score the exact
+    one (the sweep's fits stop at tol 1e-3), the choice on the fleet's scores the emulation's on its own, the
+    final grid the chosen lattice and the function the exact least-squares fit on it."""
     world, spec = _spec(**kwargs)
-    results = _fleet(world, spec)
-    monkeypatch.setattr(emulation, "SVC_KS", ())  # the emulation's least-squares part alone (SVC: 2-4 s)
-    row = emulation.one(("world", kwargs, {}))
+    params = spec.autogrid_params
+    cores = _cores(world, spec)
+    results = [c.result() for c in cores]
     first = results[0]
     assert all(r["converged"] and r["x"] == first["x"] and r["sigma"] == first["sigma"] for r in results)
-    # every candidate's score is the emulation's exact one (the sweep's fits stop at tol 1e-3), the choice its
-    scores = {int(r["divisor"]): r["score"] for r in first["sigma_validation"]}
-    assert sorted(scores) == sorted(emulation.CANDIDATES)
-    for k, score in scores.items():
-        assert score == pytest.approx(row["lsq"][k]["score"], rel=1e-3)
-    k = emulation.choice(row)
-    lo, hi = world_box(world)
-    assert first["sigma"] == pytest.approx(np.hypot(*(hi - lo)) / k, rel=1e-12)
-    _, _, lattice = coarse_lattice((lo[0], hi[0], lo[1], hi[1]), first["sigma"], emulation.SPACING,
-                                   spec.autogrid_params.max_points)
-    np.testing.assert_allclose(first["grid"], lattice, rtol=0, atol=1e-12)
-    # the final function: the exact least-squares fit on that grid, within 1e-3; its IoU the emulation's
+    bounds, diag, points = _data(world)
+    outside, inner, fold = emulation.lidar_rows(world.robots)
+    records = {int(r["divisor"]): r for r in first["sigma_validation"]}
+    assert sorted(records) == list(emulation.CANDIDATES_NEAR)
+    _, kept = autogrid_sweep.lsq_models(cores[0].bounds, cores[0]._diag, params, cores[0]._near)
+    assert [r["grid_points"] for r in kept] == [records[k]["grid_points"] for k in emulation.CANDIDATES_NEAR]
+    fleet_row, exact_row = {"near": {}}, {"near": {}}
+    for k in emulation.CANDIDATES_NEAR:
+        grid = emulation.near_lattice(bounds, diag / k, points)
+        fits = len(grid) <= params.max_points
+        record = records[k]
+        assert (record["grid_points"], record["tried"], record["lattice_points"]) == (
+            len(grid), fits, len(autogrid_rules.lattice(autogrid_rules.lattice_box(bounds, diag / k), diag / k, 0)))
+        fleet_row["near"][k], exact_row["near"][k] = {"fits": fits}, {"fits": fits}
+        if fits:
+            _, score = emulation.scored(GridBasis(grid, diag / k), outside, inner, fold)
+            assert record["score"] == pytest.approx(score, rel=1e-3)
+            fleet_row["near"][k]["score"], exact_row["near"][k]["score"] = record["score"], score
+        else:
+            assert record["score"] is None and "rounds" not in record
+    k = emulation.choice_near(fleet_row)
+    assert k == emulation.choice_near(exact_row)
+    assert first["sigma"] == pytest.approx(diag / k, rel=1e-12)
+    assert _same_points(first["grid"], emulation.near_lattice(bounds, diag / k, points))
+    for core in cores:  # every robot's marks: the same kept nodes of every candidate
+        models, _ = autogrid_sweep.lsq_models(core.bounds, core._diag, params, core._near)
+        for model in models:
+            assert _same_points(model.basis.grid, emulation.near_lattice(bounds, model.sigma, points))
     basis, ref = _exact(world.robots, first)
-    c, gamma = np.asarray(first["c"]), first["gamma"]
-    assert basis.function_error(c, gamma, ref.c, ref.gamma) < 1e-3
-    q = scenario.make_grid(emulation.RES, emulation.RES, bench.padded_bounds(world.shape))
-    truth = shapely.contains_xy(world.shape, q[:, 0], q[:, 1])  # (the emulation's raster and truth)
-    inside = basis.decision(q, c, gamma) < 0
-    iou = np.count_nonzero(truth & inside) / np.count_nonzero(truth | inside)
-    assert iou == pytest.approx(row["lsq"][k]["iou"], abs=1e-3)
+    assert basis.function_error(np.asarray(first["c"]), first["gamma"], ref.c, ref.gamma) < 1e-3
+
+
+def test_a_candidate_over_the_budget_is_not_tried_and_nothing_fitting_falls_back_to_rule_1s_widest(monkeypatch):
+    """max_points 150: the default run's diag/24 and diag/32 keep 197 and 267 nodes, not tried (no task, no
+    score); the choice among the others is the emulation's. max_points 20: no kept lattice fits, the widest
+    candidate on its lattice coarsened to the budget is the one tried (the emulation's fallback)."""
+    world, spec = _spec(max_grid_points=150)
+    bounds, diag, points = _data(world)
+    running, swept = autogrid_sweep.SigmaSweep._running, set()
+
+    def seen(sweep):
+        tasks = running(sweep)
+        swept.update(t.divisor for t in tasks)
+        return tasks
+
+    monkeypatch.setattr(autogrid_sweep.SigmaSweep, "_running", seen)
+    cores = _cores(world, spec)
+    first = cores[0].result()
+    sizes = {k: len(emulation.near_lattice(bounds, diag / k, points)) for k in emulation.CANDIDATES_NEAR}
+    assert any(m > 150 for m in sizes.values()) and any(m <= 150 for m in sizes.values())
+    records = {int(r["divisor"]): r for r in first["sigma_validation"]}
+    assert {k for k, r in records.items() if r["tried"]} == {k for k, m in sizes.items() if m <= 150}
+    assert swept == {k for k, m in sizes.items() if m <= 150}  # the sweep ran no task of the others
+    assert all(r["score"] is None for r in records.values() if not r["tried"])
+    best = min((k for k, r in records.items() if r["tried"]), key=lambda k: (records[k]["score"], k))
+    assert first["converged"] and first["sigma"] == pytest.approx(diag / best, rel=1e-12)
+    assert _same_points(first["grid"], emulation.near_lattice(bounds, diag / best, points))
+
+    world, spec = _spec(max_grid_points=20)
+    assert min(sizes.values()) > 20
+    first = _fleet(world, spec)[0]
+    tried = [r for r in first["sigma_validation"] if r["tried"]]
+    assert [int(r["divisor"]) for r in tried] == [min(emulation.CANDIDATES_NEAR)] and first["converged"]
+    # the marks of the seven lattices (1543 nodes) over frames of 336 floats: in chunks, the same kept nodes
+    chunks = [p for p, _ in first["phases"]].count("marks")
+    lattices = sum(r["lattice_points"] for r in first["sigma_validation"])
+    assert chunks == -(-lattices // spec.autogrid_params.dim) > 1
+    assert all(r["grid_points"] == sizes[int(r["divisor"])] for r in first["sigma_validation"] if not r["tried"])
+    sigma = diag / min(emulation.CANDIDATES_NEAR)
+    _, _, coarse = coarse_lattice(bounds, sigma, emulation.SPACING, 20)
+    assert first["sigma"] == pytest.approx(sigma, rel=1e-12) and _same_points(first["grid"], coarse)
+    assert tried[0]["grid_points"] == len(coarse) <= 20 and "coarsened" in tried[0]["grid"]
+    basis, ref = _exact(world.robots, first)
+    assert basis.function_error(np.asarray(first["c"]), first["gamma"], ref.c, ref.gamma) < 1e-3
 
 
 def world_box(world) -> tuple[np.ndarray, np.ndarray]:
@@ -96,14 +173,17 @@ def test_model_lsq_is_the_default_autogrid():
     assert default.autogrid_params.lsq and not svm.autogrid_params.lsq
 
 
-def test_crash_and_restart_in_the_sweep_and_the_fit_end_on_the_clean_answer():
-    """A robot killed in the sweep (round 20) and one in the final fit resume from their checkpoints."""
+def test_crash_and_restart_in_the_marks_the_sweep_and_the_fit_end_on_the_clean_answer():
+    """Robots killed in the near-data marks, in the sweep (round 20) and in the final fit resume from their
+    checkpoints."""
     _, spec = _spec(fleet_id="autolsq-crash", timing=TIMING, topology="ring", robots=4)
     clean = {r["id"]: r for r in simulate_fleet(spec).robots}
     phases = dict(clean[0]["phases"])
     fit_round = phases["admm"] + 5
-    out = simulate_fleet(spec, crashes=[CrashPlan(1, 20), CrashPlan(2, fit_round)], restart=True, restart_after=0.5)
-    assert [c["fired"] for c in out.crash_log] == [True, True]
+    assert phases["validate"] - phases["marks"] >= 2  # (D = 2: the crash is inside the phase)
+    crashes = [CrashPlan(3, phases["marks"] + 1), CrashPlan(1, 20), CrashPlan(2, fit_round)]
+    out = simulate_fleet(spec, crashes=crashes, restart=True, restart_after=0.5)
+    assert [c["fired"] for c in out.crash_log] == [True, True, True]
     for r in out.robots:
         want = clean[r["id"]]
         assert (r["x"], r["gamma"], r["rounds"], r["sigma"]) == (want["x"], want["gamma"], want["rounds"], want["sigma"])
@@ -116,6 +196,34 @@ def test_survivors_of_a_loss_in_the_sweep_fit_their_own_data():
     out = simulate_fleet(spec, crashes=[CrashPlan(1, 20)], restart=False)
     assert [r["id"] for r in out.robots] == [0, 2, 3] and all(r["converged"] for r in out.robots)
     assert dict(out.robots[0]["phases"])["tally"] > 20  # (the loss was in the sweep)
+    basis, ref = _exact([r for r in world.robots if r.id != 1], out.robots[0])
+    assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
+
+
+def test_crash_and_restart_inside_chunked_marks_ends_on_the_clean_answer():
+    """max_points 20: the marks take several frames (chunks of D rounds); a robot killed in the third chunk resumes
+    from its checkpoint (the marks agreed so far and the chunk) and the fleet ends on the clean run's bits."""
+    _, spec = _spec(fleet_id="autolsq-chunks", timing=TIMING, topology="ring", robots=4, max_grid_points=20)
+    clean = {r["id"]: r for r in simulate_fleet(spec).robots}
+    marks = [r for p, r in clean[0]["phases"] if p == "marks"]
+    assert len(marks) >= 3
+    out = simulate_fleet(spec, crashes=[CrashPlan(2, marks[2] + 1)], restart=True, restart_after=0.5)
+    assert [c["fired"] for c in out.crash_log] == [True]
+    for r in out.robots:
+        want = clean[r["id"]]
+        assert (r["x"], r["gamma"], r["rounds"], r["grid"]) == (want["x"], want["gamma"], want["rounds"], want["grid"])
+        assert r["sigma_validation"] == want["sigma_validation"]  # (every candidate's kept nodes: the marks)
+
+
+@pytest.mark.parametrize("topology", ["complete", "ring"])
+def test_survivors_of_a_loss_in_the_marks_fit_their_own_data(topology):
+    """Robot 1 dies for good in the near-data marks: the survivors agree on the marks without it (a max-consensus
+    as BOUNDS'), sweep and fit their own rows exactly on the grid they chose."""
+    world, spec = _spec(fleet_id=f"autolsq-markloss-{topology}", timing=TIMING, topology=topology, robots=4)
+    marks = dict(simulate_fleet(spec).robots[0]["phases"])["marks"]
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, marks)], restart=False)
+    assert [r["id"] for r in out.robots] == [0, 2, 3] and all(r["converged"] for r in out.robots)
+    assert len({(r["sigma"], tuple(r["x"])) for r in out.robots}) == 1
     basis, ref = _exact([r for r in world.robots if r.id != 1], out.robots[0])
     assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
 
@@ -141,8 +249,10 @@ def test_simulate_reports_the_model_its_choice_and_its_exact_reference(tmp_path,
     code, _ = cli_exit_and_stderr(["simulate", "--lsq-lambda", "0.2", "--out", str(tmp_path / "r")], capsys)  # (the default model)
     result = json.loads((tmp_path / "r" / "result.json").read_text())
     assert code == 0 and result["converged"] and "least squares" in result["model"] and result["lsq_lambda"] == 0.2
-    assert len(result["sigma_validation"]) == len(emulation.CANDIDATES)
-    assert all(np.isfinite(r["score"]) and r["held_out_pairs"] > 0 for r in result["sigma_validation"])
+    records = result["sigma_validation"]  # every candidate: its grid size, whether it was tried, its score
+    assert [r["divisor"] for r in records] == list(emulation.CANDIDATES_NEAR)
+    assert all(np.isfinite(r["score"]) and r["held_out_pairs"] > 0 for r in records if r["tried"])
+    assert all(f"diag/{r['divisor']:g}: {r['grid_points']} nodes" in result["sigma_reason"] for r in records)
     world, _ = _spec(lsq_lambda=0.2)
     _, ref = _exact(world.robots, result)
     assert result["central"]["c"] == ref.c.tolist()  # measured against the least-squares fit, not the margin QP
@@ -168,20 +278,20 @@ def test_launch_equals_simulate_bit_for_bit(tmp_path):
 # -- issue 10's frame rule --------------------------------------------------------------------------
 @pytest.mark.parametrize("hub_frames", [False, True], ids=["sparse", "complete"])
 def test_sweep_frames_stay_within_16_function_space_vectors(hub_frames):
-    """The default lsq sweep (25 tasks; with the hub's w 6820 floats in one pass) fits 16 (max_points + 1)."""
+    """The default lsq sweep (35 tasks of up to 300 nodes: 21 000 floats with the hub's w in one pass) shares a
+    frame of 16 (max_points + 1) floats, which also holds a final fit's and every candidate's marks of a run."""
     params = AutoGridParams(model="lsq", hub_frames=hub_frames)
-    assert params.dim <= 16 * (params.max_points + 1)
-    assert sum(params.sweep_blocks()) <= params.dim
-    groups = {params.sweep_group(fold) for fold in range(params.sweep_folds)}
-    assert groups == set(range(params.sweep_groups)) and (params.sweep_groups > 1) == hub_frames
+    assert params.dim == params.lsq_sweep_frame == 16 * (params.max_points + 1)
+    assert params.sweep_folds * sum(params._fold_blocks()) > params.dim  # (shared: not every task at once)
+    assert params.tally_slots >= 300  # robot ids: one tally slot each per candidate
 
 
 def test_scheduled_sweep_is_the_one_pass_sweep_bit_for_bit(monkeypatch):
-    """The tasks sharing a frame sized for three folds round by round (complete graph) give the one-pass
-    sweep's scores and fit, bit for bit; every round's blocks are disjoint and within the frame rule."""
+    """The tasks sharing the frame round by round (complete graph) give the one-pass sweep's scores and fit,
+    bit for bit; every round's blocks are disjoint and within the frame rule."""
     world, spec = _spec()
     params = spec.autogrid_params
-    assert params.sweep_groups == 2 and params.dim <= 16 * (params.max_points + 1)
+    assert params.dim <= 16 * (params.max_points + 1)
     running, layouts = autogrid_sweep.SigmaSweep._running, []
 
     def checked(sweep):
@@ -193,10 +303,10 @@ def test_scheduled_sweep_is_the_one_pass_sweep_bit_for_bit(monkeypatch):
 
     monkeypatch.setattr(autogrid_sweep.SigmaSweep, "_running", checked)
     grouped = _fleet(world, spec)
-    assert 0 < min(layouts) and max(layouts) < params.sweep_folds * len(params.validate_divisors)  # (shared)
+    assert 0 < min(layouts) and max(layouts) < params.sweep_folds * len(params.lsq_divisors)  # (shared)
     monkeypatch.undo()
     monkeypatch.setattr(autogrid_rules, "FRAME_BUDGET", 10**6)  # room for every task at once
-    assert spec.autogrid_params.sweep_groups == 1
+    assert spec.autogrid_params.dim == spec.autogrid_params.sweep_folds * sum(spec.autogrid_params._fold_blocks())
     one_pass = _fleet(world, spec)
     for a, b in zip(grouped, one_pass):
         without_rounds = lambda records: [{k: v for k, v in r.items() if k != "rounds"} for r in records]

@@ -261,9 +261,9 @@ def test_autogrid_over_zenoh_same_grid_and_function_as_simulate(tmp_path, capsys
     import dataclasses
 
     _world, spec, _ = _run(algorithm="autogrid", points=15, max_grid_points=60, fleet_id="launch-autogrid")
-    # two sigma candidates instead of five (any AutoGridParams field rides in the fleet file's
+    # two sigma candidates instead of seven (any AutoGridParams field rides in the fleet file's
     # params): the same sweep and tally, half the rounds -- about 1900, 13 s over Zenoh here
-    spec = dataclasses.replace(spec, params={**spec.params, "validate_divisors": [4.0, 8.0]})
+    spec = dataclasses.replace(spec, params={**spec.params, "lsq_divisors": [4.0, 8.0]})
     want = _simulate(spec)
     assert len(want[0]["sigma_validation"]) == 2
     out = _launch(spec, tmp_path)
