@@ -11,7 +11,8 @@ scikit-learn's SVC (RBF, C = 1e6) trained centrally on the same data:
 - "SVC 5-fold CV": the sigma of that sweep with the best 5-fold cross-validated accuracy
   (what a user without the truth would pick).
 
-Frames go through the real codec in lock-step (no faults). Writes benchmarks/results/autogrid.md.
+Frames go through the real codec in lock-step (no faults). Prints the table (`--out FILE` also writes it;
+benchmarks/results/autogrid.md keeps the tables of every session, by hand).
 
     .venv/bin/python benchmarks/autogrid.py            # the table (several minutes)
     .venv/bin/python benchmarks/autogrid.py --quick    # 3 robots x 20 points
@@ -126,6 +127,21 @@ def padded_bounds(shape):
     return (x0 - pad, x1 + pad, y0 - pad, y1 + pad)
 
 
+def fleet_iou(world, bounds, core, params) -> tuple[float, float]:
+    """(IoU of the fleet's answer, IoU of its raw {f < 0}) on the raster of `bounds`: the answer is {f < 0} for
+    the SVM, the output region (agents/lsq_model.py `output_region`) for the least-squares model, as simulate
+    reports it -- here on the same raster as SVC's."""
+    from agents.lsq_model import output_region
+    shape = (scenario.IOU_RESOLUTION, scenario.IOU_RESOLUTION)
+    basis = core._basis
+
+    def answer(q):
+        f = core.decision(q)
+        return output_region(f, q, shape, basis.grid, basis.sigma, basis.widths) if params.lsq else f < 0
+    raw = scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds)
+    return (scenario.iou_on_raster(world.shape, answer, bounds) if params.lsq else raw), raw
+
+
 def svc_iou(world, bounds, sigma):
     clf = SVC(kernel="rbf", C=1e6, gamma=1.0 / (2 * sigma * sigma)).fit(world.points, world.labels)
     return scenario.iou_on_raster(world.shape, lambda q: clf.decision_function(q) < 0, bounds)
@@ -145,7 +161,7 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None
     same = all(np.array_equal(k.function()[0], grid) and np.array_equal(k.function()[1], c) for k in cores)
     basis, err = error_vs_central(world, core, params)
     bounds = padded_bounds(world.shape)
-    ours = scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds)
+    ours, ours_raw = fleet_iou(world, bounds, core, params)
     diag = float(np.hypot(*np.ptp(world.points, axis=0)))
     sweep = [(svc_iou(world, bounds, diag / k), diag / k) for k in SWEEP]
     val = core.sigma_validation
@@ -186,6 +202,7 @@ def measure(name, kwargs, robots, points, params_kw, free_space=None, extra=None
         "err": err,
         "same": same,
         "ours": ours,
+        "ours_raw": ours_raw,
         "svc_same": svc_iou(world, bounds, core.sigma),
         "svc_best": best,
         "svc_best_sigma": best_sigma,
@@ -228,29 +245,36 @@ def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tupl
         "name": Path(path).name, "n": len(world.labels), "sigma": core.sigma, "divisor": diag / core.sigma,
         "rounds": core.round, "wall": wall, "err": err, "rank_ok": basis.rank == len(grid), "grid": len(grid),
         "converged": all(k.converged for k in cores), "margin": core.margin,
-        "val": " ".join(f"{r['errors']}{'' if r['solid'] else '*'}{'d' if r.get('dropped') else ''}"
-                        for r in core.sigma_validation)
+        "val": (" ".join(f"{r['score']:.3f}" if r["tried"] else f"-({r['grid_points']})" for r in core.sigma_validation)
+                if params.lsq else " ".join(f"{r['errors']}{'' if r['solid'] else '*'}{'d' if r.get('dropped') else ''}"
+                                            for r in core.sigma_validation))
         + ("" if not core.width_validation else "; widths r=1: {} r={:g}: {} -> {}".format(
             core.width_validation[0]["errors"], core.width_validation[1]["divisor"], core.width_validation[1]["errors"],
             "one" if core._basis.widths is None else "two")),
-        "ours": scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds),
+        "ours": fleet_iou(world, bounds, core, params)[0],
+        "ours_raw": fleet_iou(world, bounds, core, params)[1],
         "svc_same": svc_iou(world, bounds, core.sigma),
         "best": max(sweep), "cv": sweep[int(np.argmax(scores))],
     }
 
 
+def _answer_cell(row: dict) -> str:
+    """The fleet's IoU, its raw {f < 0} IoU in brackets where the output region differs."""
+    return f"{row['ours']:.3f}" + ("" if row["ours_raw"] == row["ours"] else f" ({row['ours_raw']:.3f})")
+
+
 def outline_table(rows: list[dict]) -> list[str]:
     lines = [
-        "| outline | points | fleet sigma (diag/k) | held-out errors per candidate (d: dropped) | grid | margin | rounds | error vs central "
-        "| converged | IoU fleet | IoU SVC same sigma | IoU SVC 5-fold CV (diag/k) | IoU SVC best of sweep (diag/k) |",
+        "| outline | points | fleet sigma (diag/k) | held-out errors per candidate (d: dropped; lsq: score, -(kept nodes) not tried) | grid | margin | rounds | error vs central "
+        "| converged | IoU fleet (its answer; raw {f < 0}) | IoU SVC same sigma | IoU SVC 5-fold CV (diag/k) | IoU SVC best of sweep (diag/k) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         d = r["sigma"] * r["divisor"]
         lines.append(
             f"| {r['name']} | {r['n']} | {r['sigma']:.4g} (/{r['divisor']:.3g}) | {r['val']} | {r['grid']} | {r['margin']} "
-            f"| {r['rounds']} | {r['err']:.1e} | {'yes' if r['converged'] else 'NO'} | {r['ours']:.3f} | {r['svc_same']:.3f} "
-            f"| {r['cv'][0]:.3f} (/{d / r['cv'][1]:.3g}) | {r['best'][0]:.3f} (/{d / r['best'][1]:.3g}) |"
+            f"| {r['rounds']} | {r['err']:.1e} | {'yes' if r['converged'] else 'NO'} | {r['ours']:.3f} ({r['ours_raw']:.3f}) "
+            f"| {r['svc_same']:.3f} | {r['cv'][0]:.3f} (/{d / r['cv'][1]:.3g}) | {r['best'][0]:.3f} (/{d / r['best'][1]:.3g}) |"
         )
     mean = {k: np.mean([r[k] if k in ("ours", "svc_same") else r[k][0] for r in rows]) for k in ("ours", "svc_same", "cv", "best")}
     lines += ["", f"Mean IoU: fleet {mean['ours']:.3f}, SVC same sigma {mean['svc_same']:.3f}, "
@@ -365,7 +389,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="3 robots x 20 points")
     ap.add_argument("--svm", action="store_true", help="the SVM model (autogrid's default before branch lsqdefault)")
     ap.add_argument("--jobs", type=int, default=2, help="shapes measured in parallel (processes)")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks/results/autogrid.md"))
+    ap.add_argument("--out", default=None, help="also write the table to this file (default: print only -- "
+                    "benchmarks/results/autogrid.md is the history of every run, never overwritten by default)")
     ap.add_argument("--shapes", default="", help="comma-separated subset of shape names (default: all)")
     ap.add_argument("--outlines", nargs="*", default=None, help="issue 15: these outline CSVs (simulate defaults)")
     ap.add_argument("--divisors", default="", help="with --outlines: sigma candidates diag/d, e.g. 4,6,8,12,16,24")
@@ -430,7 +455,13 @@ def main() -> None:
     lines = [
         f"# Automatic grid and sigma vs scikit-learn SVC ({robots} robots x {points} points, complete graph)",
         "",
-        f"Fleet: `agents/autogrid.py`, sigma chosen by the fleet's held-out sweep over diag/{{{divs}}} "
+        (f"Fleet: `agents/autogrid.py`, the LiDAR least-squares model (rule 2 of benchmarks/lsq_emulation.py): sigma "
+         f"among diag/{{{divs}}} whose near-data lattice (1.0 sigma, nodes within {rule.lsq_near:g} sigma of data) fits "
+         f"{params_kw['max_points']} points, by the held-out squared residual of whole LiDAR pairs (5 folds; a candidate "
+         "not tried: -(its kept nodes)), one fit on the chosen lattice, tol "
+         f"{params_kw['tol']:g}, frames through the real codec, no faults; 'IoU fleet' is its answer (the output region: "
+         "{f < 0} within 2 sigma of a node, enclosed holes filled), the raw {f < 0} in brackets." if rule.lsq else
+         f"Fleet: `agents/autogrid.py`, sigma chosen by the fleet's held-out sweep over diag/{{{divs}}} "
         f"({rule.validate_folds} folds, every robot holds out every 5th of its (inside, nearest outside) pairs per fold; all "
         f"{len(rule.validate_divisors) * rule.validate_folds} candidate/fold "
         "soft-margin ADMMs solved in one pass from stacked frames, each on its coarse lattice, tol 1e-2, <= 300 rounds, "
@@ -442,7 +473,7 @@ def main() -> None:
         f"near data (refined points of width sigma / {rule.narrow_ratio:g}), no finer than 0.7 x their width (K_G full rank), "
         f"within {params_kw['max_points']} points, solved on all data, tol {params_kw['tol']:g}, frames through the real "
         "codec, no faults. 'sweep rounds' = the one pass + its tally; 'rank = M' says the reference solve is exact; "
-        "'gap' = the largest relative gap between neighbours measured before the flood.",
+        "'gap' = the largest relative gap between neighbours measured before the flood."),
         "SVC: RBF, C = 1e6, trained centrally on the same data. IoU on a 200x200 raster of the shape's box "
         "widened by 20%. 'best of sweep' picks sigma in diag/{2,4,6,8,12,16} by IoU with the truth (an oracle); "
         "'5-fold CV' picks it by cross-validated accuracy (first best on ties, i.e. the larger sigma).",
@@ -456,7 +487,7 @@ def main() -> None:
         lines.append(
             f"| {r['name']} | {r['n']} | {r['sigma']:.4g} (/{r['divisor']:.3g}) | {r['val']} | {r['val_rounds']} | {r['sizes']} | {r['margin']} | {r['rounds']} | {r['wall']:.0f} "
             f"| {r['err']:.1e} | {'yes' if r['rank_ok'] else 'NO'} | {r['gap']:.1e} | {'yes' if r['converged'] else 'NO'} "
-            f"| {r['ours']:.3f} | {r['svc_same']:.3f} "
+            f"| {_answer_cell(r)} | {r['svc_same']:.3f} "
             f"| {r['svc_best']:.3f} ({r['svc_best_sigma']:.3g}) | {r['svc_cv']:.3f} ({r['svc_cv_sigma']:.3g}) "
             f"| {'yes' if r['ours'] >= r['svc_best'] - 1e-3 else 'no'} | {'yes' if r['ours'] >= r['svc_cv'] - 1e-3 else 'no'} |"
         )
@@ -480,8 +511,9 @@ def main() -> None:
         "Reason reported by the fleet (first shape): " + rows[0]["reason"],
         "",
     ]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines))
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text("\n".join(lines))
     print("\n".join(lines))
 
 
