@@ -16,7 +16,7 @@ import math
 import operator
 import struct
 import threading
-from collections.abc import Collection, Mapping
+from collections.abc import Collection
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,7 +24,7 @@ import msgpack
 import numpy as np
 
 from agents.messages import MAX_FLAGS, MAX_ROBOT_ID, MAX_ROUND, StateUpdate, check_int, gone_problem
-from protocol.auth import TAG_BYTES, FrameAuth
+from protocol.auth import TAG_BYTES, FrameAuth, body_digest
 from protocol.keys import validate_fleet_id, validate_robot_id
 
 FRAME_VERSION = 1
@@ -220,27 +220,28 @@ def encode_state(
         return data
     if auth.me != update.sender:
         raise ValueError(f"robot {auth.me}'s keys cannot sign a frame of robot {update.sender}")
-    tags = auth.tag_entries(data)
+    digest = body_digest(data)  # the body hashed once, for every neighbour's tag (protocol/auth.py)
+    tags = auth.digest_tag_entries(digest)
     wrapped = _pack([update.sender, data, tags])
     if len(wrapped) > MAX_FRAME_BYTES:
         raise ValueError(f"authenticated frame of {len(wrapped)} bytes exceeds {MAX_FRAME_BYTES}")
     if prime is not None:
-        _prime(prime, frame, data, seq, (wrapped, tags), auth.tag_keys)
+        _prime(prime, frame, data, seq, (wrapped, tags), digest)
     return wrapped
 
 
 def _prime(decoder: FrameDecoder, frame: dict[str, Any], body: bytes, seq: int,
-           envelope: tuple[bytes, bytes] | None, tag_keys: Mapping[int, bytes] | None = None) -> None:
+           envelope: tuple[bytes, bytes] | None, digest: bytes | None = None) -> None:
     """Put into the parse memo what ``body`` (and its ``envelope``: the wrapped bytes and the tag
     block) parse to, built from the fields ``encode_state`` packed instead of unpacked again: the
     same entries ``decoder._checked`` and ``_parse_envelope`` would make of those bytes (a valid
     frame: encode_state refused anything a receiver would reject). Only what a receiver looks up
     by the very bytes it got from Zenoh: other bytes miss and are parsed; its own tag is still
     verified, its equivocation and dedup checks still run (branch shell3: the first receiver's
-    parse was ~45 us of a frame's ~70 us in a process of 3 robots). ``tag_keys``: the edge key
-    each tag of the envelope was made with (:attr:`FrameAuth.tag_keys`), kept with it so that a
-    receiver here holding the same key for this edge knows its tag verifies without hashing the
-    body again (FrameDecoder.decode)."""
+    parse was ~45 us of a frame's ~70 us in a process of 3 robots). ``digest``: the body's
+    :func:`body_digest`, which encode_state computed for the tags: kept with the envelope, so
+    that the receivers here check their tags without hashing the body again (a pure function of
+    the body bytes the entry is found by, like the parse)."""
     x, prev, need, sender = frame["x"], frame["prev"], frame.get("need"), frame["from"]
     parsed = _body_of(sender, frame["round"], seq, frame["flags"], x, prev, frame["pflags"],
                       None if need is None else tuple(need), _read_only(x), None if prev is None else _read_only(prev),
@@ -252,7 +253,7 @@ def _prime(decoder: FrameDecoder, frame: dict[str, Any], body: bytes, seq: int,
         wrapped, raw = envelope  # would only be reached once the envelope's was evicted (it goes first)
         env = _Envelope(sender, body, dict(_TAG_ENTRY_STRUCT.iter_unpack(raw)))
         env.parsed[decoder._profile] = parsed
-        env.tag_keys = tag_keys
+        env.digest = digest
         _MEMO.put(wrapped, env, len(wrapped))
 
 
@@ -336,15 +337,24 @@ class _Envelope:
     """An authentication envelope's structure (nothing verified yet), shared by the receivers of
     a process: sender, body, the tag of each receiver (the first one a receiver has), and the
     body's checked fields by decoder profile, filled by the first receiver that verified its tag
-    (FrameDecoder._decode). ``tag_keys``: only for an envelope this process made and tagged
-    (encode_state's prime), the edge key of each receiver's tag in it."""
+    (FrameDecoder._decode). ``digest``: the body's :func:`body_digest` once a receiver of the
+    process (or encode_state's prime) computed it -- a pure function of the body, so each body is
+    hashed once per process however many of its robots check their tags (:meth:`body_digest`)."""
 
-    __slots__ = ("sender", "body", "tags", "parsed", "tag_keys")
+    __slots__ = ("sender", "body", "tags", "parsed", "digest")
 
     def __init__(self, sender: int, body: bytes, tags: dict[int, bytes]) -> None:
         self.sender, self.body, self.tags = sender, body, tags
         self.parsed: dict[int, _Body] = {}
-        self.tag_keys: Mapping[int, bytes] | None = None
+        self.digest: bytes | None = None
+
+    def body_digest(self) -> bytes:
+        """D of the body (protocol/auth.py), computed on first use (two threads may both compute
+        it: the same bytes)."""
+        digest = self.digest
+        if digest is None:
+            digest = self.digest = body_digest(self.body)
+        return digest
 
 
 def _parse_envelope(data: Any) -> _Envelope:
@@ -533,7 +543,6 @@ class FrameDecoder:
         # decode's common case: keyed hasher states of the known senders we share a key with
         self._in = None if auth is None else auth.incoming(self.known_senders)
         self._me = None if auth is None else auth.me
-        self._keys = None if auth is None else auth.keys
         # the robot these frames are for (default: the keys' owner): a frame saying it was dropped
         # for good is refused ("gone") -- it is here, so the sender's problem is not the fleet's
         self.receiver = receiver if receiver is not None else self._me
@@ -549,15 +558,10 @@ class FrameDecoder:
             # The common case, inline: a frame another receiver of this process has already opened
             # and parsed (every receiver of a broadcast but the first), whose sender is the
             # expected one, a known sender with whom we share a key, and whose tag to us verifies
-            # (FrameAuth.verify's work: the tags of a parsed envelope are TAG_BYTES bytes each).
-            # Anything else -- including a tag that does not verify -- takes the full path below,
-            # which gives the verdict. An envelope this process tagged itself (``tag_keys``, set
-            # only by encode_state's prime; found by the very bytes it made) carries our tag made
-            # with the key we hold for this edge: then the tag is the one we would compute (a keyed
-            # hash of the same key and bytes), and hashing the body again is skipped. Frames of
-            # other processes are always hashed: their bytes never hit such an entry unless they
-            # are exactly a frame tagged here (a replay: the same verdict, then dedup and
-            # equivocation as for any frame).
+            # (FrameAuth.verify_digest's work on the body digest the envelope holds: the receiver
+            # that parsed it, or the sender here, computed it; the tags of a parsed envelope are
+            # TAG_BYTES bytes each). Anything else -- including a tag that does not verify -- takes
+            # the full path below, which gives the verdict.
             found = _MEMO._items.get(data)
             if found is not None and found[0] and len(data) <= MAX_FRAME_BYTES:
                 env = found[1]
@@ -565,14 +569,9 @@ class FrameDecoder:
                 body = env.parsed.get(self._profile)
                 tag = env.tags.get(self._me)
                 if base is not None and body is not None and tag is not None:
-                    signed = env.tag_keys
-                    if signed is not None and (key := signed.get(self._me)) is not None and key == self._keys.get(expected_sender):
-                        valid = True
-                    else:
-                        h = base.copy()
-                        h.update(env.body)
-                        valid = _compare_digest(h.digest(), tag)
-                    if valid:
+                    h = base.copy()
+                    h.update(env.digest or env.body_digest())
+                    if _compare_digest(h.digest(), tag):
                         _MEMO.hits += 1
                         try:
                             if body.gone is not None:
@@ -641,7 +640,7 @@ class FrameDecoder:
         tag = env.tags.get(auth.me)
         if tag is None:
             raise _Reject("auth", f"no tag for robot {auth.me} in sender {sender}'s frame")
-        if not auth.verify(sender, env.body, tag):
+        if not auth.verify_digest(sender, env.body_digest(), tag):
             raise _Reject("auth", f"tag of sender {sender}'s frame does not verify")
         return env
 

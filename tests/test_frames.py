@@ -185,31 +185,79 @@ def test_no_receiver_can_alter_the_values_another_receiver_gets():
 
 
 
-def test_a_frame_tagged_here_skips_the_hash_only_for_a_receiver_with_the_same_edge_key(monkeypatch):
-    """A primed envelope carries the key of each of its tags (branch sendpath): a receiver of the
-    process whose key for that edge is the same accepts it without hashing the body again (the
-    tag is the keyed hash it would compute); a receiver holding another key for the edge still
-    hashes and rejects it, and the same bytes in a process that did not tag them are hashed."""
+def _count_body_hashes(monkeypatch) -> list[bytes]:
+    """Every body digest (protocol/auth.py body_digest) computed from now on, by frames or auth."""
+    from protocol import auth as auth_mod, frames
+
+    hashed: list[bytes] = []
+    real = auth_mod.body_digest
+
+    def counted(body: bytes) -> bytes:
+        hashed.append(body)
+        return real(body)
+
+    monkeypatch.setattr(frames, "body_digest", counted)
+    monkeypatch.setattr(auth_mod, "body_digest", counted)
+    return hashed
+
+
+def _clear_memo() -> None:
+    """Forget every parsed frame: the state of another process."""
     from protocol import frames
 
-    hashed = []
-    real = frames._compare_digest
-    monkeypatch.setattr(frames, "_compare_digest", lambda a, b: hashed.append(1) or real(a, b))
     frames._MEMO._items.clear(), frames._MEMO._order.clear()
     frames._MEMO._bytes = 0
-    data = encode_state(StateUpdate(1, 31, X, 1, PREV), fleet=FLEET, seq=78, config_tag=TAG, auth=auth(1),
-                        prime=auth_decoder(1))
-    got = auth_decoder(0).decode(data, expected_sender=1)
-    assert isinstance(got, Decoded) and got.update == StateUpdate(1, 31, X, 1, PREV) and hashed == []
+
+
+def test_a_frame_tagged_here_is_hashed_once_by_its_sender_and_checked_per_receiver(monkeypatch):
+    """Hash-then-MAC: the sender hashes a body once for all its neighbours' tags and primes the
+    process's memo with that digest, so the receivers of the process check their own tags (one
+    keyed hash of 40 bytes each) without hashing the body again; a receiver holding another key
+    for the edge rejects it. (The earlier shortcut -- a receiver with the tagging key skipping its
+    tag check -- is gone: the check no longer hashes the body.) In another process the body is
+    hashed once, by its first receiver, for all of them."""
+    _clear_memo()
+    hashed = _count_body_hashes(monkeypatch)
+    update = StateUpdate(1, 31, X, 1, PREV)
+    data = encode_state(update, fleet=FLEET, seq=78, config_tag=TAG, auth=auth(1), prime=auth_decoder(1))
+    assert len(hashed) == 1
+    for me in (0, 2):
+        got = auth_decoder(me).decode(data, expected_sender=1)
+        assert isinstance(got, Decoded) and got.update == update
+    assert len(hashed) == 1
     keys = dict(auth(0).keys)
     keys[1] = bytes(32)  # robot 0 holding another key for the edge {0, 1} than robot 1 tagged with
     other = FrameDecoder(FLEET, KNOWN, DIM, TAG, auth=FrameAuth(0, keys)).decode(data, expected_sender=1)
-    assert isinstance(other, Rejected) and other.reason == "auth" and hashed == [1]
-    frames._MEMO._items.clear(), frames._MEMO._order.clear()  # another process: nothing tagged here
-    frames._MEMO._bytes = 0
-    assert isinstance(auth_decoder(0).decode(data, expected_sender=1), Decoded)  # (parsed, hashed)
-    hashed.clear()
-    assert isinstance(auth_decoder(2).decode(data, expected_sender=1), Decoded) and hashed == [1]
+    assert isinstance(other, Rejected) and other.reason == "auth" and len(hashed) == 1
+    _clear_memo()  # another process: nothing tagged here
+    for me in (0, 2):
+        assert isinstance(auth_decoder(me).decode(data, expected_sender=1), Decoded)
+    assert len(hashed) == 2 and hashed[0] == hashed[1] == envelope(data)[1]
+
+
+def test_the_body_is_hashed_once_per_sent_frame_whatever_the_neighbours(monkeypatch):
+    """A robot with 15 neighbours (16 robots, complete graph) hashes each frame body once, not once
+    per neighbour; each of the 15 receivers, each in its own process, hashes the body once and
+    accepts it; its tag is the documented hash-then-MAC of that body."""
+    from protocol.auth import digest_tag
+
+    others = range(1, 16)
+    sender = FrameAuth.from_secret(SECRET, 0, others)
+    hashed = _count_body_hashes(monkeypatch)
+    update = StateUpdate(0, 3, X, 0, PREV)
+    data = encode_state(update, fleet=FLEET, seq=5, config_tag=TAG, auth=sender)
+    assert len(hashed) == 1
+    body = envelope(data)[1]
+    D = hashlib.blake2b(body, digest_size=32, person=b"shapefleet-body2").digest()
+    for j in others:
+        hashed.clear()
+        _clear_memo()
+        dec = FrameDecoder(FLEET, range(16), DIM, TAG, auth=FrameAuth.from_secret(SECRET, j, (k for k in range(16) if k != j)))
+        assert isinstance(dec.decode(data, expected_sender=0), Decoded) and hashed == [body]
+        want = hashlib.blake2b(struct.pack("<II", 0, j) + D, key=edge_key(SECRET, 0, j), digest_size=16,
+                               person=b"shapefleet-tag2").digest()
+        assert envelope(data)[2][20 * (j - 1):20 * j] == struct.pack("<I", j) + want == (
+            struct.pack("<I", j) + digest_tag(edge_key(SECRET, 0, j), 0, j, D))
 
 
 def test_the_kept_packer_and_vector_bytes_give_msgpack_and_numpy_bytes():
@@ -714,7 +762,41 @@ def _other_fleet_same_id() -> bytes:
     return signed(signer=auth(1, OTHER_SECRET))
 
 
+def _old_scheme_tag() -> bytes:
+    # the scheme before hash-then-MAC: a keyed hash of the whole body, person "shapefleet-tag1"
+    sender, body, _ = envelope(signed())
+    tag = hashlib.blake2b(struct.pack("<II", 1, 0) + body, key=edge_key(SECRET, 0, 1), digest_size=16,
+                          person=b"shapefleet-tag1").digest()
+    return rewrap(sender, body, struct.pack("<I", 0) + tag)
+
+
+def _body_changed_after_tagging() -> bytes:
+    # the tags of a genuine frame around another body of robot 1 (other x, same round and seq)
+    sender, _, tags = envelope(signed())
+    other = encode_state(StateUpdate(1, 12, X * 2, 1, PREV), fleet=FLEET, seq=42, config_tag=TAG)
+    return rewrap(sender, other, tags)
+
+
+def _tag_moved_from_another_edge() -> bytes:
+    # robot 1's genuine tag for robot 2, filed under robot 0
+    sender, body, tags = envelope(signed())
+    return rewrap(sender, body, struct.pack("<I", 0) + auth(1).tags(body)[2])
+
+
+def _tag_reflected() -> bytes:
+    # the tag of this very body on the edge {0, 1} but in the other direction (0 -> 1): what robot 0
+    # would send robot 1, handed back to robot 0 as robot 1's
+    from protocol.auth import frame_tag
+
+    sender, body, _ = envelope(signed())
+    return rewrap(sender, body, struct.pack("<I", 0) + frame_tag(edge_key(SECRET, 0, 1), 0, 1, body))
+
+
 AUTH_CASES = {
+    "old-scheme-tag": ("auth", _old_scheme_tag()),
+    "body-changed-after-tagging": ("auth", _body_changed_after_tagging()),
+    "tag-moved-from-another-edge": ("auth", _tag_moved_from_another_edge()),
+    "tag-reflected": ("auth", _tag_reflected()),
     "unauthenticated": ("auth", pack(valid_map())),
     "forged-tag": ("auth", _forged_tag()),
     "another-robots-key": ("auth", _tag_from_another_robots_key()),

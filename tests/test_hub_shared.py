@@ -96,3 +96,29 @@ def test_messages_and_sync_test_are_the_python_float_products():
                 ws[1] = ws[1].copy()
                 ws[1][3] = np.nextafter(ws[1][3], np.inf)
                 assert not hub.synced(vs, np.array(ws))
+
+
+def test_a_step_is_adopted_only_for_frames_equal_byte_for_byte():
+    """shared_input_step (the hub's step, branch authhash) compares the frames instead of hashing
+    them: the same key and the same frame bytes adopt; the same key with frames differing in one
+    bit (a signed zero), or the same bytes in another shape, compute their own step."""
+    import numpy as np
+    from collections import OrderedDict
+
+    cache: OrderedDict = OrderedDict()
+    computed = []
+
+    def step(label):
+        return admm.shared_input_step(cache, b"k" * 20, frames[label], lambda: computed.append(label) or label, 64)
+
+    base = np.arange(12.0).reshape(3, 4)
+    flipped = base.copy()
+    flipped[0, 0] = -0.0  # base[0, 0] is +0.0: equal as floats, not as bits
+    frames = {"a": base, "a again": base.copy(), "signed zero": flipped, "reshaped": base.reshape(4, 3)}
+    assert step("a") == ("a", False)
+    assert step("a again") == ("a", True)
+    assert step("signed zero") == ("signed zero", False)
+    assert step("reshaped") == ("reshaped", False)
+    assert computed == ["a", "signed zero", "reshaped"]
+    assert step("signed zero") == ("signed zero", True) and admm.shared_input_step(
+        cache, b"other key".ljust(20), base, lambda: "other", 64) == ("other", False)
