@@ -228,6 +228,48 @@ def test_survivors_of_a_loss_in_the_marks_fit_their_own_data(topology):
     assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
 
 
+
+# -- sparse graphs: the plain edge form (agents/lsq_admm.py; benchmarks/results/lsq.md) --------------
+@pytest.mark.parametrize("topology", ["ring", "line"])
+def test_sparse_fleets_end_on_the_exact_fit_of_their_rows(topology):
+    """A ring and a line of 4 run the sweep and the final fit in the edge form: every robot ends converged on the
+    same bits, within the run's tolerance of the exact central least-squares fit on the grid they chose."""
+    world, spec = _spec(fleet_id=f"autolsq-{topology}", topology=topology, robots=4)
+    results = _fleet(world, spec)
+    assert all(r["converged"] and r["x"] == results[0]["x"] and r["gamma"] == results[0]["gamma"] for r in results)
+    basis, ref = _exact(world.robots, results[0])
+    error = basis.function_error(np.asarray(results[0]["c"]), results[0]["gamma"], ref.c, ref.gamma)
+    assert error < spec.autogrid_params.tol
+
+
+def test_survivors_of_a_loss_in_the_sweep_of_a_ring_fit_their_own_data():
+    """Robot 1 of a 5-ring dies for good in the sweep: the survivors (a line of 4) learn it by the flooded list,
+    weigh lam by the robots left and end on the exact fit of their own rows."""
+    world, spec = _spec(fleet_id="autolsq-ringloss", timing=TIMING, topology="ring", robots=5)
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, 20)], restart=False)
+    assert [r["id"] for r in out.robots] == [0, 2, 3, 4] and all(r["converged"] for r in out.robots)
+    assert dict(out.robots[0]["phases"])["tally"] > 20  # (the loss was in the sweep)
+    assert len({(r["sigma"], tuple(r["x"])) for r in out.robots}) == 1
+    basis, ref = _exact([r for r in world.robots if r.id != 1], out.robots[0])
+    assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
+
+
+@pytest.mark.integration
+def test_launch_equals_simulate_bit_for_bit_on_a_ring(tmp_path):
+    """Real robot processes over Zenoh on a ring (the edge form: per-edge duals, the flooded stop) run the sweep
+    and the fit as `simulate` does, bit for bit."""
+    _, spec = _spec(fleet_id="autolsq-launch-ring", timing=TIMING, topology="ring", robots=4)
+    want = {r["id"]: r for r in simulate_fleet(spec).robots}
+    with bounded_and_clean(str(tmp_path), 60.0, "autolsq-launch-ring"):
+        out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=0.5, restart=True,
+                           zenoh_port=None, progress=False)
+    assert not out.timed_out and sorted(r["id"] for r in out.robots) == sorted(want)
+    for r in out.robots:
+        w = want[r["id"]]
+        assert r["stopped"] == "finished" and (r["rounds"], r["converged"]) == (w["rounds"], True)
+        assert (r["x"], r["gamma"], r["sigma"], r["sigma_validation"]) == (w["x"], w["gamma"], w["sigma"],
+                                                                            w["sigma_validation"])
+
 # -- the shells -------------------------------------------------------------------------------------
 def test_bad_model_exits_2_naming_the_flag(tmp_path, capsys):
     code, err = cli_exit_and_stderr(["simulate", "--model", "bogus", "--out", str(tmp_path / "x")], capsys)
