@@ -417,6 +417,23 @@ class SigmaSweep:
     def task(self, cand: int, fold: int) -> SweepTask:
         return next(t for t in self.tasks if t.cand == cand and t.fold == fold)
 
+    def fold_mean(self, cand: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, np.ndarray]]] | None:
+        """The mean over a candidate's folds of this robot's last iterate and of every edge's (z, lambda): the
+        lsq final fit's warm start on a sparse graph (each fold fits 4/5 of the pairs, so the mean lies near
+        the full fit). Both ends of an edge hold the same (z, lambda) of every fold and average them in fold
+        order, so their copies stay equal and lambda_lj = -lambda_jl: the final fit's fixed point is still the
+        exact one. None in the hub form (its duals are not per edge) or when a fold's task was dropped."""
+        tasks = [t for t in self.tasks if t.cand == cand]
+        if not tasks or any(t.dropped or t.sub._hub is not None for t in tasks):
+            return None
+        mean = sum(t.sub.values for t in tasks) / len(tasks)
+        edges = {}
+        for j in tasks[0].sub._edges:
+            if all(j in t.sub._edges for t in tasks):
+                edges[j] = (sum(t.sub._edges[j].z for t in tasks) / len(tasks),
+                            sum(t.sub._edges[j].lam for t in tasks) / len(tasks))
+        return mean, edges
+
     # -- checkpoint -----------------------------------------------------------------------------
     def checkpoint(self) -> list[dict[str, Any]]:
         return [{"sub": t.sub.checkpoint(), "verdict": t.verdict, "since": t.since, "dropped": t.dropped}

@@ -22,7 +22,7 @@ from launcher.fleet import CrashPlan, launch_fleet
 from launcher.simulate import simulate_fleet
 from launcher.world import Options, build_world
 
-from .conftest import ROOT, bounded_and_clean, cli_exit_and_stderr, run_to_end
+from .conftest import ROOT, bounded_and_clean, cli_exit_and_stderr, run_to_end, step_all
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import autogrid as bench  # noqa: E402  (padded_bounds: the emulation's IoU raster)
@@ -240,6 +240,51 @@ def test_sparse_fleets_end_on_the_exact_fit_of_their_rows(topology):
     basis, ref = _exact(world.robots, results[0])
     error = basis.function_error(np.asarray(results[0]["c"]), results[0]["gamma"], ref.c, ref.gamma)
     assert error < spec.autogrid_params.tol
+
+
+def test_a_sparse_final_fit_starts_from_its_folds_with_equal_edge_copies():
+    """On a ring the final fit starts from the mean of the chosen candidate's fold fits (`SigmaSweep.fold_mean`):
+    at its first round every robot's v is its folds' mean, and both ends of every edge hold the same carried
+    (z, lambda) -- not zero -- so lambda_lj = -lambda_jl and the fixed point stays the exact fit."""
+    world, spec = _spec(fleet_id="autolsq-warmfit", topology="ring", robots=4)
+    cores = [build_core(spec, i) for i in spec.robot_ids]
+    means = {}
+    for _ in range(spec.autogrid_params.max_total_rounds):
+        sweeps = {c.robot_id: c._sweep for c in cores}
+        step_all(cores)
+        if all(c._sub is not None for c in cores):
+            break
+    for c in cores:
+        sweep = sweeps[c.robot_id]
+        cand = next(i for i, m in enumerate(sweep.models) if m.sigma == c.sigma)
+        means[c.robot_id] = sweep.fold_mean(cand)
+    by_id = {c.robot_id: c for c in cores}
+    for c in cores:
+        assert means[c.robot_id] is not None and np.array_equal(c._sub.values, means[c.robot_id][0])
+        for j, edge in c._sub._edges.items():
+            other = by_id[j]._sub._edges[c.robot_id]
+            assert np.array_equal(edge.z, other.z) and np.array_equal(edge.lam, other.lam)
+            assert np.any(edge.lam != 0)
+    run_to_end(cores, limit=spec.autogrid_params.max_total_rounds)
+    results = [c.result() for c in cores]
+    basis, ref = _exact(world.robots, results[0])
+    assert all(r["converged"] for r in results)
+    assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in results) < 1e-3
+
+
+def test_a_ring_robot_killed_in_the_tally_or_the_fits_first_round_resumes_on_the_clean_answer():
+    """The warm start is built from the sweep's tasks at the tally's end: a robot killed inside the tally (its
+    sweep restored from the checkpoint) and one killed at the fit's first round resume on the clean run's bits."""
+    _, spec = _spec(fleet_id="autolsq-crash-warm", timing=TIMING, topology="ring", robots=4)
+    clean = {r["id"]: r for r in simulate_fleet(spec).robots}
+    phases = dict(clean[0]["phases"])
+    assert phases["admm"] - phases["tally"] >= 2  # (the crash is inside the tally)
+    out = simulate_fleet(spec, crashes=[CrashPlan(2, phases["tally"] + 1), CrashPlan(3, phases["admm"] + 1)],
+                         restart=True, restart_after=0.5)
+    assert [c["fired"] for c in out.crash_log] == [True, True]
+    for r in out.robots:
+        want = clean[r["id"]]
+        assert (r["x"], r["gamma"], r["rounds"], r["sigma"]) == (want["x"], want["gamma"], want["rounds"], want["sigma"])
 
 
 def test_survivors_of_a_loss_in_the_sweep_of_a_ring_fit_their_own_data():
