@@ -349,8 +349,8 @@ class AdaptiveGridCore(RoundCore):
 
     def _enter_lsq_fit(self) -> None:
         """The lsq model's one fit: every row of every robot on the chosen level-0 lattice; on a complete graph
-        from each robot's own fit, on a sparse one from the mean of the chosen candidate's fold fits and edge
-        states (`SigmaSweep.fold_mean`: the edge form's rounds, benchmarks/results/lsq.md)."""
+        from each robot's own fit, on a sparse one from the iterate and edge states of the same fit run in the
+        sweep (`SigmaSweep.full_fit`: the edge form's rounds, benchmarks/results/lsq.md)."""
         p = self.params
         feats = self._basis.features(self._rows) if len(self._rows) else np.zeros((0, len(self.grid)))
         self._sub = WarmLSQ(
@@ -470,8 +470,8 @@ class AdaptiveGridCore(RoundCore):
         self._box, self._h0 = model.box, self.params.coarse_spacing * self.sigma
         self._set_grid(model.basis.grid if self._start_grid is None else self._start_grid.copy())
         self._mode = self.margin
-        warm = sweep.fold_mean(cand) if self._start_grid is None else None
-        if warm is not None:  # a sparse graph: the final fit starts from its folds' fits (`_enter_lsq_fit`)
+        warm = sweep.full_fit(cand) if self._start_grid is None else None
+        if warm is not None:  # a sparse graph: the final fit starts where the sweep's fit of all rows ended
             self._warm, self._carry = warm
         return "least squares"
 

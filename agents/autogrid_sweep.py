@@ -244,6 +244,14 @@ class SigmaSweep:
                 self.tasks.append(SweepTask(cand, fold, model.divisor, model.sigma, model.box, basis, held, sub,
                                             offset, task_slot, held_pairs=pairs))
                 offset += self._block(self.tasks[-1]) if not self._scheduled else 0
+            if params.lsq and self.tasks[-1].sub._hub is None:  # the edge form: the candidate's fit of all rows too
+                rows, targets = lsq_rows(points, labels)
+                feats = basis.features(rows) if len(rows) else np.zeros((0, basis.size))
+                sub = WarmLSQ(share.with_data(share.neighbours, feats, targets, None), sub_params,
+                              lam=params.lsq_lambda, keep_trace=False, hub_frames=params.hub_frames, gone=gone)
+                self.tasks.append(SweepTask(cand, params.sweep_folds, model.divisor, model.sigma, model.box, basis,
+                                            np.zeros(len(points), dtype=bool), sub, 0, basis.size,
+                                            held_pairs=np.zeros((0, 2, 2))))
 
     @property
     def finished(self) -> bool:
@@ -373,7 +381,7 @@ class SigmaSweep:
         """This robot's slots of the tally (zeros elsewhere), for a max-consensus."""
         s = self._slots
         v = np.zeros(self.dim)
-        for t in self.tasks:
+        for t in self._folds():
             errors, held, hinge, solid = self._outcome(t)
             base = t.cand * TALLY_BLOCKS * s + self.robot_id
             v[base] += errors + PACK * held + PACK * PACK * (0 if solid else 1)
@@ -388,7 +396,7 @@ class SigmaSweep:
             d = model.divisor
             base = cand * TALLY_BLOCKS * s
             packed = int(round(float(np.sum(tally[base : base + s]))))
-            tasks = [t for t in self.tasks if t.cand == cand]
+            tasks = [t for t in self._folds() if t.cand == cand]
             if self.params.lsq:  # the held-out pairs' mean squared residual (the rule's score)
                 held = (packed // int(PACK)) % int(PACK)
                 total = float(np.sum(tally[base + s : base + 2 * s]))
@@ -417,22 +425,19 @@ class SigmaSweep:
     def task(self, cand: int, fold: int) -> SweepTask:
         return next(t for t in self.tasks if t.cand == cand and t.fold == fold)
 
-    def fold_mean(self, cand: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, np.ndarray]]] | None:
-        """The mean over a candidate's folds of this robot's last iterate and of every edge's (z, lambda): the
-        lsq final fit's warm start on a sparse graph (each fold fits 4/5 of the pairs, so the mean lies near
-        the full fit). Both ends of an edge hold the same (z, lambda) of every fold and average them in fold
-        order, so their copies stay equal and lambda_lj = -lambda_jl: the final fit's fixed point is still the
-        exact one. None in the hub form (its duals are not per edge) or when a fold's task was dropped."""
-        tasks = [t for t in self.tasks if t.cand == cand]
-        if not tasks or any(t.dropped or t.sub._hub is not None for t in tasks):
+    def _folds(self) -> list[SweepTask]:
+        """The held-out folds' tasks: those the tally scores (not the lsq edge form's fits of all rows)."""
+        return [t for t in self.tasks if t.fold < self.params.sweep_folds]
+
+    def full_fit(self, cand: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, np.ndarray]]] | None:
+        """The lsq edge form's fit of all rows on a candidate's lattice, run beside its folds: this robot's last
+        iterate and every edge's (z, lambda), the final fit's start (it is the same problem, so the final fit
+        only confirms it). Both ends of an edge hold the same (z, lambda), so lambda_lj = -lambda_jl carries
+        over and the fixed point stays the exact fit. None in the hub form (no such task) or when it was dropped."""
+        task = next((t for t in self.tasks if t.cand == cand and t.fold == self.params.sweep_folds), None)
+        if task is None or task.dropped:
             return None
-        mean = sum(t.sub.values for t in tasks) / len(tasks)
-        edges = {}
-        for j in tasks[0].sub._edges:
-            if all(j in t.sub._edges for t in tasks):
-                edges[j] = (sum(t.sub._edges[j].z for t in tasks) / len(tasks),
-                            sum(t.sub._edges[j].lam for t in tasks) / len(tasks))
-        return mean, edges
+        return task.sub.values.copy(), {j: (e.z.copy(), e.lam.copy()) for j, e in task.sub._edges.items()}
 
     # -- checkpoint -----------------------------------------------------------------------------
     def checkpoint(self) -> list[dict[str, Any]]:

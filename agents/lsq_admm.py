@@ -106,7 +106,8 @@ class WarmLSQ(WarmADMM):
         """Round 0 in the edge form without a given start: the ordinary ADMM step from zero edge state (each
         robot's rows pulled towards 0 by its edges' penalty), not the robot's own fit. A robot's own fit with
         lam / N extrapolates far beyond its data on wide kernels; measured on the 8-ring the sweep took 311
-        rounds from this step against 418 from the own fit (the diag/4 task the slowest; benchmarks/results/lsq.md).
+        rounds from this step against 418 from the own fit, before the fits of all rows joined it (the diag/4 task the
+        slowest; benchmarks/results/lsq.md).
         The hub form (complete graphs) keeps the own fit."""
         if self._hub is None and self._start is None and not self._carry and self.neighbours:
             return self._primal_step()

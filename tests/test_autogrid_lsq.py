@@ -242,25 +242,25 @@ def test_sparse_fleets_end_on_the_exact_fit_of_their_rows(topology):
     assert error < spec.autogrid_params.tol
 
 
-def test_a_sparse_final_fit_starts_from_its_folds_with_equal_edge_copies():
-    """On a ring the final fit starts from the mean of the chosen candidate's fold fits (`SigmaSweep.fold_mean`):
-    at its first round every robot's v is its folds' mean, and both ends of every edge hold the same carried
-    (z, lambda) -- not zero -- so lambda_lj = -lambda_jl and the fixed point stays the exact fit."""
+def test_a_sparse_final_fit_starts_where_the_sweeps_fit_of_all_rows_ended():
+    """On a ring the sweep also runs every candidate's fit of all rows (`SigmaSweep.full_fit`, not scored) and the
+    final fit starts from the chosen one's iterate and edge states: at its first round every robot's v is that
+    iterate, and both ends of every edge hold the same carried (z, lambda) -- not zero -- so lambda_lj = -lambda_jl
+    and the fixed point stays the exact fit, which the fleet ends on."""
     world, spec = _spec(fleet_id="autolsq-warmfit", topology="ring", robots=4)
     cores = [build_core(spec, i) for i in spec.robot_ids]
-    means = {}
     for _ in range(spec.autogrid_params.max_total_rounds):
         sweeps = {c.robot_id: c._sweep for c in cores}
         step_all(cores)
         if all(c._sub is not None for c in cores):
             break
+    by_id = {c.robot_id: c for c in cores}
     for c in cores:
         sweep = sweeps[c.robot_id]
         cand = next(i for i, m in enumerate(sweep.models) if m.sigma == c.sigma)
-        means[c.robot_id] = sweep.fold_mean(cand)
-    by_id = {c.robot_id: c for c in cores}
-    for c in cores:
-        assert means[c.robot_id] is not None and np.array_equal(c._sub.values, means[c.robot_id][0])
+        full = sweep.task(cand, spec.autogrid_params.sweep_folds)
+        assert full.sub.finished and full.held_pairs is not None and len(full.held_pairs) == 0
+        assert np.array_equal(c._sub.values, full.sub.values)
         for j, edge in c._sub._edges.items():
             other = by_id[j]._sub._edges[c.robot_id]
             assert np.array_equal(edge.z, other.z) and np.array_equal(edge.lam, other.lam)
@@ -269,6 +269,7 @@ def test_a_sparse_final_fit_starts_from_its_folds_with_equal_edge_copies():
     results = [c.result() for c in cores]
     basis, ref = _exact(world.robots, results[0])
     assert all(r["converged"] for r in results)
+    assert all(r["folds"] == spec.autogrid_params.sweep_folds for r in results[0]["sigma_validation"] if r["tried"])
     assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in results) < 1e-3
 
 
