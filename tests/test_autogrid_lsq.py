@@ -300,22 +300,6 @@ def test_survivors_of_a_loss_in_the_sweep_of_a_ring_fit_their_own_data():
     assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
 
 
-@pytest.mark.integration
-def test_launch_equals_simulate_bit_for_bit_on_a_ring(tmp_path):
-    """Real robot processes over Zenoh on a ring (the edge form: per-edge duals, the flooded stop) run the sweep
-    and the fit as `simulate` does, bit for bit."""
-    _, spec = _spec(fleet_id="autolsq-launch-ring", timing=TIMING, topology="ring", robots=4)
-    want = {r["id"]: r for r in simulate_fleet(spec).robots}
-    with bounded_and_clean(str(tmp_path), 60.0, "autolsq-launch-ring"):
-        out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=0.5, restart=True,
-                           zenoh_port=None, progress=False)
-    assert not out.timed_out and sorted(r["id"] for r in out.robots) == sorted(want)
-    for r in out.robots:
-        w = want[r["id"]]
-        assert r["stopped"] == "finished" and (r["rounds"], r["converged"]) == (w["rounds"], True)
-        assert (r["x"], r["gamma"], r["sigma"], r["sigma_validation"]) == (w["x"], w["gamma"], w["sigma"],
-                                                                            w["sigma_validation"])
-
 # -- the shells -------------------------------------------------------------------------------------
 def test_bad_model_exits_2_naming_the_flag(tmp_path, capsys):
     code, err = cli_exit_and_stderr(["simulate", "--model", "bogus", "--out", str(tmp_path / "x")], capsys)
@@ -348,11 +332,13 @@ def test_simulate_reports_the_model_its_choice_and_its_exact_reference(tmp_path,
 
 
 @pytest.mark.integration
-def test_launch_equals_simulate_bit_for_bit(tmp_path):
-    """Real robot processes over Zenoh run the sweep and the fit as `simulate` does, bit for bit."""
-    _, spec = _spec(fleet_id="autolsq-launch", timing=TIMING)
+@pytest.mark.parametrize("graph", [{}, {"topology": "ring", "robots": 4}], ids=["complete", "ring"])
+def test_launch_equals_simulate_bit_for_bit(tmp_path, graph):
+    """Real robot processes over Zenoh run the sweep and the fit as `simulate` does, bit for bit: the hub form
+    (the default complete graph) and the edge form (a ring: per-edge duals, the fits of all rows in the sweep)."""
+    _, spec = _spec(fleet_id=f"autolsq-launch-{len(graph)}", timing=TIMING, **graph)
     want = {r["id"]: r for r in simulate_fleet(spec).robots}
-    with bounded_and_clean(str(tmp_path), 45.0, "autolsq-launch"):
+    with bounded_and_clean(str(tmp_path), 60.0, "autolsq-launch"):
         out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=0.5, restart=True,
                            zenoh_port=None, progress=False)
     assert not out.timed_out and sorted(r["id"] for r in out.robots) == sorted(want)
