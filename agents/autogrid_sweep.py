@@ -255,7 +255,9 @@ class SigmaSweep:
 
     @property
     def finished(self) -> bool:
-        return all(t.sub.finished or t.dropped for t in self.tasks)
+        """Every scored task stopped (or dropped): the lsq edge form's fits of all rows do not hold the sweep
+        (the final fit goes on from where they are: `full_fit`)."""
+        return all(t.sub.finished or t.dropped for t in self._folds())
 
     @property
     def residual(self) -> float:
@@ -430,10 +432,11 @@ class SigmaSweep:
         return [t for t in self.tasks if t.fold < self.params.sweep_folds]
 
     def full_fit(self, cand: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, np.ndarray]]] | None:
-        """The lsq edge form's fit of all rows on a candidate's lattice, run beside its folds: this robot's last
-        iterate and every edge's (z, lambda), the final fit's start (it is the same problem, so the final fit
-        only confirms it). Both ends of an edge hold the same (z, lambda), so lambda_lj = -lambda_jl carries
-        over and the fixed point stays the exact fit. None in the hub form (no such task) or when it was dropped."""
+        """The lsq edge form's fit of all rows on a candidate's lattice, run beside its folds until they stop
+        (stopped by its own rule, or not yet): this robot's last iterate and every edge's (z, lambda), the final
+        fit's start (the same problem: the final fit goes on from there, or only confirms it). Every robot advanced
+        the task in the same rounds and both ends of an edge hold the same (z, lambda), so lambda_lj = -lambda_jl
+        carries over and the fixed point stays the exact fit. None in the hub form (no such task) or when dropped."""
         task = next((t for t in self.tasks if t.cand == cand and t.fold == self.params.sweep_folds), None)
         if task is None or task.dropped:
             return None
