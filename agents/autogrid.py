@@ -348,7 +348,9 @@ class AdaptiveGridCore(RoundCore):
         return self.gone if self.floods_gone else tuple(sorted(self.dropped))
 
     def _enter_lsq_fit(self) -> None:
-        """The lsq model's one fit: every row of every robot on the chosen level-0 lattice, from zero."""
+        """The lsq model's one fit: every row of every robot on the chosen level-0 lattice; on a complete graph
+        from each robot's own fit, on a sparse one from the iterate and edge states of the same fit run in the
+        sweep (`SigmaSweep.full_fit`: the edge form's rounds, benchmarks/results/lsq.md)."""
         p = self.params
         feats = self._basis.features(self._rows) if len(self._rows) else np.zeros((0, len(self.grid)))
         self._sub = WarmLSQ(
@@ -357,7 +359,9 @@ class AdaptiveGridCore(RoundCore):
                            diameter=p.diameter),
             lam=p.lsq_lambda, keep_trace=False, hub_frames=p.hub_frames,
             gone=self._known_gone(),  # lam / (robots left)
+            start=self._warm, edges=self._carry,  # (None, {} but on a sparse graph: `_choose_lsq`)
         )
+        self._carry = {}
         self._mark(ADMM)
         self._values, self._flags = self._sub_frame(), 0
 
@@ -462,10 +466,13 @@ class AdaptiveGridCore(RoundCore):
         self.sigma_validation = [{**r, **scores.get(r["divisor"], {"score": None})}
                                  for r in lsq_models(self.bounds, self._diag, self.params, self._near)[1]]
         self.sigma, self.sigma_reason = choose_lsq_sigma(self.sigma_validation, self._diag, self.params)
-        model = next(m for m in sweep.models if m.sigma == self.sigma)
+        cand, model = next((i, m) for i, m in enumerate(sweep.models) if m.sigma == self.sigma)
         self._box, self._h0 = model.box, self.params.coarse_spacing * self.sigma
         self._set_grid(model.basis.grid if self._start_grid is None else self._start_grid.copy())
         self._mode = self.margin
+        warm = sweep.full_fit(cand) if self._start_grid is None else None
+        if warm is not None:  # a sparse graph: the final fit starts where the sweep's fit of all rows ended
+            self._warm, self._carry = warm
         return "least squares"
 
     def _enter_seed(self) -> None:

@@ -244,10 +244,20 @@ class SigmaSweep:
                 self.tasks.append(SweepTask(cand, fold, model.divisor, model.sigma, model.box, basis, held, sub,
                                             offset, task_slot, held_pairs=pairs))
                 offset += self._block(self.tasks[-1]) if not self._scheduled else 0
+            if params.lsq and self.tasks[-1].sub._hub is None:  # the edge form: the candidate's fit of all rows too
+                rows, targets = lsq_rows(points, labels)
+                feats = basis.features(rows) if len(rows) else np.zeros((0, basis.size))
+                sub = WarmLSQ(share.with_data(share.neighbours, feats, targets, None), sub_params,
+                              lam=params.lsq_lambda, keep_trace=False, hub_frames=params.hub_frames, gone=gone)
+                self.tasks.append(SweepTask(cand, params.sweep_folds, model.divisor, model.sigma, model.box, basis,
+                                            np.zeros(len(points), dtype=bool), sub, 0, basis.size,
+                                            held_pairs=np.zeros((0, 2, 2))))
 
     @property
     def finished(self) -> bool:
-        return all(t.sub.finished or t.dropped for t in self.tasks)
+        """Every scored task stopped (or dropped): the lsq edge form's fits of all rows do not hold the sweep
+        (the final fit goes on from where they are: `full_fit`)."""
+        return all(t.sub.finished or t.dropped for t in self._folds())
 
     @property
     def residual(self) -> float:
@@ -373,7 +383,7 @@ class SigmaSweep:
         """This robot's slots of the tally (zeros elsewhere), for a max-consensus."""
         s = self._slots
         v = np.zeros(self.dim)
-        for t in self.tasks:
+        for t in self._folds():
             errors, held, hinge, solid = self._outcome(t)
             base = t.cand * TALLY_BLOCKS * s + self.robot_id
             v[base] += errors + PACK * held + PACK * PACK * (0 if solid else 1)
@@ -388,7 +398,7 @@ class SigmaSweep:
             d = model.divisor
             base = cand * TALLY_BLOCKS * s
             packed = int(round(float(np.sum(tally[base : base + s]))))
-            tasks = [t for t in self.tasks if t.cand == cand]
+            tasks = [t for t in self._folds() if t.cand == cand]
             if self.params.lsq:  # the held-out pairs' mean squared residual (the rule's score)
                 held = (packed // int(PACK)) % int(PACK)
                 total = float(np.sum(tally[base + s : base + 2 * s]))
@@ -416,6 +426,21 @@ class SigmaSweep:
 
     def task(self, cand: int, fold: int) -> SweepTask:
         return next(t for t in self.tasks if t.cand == cand and t.fold == fold)
+
+    def _folds(self) -> list[SweepTask]:
+        """The held-out folds' tasks: those the tally scores (not the lsq edge form's fits of all rows)."""
+        return [t for t in self.tasks if t.fold < self.params.sweep_folds]
+
+    def full_fit(self, cand: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, np.ndarray]]] | None:
+        """The lsq edge form's fit of all rows on a candidate's lattice, run beside its folds until they stop
+        (stopped by its own rule, or not yet): this robot's last iterate and every edge's (z, lambda), the final
+        fit's start (the same problem: the final fit goes on from there, or only confirms it). Every robot advanced
+        the task in the same rounds and both ends of an edge hold the same (z, lambda), so lambda_lj = -lambda_jl
+        carries over and the fixed point stays the exact fit. None in the hub form (no such task) or when dropped."""
+        task = next((t for t in self.tasks if t.cand == cand and t.fold == self.params.sweep_folds), None)
+        if task is None or task.dropped:
+            return None
+        return task.sub.values.copy(), {j: (e.z.copy(), e.lam.copy()) for j, e in task.sub._edges.items()}
 
     # -- checkpoint -----------------------------------------------------------------------------
     def checkpoint(self) -> list[dict[str, Any]]:

@@ -21,6 +21,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from agents.admm import ADMMParams, ConsensusADMM
 from agents.autogrid_warm import WarmADMM
 from agents.lsq_model import DEFAULT_LSQ_LAMBDA, LsqLocalStep, check_lsq_lambda
@@ -99,6 +101,17 @@ class WarmLSQ(WarmADMM):
 
     _build_qp = ConsensusLSQ._build_qp
     _weight_matters = ConsensusLSQ._weight_matters
+
+    def _local_step(self) -> np.ndarray:
+        """Round 0 in the edge form without a given start: the ordinary ADMM step from zero edge state (each
+        robot's rows pulled towards 0 by its edges' penalty), not the robot's own fit. A robot's own fit with
+        lam / N extrapolates far beyond its data on wide kernels; measured on the 8-ring the sweep took 311
+        rounds from this step against 418 from the own fit, before the fits of all rows joined it (the diag/4 task the
+        slowest; benchmarks/results/lsq.md).
+        The hub form (complete graphs) keeps the own fit."""
+        if self._hub is None and self._start is None and not self._carry and self.neighbours:
+            return self._primal_step()
+        return super()._local_step()
 
 
 def lsq_sub_params(lam: float, *, rho: float, relax: float, tol: float, max_rounds: int, diameter: int) -> ADMMParams:

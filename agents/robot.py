@@ -133,7 +133,9 @@ def zenoh_callback(fn: Callable[[Any], Any]) -> Any:
 #: 13 since branch nearlsq: an autogrid lsq robot's state holds rule 2's agreed near-data marks and their chunk
 #: (`_near`, `_chunk`) and its sweep's candidates, frame length and phases changed; a version-12 checkpoint would
 #: resume rule 1's sweep
-CHECKPOINT_VERSION = 13
+#: 14 since branch lsqring: an autogrid lsq robot on a sparse graph runs, beside the sweep's folds, every candidate's
+#: fit of all rows (its sweep's task list changed) and starts the final fit from the chosen one's iterate and edges
+CHECKPOINT_VERSION = 14
 PUBLISH_EXPRESS = True  # see docs/robot.md, "Latency"
 PROFILE_PHASES = ("receive", "checkpoint", "advance", "send", "status", "wait")
 # wall seconds by phase, and the main thread's CPU seconds ("<phase>:cpu": immune to the

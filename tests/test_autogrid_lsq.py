@@ -22,7 +22,7 @@ from launcher.fleet import CrashPlan, launch_fleet
 from launcher.simulate import simulate_fleet
 from launcher.world import Options, build_world
 
-from .conftest import ROOT, bounded_and_clean, cli_exit_and_stderr, run_to_end
+from .conftest import ROOT, bounded_and_clean, cli_exit_and_stderr, run_to_end, step_all
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import autogrid as bench  # noqa: E402  (padded_bounds: the emulation's IoU raster)
@@ -228,6 +228,78 @@ def test_survivors_of_a_loss_in_the_marks_fit_their_own_data(topology):
     assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
 
 
+
+# -- sparse graphs: the plain edge form (agents/lsq_admm.py; benchmarks/results/lsq.md) --------------
+@pytest.mark.parametrize("topology", ["ring", "line"])
+def test_sparse_fleets_end_on_the_exact_fit_of_their_rows(topology):
+    """A ring and a line of 4 run the sweep and the final fit in the edge form: every robot ends converged on the
+    same bits, within the run's tolerance of the exact central least-squares fit on the grid they chose."""
+    world, spec = _spec(fleet_id=f"autolsq-{topology}", topology=topology, robots=4)
+    results = _fleet(world, spec)
+    assert all(r["converged"] and r["x"] == results[0]["x"] and r["gamma"] == results[0]["gamma"] for r in results)
+    basis, ref = _exact(world.robots, results[0])
+    error = basis.function_error(np.asarray(results[0]["c"]), results[0]["gamma"], ref.c, ref.gamma)
+    assert error < spec.autogrid_params.tol
+
+
+def test_a_sparse_final_fit_starts_where_the_sweeps_fit_of_all_rows_ended():
+    """On a ring the sweep also runs every candidate's fit of all rows (`SigmaSweep.full_fit`, not scored) and the
+    final fit starts from the chosen one's iterate and edge states: at its first round every robot's v is that
+    iterate, and both ends of every edge hold the same carried (z, lambda) -- not zero -- so lambda_lj = -lambda_jl
+    and the fixed point stays the exact fit, which the fleet ends on."""
+    world, spec = _spec(fleet_id="autolsq-warmfit", topology="ring", robots=4)
+    cores = [build_core(spec, i) for i in spec.robot_ids]
+    for _ in range(spec.autogrid_params.max_total_rounds):
+        sweeps = {c.robot_id: c._sweep for c in cores}
+        step_all(cores)
+        if all(c._sub is not None for c in cores):
+            break
+    by_id = {c.robot_id: c for c in cores}
+    for c in cores:
+        sweep = sweeps[c.robot_id]
+        cand = next(i for i, m in enumerate(sweep.models) if m.sigma == c.sigma)
+        full = sweep.task(cand, spec.autogrid_params.sweep_folds)
+        assert full.held_pairs is not None and len(full.held_pairs) == 0  # (not scored)
+        assert np.array_equal(c._sub.values, full.sub.values)
+        for j, edge in c._sub._edges.items():
+            other = by_id[j]._sub._edges[c.robot_id]
+            assert np.array_equal(edge.z, other.z) and np.array_equal(edge.lam, other.lam)
+            assert np.any(edge.lam != 0)
+    run_to_end(cores, limit=spec.autogrid_params.max_total_rounds)
+    results = [c.result() for c in cores]
+    basis, ref = _exact(world.robots, results[0])
+    assert all(r["converged"] for r in results)
+    assert all(r["folds"] == spec.autogrid_params.sweep_folds for r in results[0]["sigma_validation"] if r["tried"])
+    assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in results) < 1e-3
+
+
+def test_a_ring_robot_killed_in_the_tally_or_the_fits_first_round_resumes_on_the_clean_answer():
+    """The warm start is built from the sweep's tasks at the tally's end: a robot killed inside the tally (its
+    sweep restored from the checkpoint) and one killed at the fit's first round resume on the clean run's bits."""
+    _, spec = _spec(fleet_id="autolsq-crash-warm", timing=TIMING, topology="ring", robots=4)
+    clean = {r["id"]: r for r in simulate_fleet(spec).robots}
+    phases = dict(clean[0]["phases"])
+    assert phases["admm"] - phases["tally"] >= 2  # (the crash is inside the tally)
+    out = simulate_fleet(spec, crashes=[CrashPlan(2, phases["tally"] + 1), CrashPlan(3, phases["admm"] + 1)],
+                         restart=True, restart_after=0.5)
+    assert [c["fired"] for c in out.crash_log] == [True, True]
+    for r in out.robots:
+        want = clean[r["id"]]
+        assert (r["x"], r["gamma"], r["rounds"], r["sigma"]) == (want["x"], want["gamma"], want["rounds"], want["sigma"])
+
+
+def test_survivors_of_a_loss_in_the_sweep_of_a_ring_fit_their_own_data():
+    """Robot 1 of a 5-ring dies for good in the sweep: the survivors (a line of 4) learn it by the flooded list,
+    weigh lam by the robots left and end on the exact fit of their own rows."""
+    world, spec = _spec(fleet_id="autolsq-ringloss", timing=TIMING, topology="ring", robots=5)
+    out = simulate_fleet(spec, crashes=[CrashPlan(1, 20)], restart=False)
+    assert [r["id"] for r in out.robots] == [0, 2, 3, 4] and all(r["converged"] for r in out.robots)
+    assert dict(out.robots[0]["phases"])["tally"] > 20  # (the loss was in the sweep)
+    assert len({(r["sigma"], tuple(r["x"])) for r in out.robots}) == 1
+    basis, ref = _exact([r for r in world.robots if r.id != 1], out.robots[0])
+    assert max(basis.function_error(np.asarray(r["c"]), r["gamma"], ref.c, ref.gamma) for r in out.robots) < 1e-3
+
+
 # -- the shells -------------------------------------------------------------------------------------
 def test_bad_model_exits_2_naming_the_flag(tmp_path, capsys):
     code, err = cli_exit_and_stderr(["simulate", "--model", "bogus", "--out", str(tmp_path / "x")], capsys)
@@ -260,11 +332,13 @@ def test_simulate_reports_the_model_its_choice_and_its_exact_reference(tmp_path,
 
 
 @pytest.mark.integration
-def test_launch_equals_simulate_bit_for_bit(tmp_path):
-    """Real robot processes over Zenoh run the sweep and the fit as `simulate` does, bit for bit."""
-    _, spec = _spec(fleet_id="autolsq-launch", timing=TIMING)
+@pytest.mark.parametrize("graph", [{}, {"topology": "ring", "robots": 4}], ids=["complete", "ring"])
+def test_launch_equals_simulate_bit_for_bit(tmp_path, graph):
+    """Real robot processes over Zenoh run the sweep and the fit as `simulate` does, bit for bit: the hub form
+    (the default complete graph) and the edge form (a ring: per-edge duals, the fits of all rows in the sweep)."""
+    _, spec = _spec(fleet_id=f"autolsq-launch-{len(graph)}", timing=TIMING, **graph)
     want = {r["id"]: r for r in simulate_fleet(spec).robots}
-    with bounded_and_clean(str(tmp_path), 45.0, "autolsq-launch"):
+    with bounded_and_clean(str(tmp_path), 60.0, "autolsq-launch"):
         out = launch_fleet(spec, workdir=tmp_path / "fleet", crashes=[], restart_after=0.5, restart=True,
                            zenoh_port=None, progress=False)
     assert not out.timed_out and sorted(r["id"] for r in out.robots) == sorted(want)
