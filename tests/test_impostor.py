@@ -173,11 +173,13 @@ def test_impostor_republishing_robot_1_changes_nothing(tmp_path, scale):
 
 def test_a_second_fleet_with_the_same_id_is_refused_and_changes_nothing(tmp_path):
     """Same fleet id, same robot ids, same router, same time: only the launch (the secret) differs.
-    Fleet a's links delay every frame 30 ms, so its ~110 rounds last over 3 s: b's robots, started
-    alongside, run while a's do (undelayed, a ended in ~0.2 s and the twins could miss each other)."""
+    Both fleets' links delay every frame 30 ms, so each run lasts seconds and the twins overlap
+    however their processes' start-ups are ordered (undelayed, a ended in ~0.2 s and the twins could
+    miss each other; with only a delayed, b -- started second -- still finished before a's robots
+    came up once, under a loaded full suite)."""
     specs = {
         "a": make_run(tol=1e-3, fleet_id="twin", timing=TIMING, faults=LinkFaults(delay=0.030)),
-        "b": make_run(tol=1e-3, seed=3, points=15, fleet_id="twin", timing=TIMING),
+        "b": make_run(tol=1e-3, seed=3, points=15, fleet_id="twin", timing=TIMING, faults=LinkFaults(delay=0.030)),
     }
     assert specs["a"][1].secret != specs["b"][1].secret
     want = {k: {r["id"]: r for r in simulate_fleet(s).robots} for k, (_w, s, _c) in specs.items()}
