@@ -282,10 +282,11 @@ class AdaptiveGridCore(RoundCore):
 
     def _new_sweep(self) -> SigmaSweep:
         share = self._share.with_data(self.neighbours, self._points, self._labels, None)
-        models = lsq_models(self.bounds, self._diag, self.params, self._near)[0] if self.params.lsq else None
+        models, records = lsq_models(self.bounds, self._diag, self.params, self._near) if self.params.lsq else (None, None)
         sweep = SigmaSweep(share, self._units, bounds=self.bounds, diag=self._diag, params=self.params, dim=self.dim,
                            models=models, gone=self.gone)
         sweep.reach = self._reach()
+        sweep.lsq_records = records  # every lsq candidate, tried or not (`_choose_lsq`: no second lsq_models)
         return sweep
 
     def _enter_tally(self) -> None:
@@ -463,8 +464,7 @@ class AdaptiveGridCore(RoundCore):
         """Rule 2's choice from the agreed tally; the final fit's grid is the chosen candidate's (its kept nodes),
         or a given start grid (as rule 1's)."""
         scores = {r["divisor"]: r for r in sweep.records(self._values)}
-        self.sigma_validation = [{**r, **scores.get(r["divisor"], {"score": None})}
-                                 for r in lsq_models(self.bounds, self._diag, self.params, self._near)[1]]
+        self.sigma_validation = [{**r, **scores.get(r["divisor"], {"score": None})} for r in sweep.lsq_records]
         self.sigma, self.sigma_reason = choose_lsq_sigma(self.sigma_validation, self._diag, self.params)
         cand, model = next((i, m) for i, m in enumerate(sweep.models) if m.sigma == self.sigma)
         self._box, self._h0 = model.box, self.params.coarse_spacing * self.sigma

@@ -133,10 +133,11 @@ class AutoGridParams:
     # when they make fewer held-out errors in all (ties -> one width)
     narrow_by_holdout: bool = False
     # the model (issue 15): "svm" (the margin, refined grids, everything above) or "lsq" (the LiDAR
-    # least-squares model, agents/lsq_model.py): sigma swept over validate_divisors on level-0 lattices at
-    # LSQ_SPACING_RATIO sigma, 5 folds of whole pairs scored by their held-out squared residual, then one fit
-    # on the chosen lattice -- the rule of benchmarks/lsq_emulation.py (docs/autogrid.md). The default (issue 15):
-    # on the default run IoU 0.950 in 188 rounds against the SVM's 0.893 in 424 (benchmarks/results/autogrid.md)
+    # least-squares model, agents/lsq_model.py): sigma swept over lsq_divisors on near-data level-0 lattices
+    # at LSQ_SPACING_RATIO sigma, 5 folds of whole pairs scored by their held-out squared residual, then one
+    # fit on the chosen lattice -- rule 2 of benchmarks/lsq_emulation.py (docs/autogrid.md). The default
+    # (issue 15): on the default run IoU 0.949 in 159 rounds against the SVM's 0.893 in 424
+    # (benchmarks/results/autogrid.md)
     model: str = "lsq"
     lsq_lambda: float = DEFAULT_LSQ_LAMBDA  # the least-squares model's ridge weight (agents/lsq_model.py)
     lsq_rho: float = LSQ_RHO  # its ADMM penalty (rho is the SVM's)
@@ -258,8 +259,9 @@ class AutoGridParams:
     def sweep_groups(self) -> int:
         """Groups of folds the sweep's frame is sized for (issue 10's frame rule): one, unless every
         task's block together would exceed FRAME_BUDGET (max_points + 1) floats, then the fewest that
-        fit (the lsq model's frame is `lsq_sweep_frame`, shared by its tasks always); the frame holds the first group's blocks and the tasks share it round by round
-        (agents/autogrid_sweep.py). Each task is the same sub-machine either way: only the rounds change."""
+        fit; the frame holds the first group's blocks and the tasks share it round by round
+        (agents/autogrid_sweep.py; the lsq model's frame is `lsq_sweep_frame`, always shared). Each task
+        is the same sub-machine either way: only the rounds change."""
         folds, per_fold = self.sweep_folds, sum(self._fold_blocks())
         budget = FRAME_BUDGET * (self.max_points + 1)
         return next((g for g in range(1, folds + 1) if math.ceil(folds / g) * per_fold <= budget), folds)

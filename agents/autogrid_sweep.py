@@ -201,6 +201,11 @@ class SigmaSweep:
             sub_params = lsq_sub_params(params.lsq_lambda, rho=params.lsq_rho, relax=params.relax, tol=params.tol,
                                         max_rounds=params.soft_rounds, diameter=params.diameter)
             starts, pair_fold = pair_folds(labels, share.robot_id, params.sweep_folds)
+            # the rows each fold trains on, and all rows (the edge form's fit): the same for every candidate
+            fold_rows = [lsq_rows(points, labels, keep=pair_fold != fold) for fold in range(params.sweep_folds)]
+            all_rows = lsq_rows(points, labels)
+        #: every lsq candidate's record, tried or not (set by autogrid.py with the models it passes)
+        self.lsq_records: list[dict[str, Any]] | None = None
         self.tasks: list[SweepTask] = []
         self._raster: dict[int, _RasterBasis] = {}  # per candidate (its folds share the basis)
         self._outcomes: dict[tuple[int, int], tuple[bytes, tuple[int, int, float, bool]]] = {}  # per task: last iterate's
@@ -226,7 +231,7 @@ class SigmaSweep:
                 pairs = None
                 if params.lsq:
                     held = np.zeros(len(points), dtype=bool)  # (unused: the pairs are held out)
-                    rows, targets = lsq_rows(points, labels, keep=pair_fold != fold)
+                    rows, targets = fold_rows[fold]
                     feats = basis.features(rows) if len(rows) else np.zeros((0, basis.size))
                     sub: WarmADMM = WarmLSQ(share.with_data(share.neighbours, feats, targets, None), sub_params,
                                             lam=params.lsq_lambda, keep_trace=False, hub_frames=params.hub_frames,
@@ -245,7 +250,7 @@ class SigmaSweep:
                                             offset, task_slot, held_pairs=pairs))
                 offset += self._block(self.tasks[-1]) if not self._scheduled else 0
             if params.lsq and self.tasks[-1].sub._hub is None:  # the edge form: the candidate's fit of all rows too
-                rows, targets = lsq_rows(points, labels)
+                rows, targets = all_rows
                 feats = basis.features(rows) if len(rows) else np.zeros((0, basis.size))
                 sub = WarmLSQ(share.with_data(share.neighbours, feats, targets, None), sub_params,
                               lam=params.lsq_lambda, keep_trace=False, hub_frames=params.hub_frames, gone=gone)

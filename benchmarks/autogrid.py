@@ -133,13 +133,18 @@ def fleet_iou(world, bounds, core, params) -> tuple[float, float]:
     reports it -- here on the same raster as SVC's."""
     from agents.lsq_model import output_region
     shape = (scenario.IOU_RESOLUTION, scenario.IOU_RESOLUTION)
-    basis = core._basis
+    basis, on_raster = core._basis, {}
 
-    def answer(q):
-        f = core.decision(q)
-        return output_region(f, q, shape, basis.grid, basis.sigma, basis.widths) if params.lsq else f < 0
-    raw = scenario.iou_on_raster(world.shape, lambda q: core.decision(q) < 0, bounds)
-    return (scenario.iou_on_raster(world.shape, answer, bounds) if params.lsq else raw), raw
+    def f(q):  # f on the raster, once for both IoUs (the same raster points each call)
+        if "f" not in on_raster:
+            on_raster["f"] = core.decision(q)
+        return on_raster["f"]
+    raw = scenario.iou_on_raster(world.shape, lambda q: f(q) < 0, bounds)
+    if not params.lsq:
+        return raw, raw
+    region = scenario.iou_on_raster(
+        world.shape, lambda q: output_region(f(q), q, shape, basis.grid, basis.sigma, basis.widths), bounds)
+    return region, raw
 
 
 def svc_iou(world, bounds, sigma):
@@ -234,6 +239,7 @@ def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tupl
     grid, c, gamma = core.function()
     basis, err = error_vs_central(world, core, params)
     bounds = padded_bounds(world.shape)
+    ours, ours_raw = fleet_iou(world, bounds, core, params)
     diag = float(np.hypot(*np.ptp(world.points, axis=0)))
     sweep = [(svc_iou(world, bounds, diag / k), diag / k) for k in OUTLINE_SWEEP]
     cv = StratifiedKFold(5, shuffle=True, random_state=0)
@@ -251,8 +257,8 @@ def measure_outline(path: str, robots: int = 5, points: int = 40, divisors: tupl
         + ("" if not core.width_validation else "; widths r=1: {} r={:g}: {} -> {}".format(
             core.width_validation[0]["errors"], core.width_validation[1]["divisor"], core.width_validation[1]["errors"],
             "one" if core._basis.widths is None else "two")),
-        "ours": fleet_iou(world, bounds, core, params)[0],
-        "ours_raw": fleet_iou(world, bounds, core, params)[1],
+        "ours": ours,
+        "ours_raw": ours_raw,
         "svc_same": svc_iou(world, bounds, core.sigma),
         "best": max(sweep), "cv": sweep[int(np.argmax(scores))],
     }

@@ -570,7 +570,7 @@ class FrameDecoder:
                 tag = env.tags.get(self._me)
                 if base is not None and body is not None and tag is not None:
                     h = base.copy()
-                    h.update(env.digest or env.body_digest())
+                    h.update(env.body_digest())
                     if _compare_digest(h.digest(), tag):
                         _MEMO.hits += 1
                         try:
